@@ -1,0 +1,43 @@
+"""Finite-element models of the bridge: Hermite beam elements, supports, damage and influence lines."""
+
+from shared.fe.beam import (
+    CRACK_HALF_WIDTH_DEPTHS,
+    DAMPING_MODELS,
+    SUPPORTS,
+    Beam,
+    BeamSystem,
+    ContactEntries,
+    assemble,
+    compliance_kernel,
+    contact_entries,
+    contact_matrix,
+    contact_vector,
+    crack_ei_factor,
+    crack_peak_loss,
+    global_ei_factor,
+    hermite_shape,
+    influence_line,
+    natural_frequencies,
+    static_deflection,
+)
+
+__all__ = [
+    "CRACK_HALF_WIDTH_DEPTHS",
+    "DAMPING_MODELS",
+    "SUPPORTS",
+    "Beam",
+    "BeamSystem",
+    "ContactEntries",
+    "assemble",
+    "compliance_kernel",
+    "contact_entries",
+    "contact_matrix",
+    "contact_vector",
+    "crack_ei_factor",
+    "crack_peak_loss",
+    "global_ei_factor",
+    "hermite_shape",
+    "influence_line",
+    "natural_frequencies",
+    "static_deflection",
+]
