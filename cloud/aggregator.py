@@ -1,0 +1,132 @@
+"""The aggregator's state machine: validated segments in, estimator updates and pass acks out.
+
+No transport here: the node hands it payloads and publishes what it returns, so every rule
+(reject and count, supersede by calibration version, acknowledge a complete pass) is testable
+without a network.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import math
+
+from shared.registry import Site
+from shared.schema import Ack, ApSegment, DecodeError, PassDone, decode_ap_segment, decode_pass_done
+
+from .estimators.base import Estimator
+
+log = logging.getLogger(__name__)
+
+MAX_ROUTE_OVERHANG_M = 50.0  # a segment may start at most this far beyond the route's end
+
+
+@dataclasses.dataclass
+class PassState:
+    vehicle_id: str
+    route_id: str
+    calib_version: int = -1
+    seqs: set = dataclasses.field(default_factory=set)
+    expected: int | None = None
+    acked: bool = False
+
+
+class Aggregator:
+    """Keeps the accepted segments (latest calibration version of each) and the estimators fed."""
+
+    def __init__(self, site: Site, estimators: list[Estimator]):
+        self.site = site
+        self.estimators = estimators
+        self.routes = {r.id: r.length_m for r in site.routes}
+        self.segments: dict[tuple, ApSegment] = {}  # (vehicle, pass, route, tile, axle) → segment
+        self.passes: dict[tuple[str, str], PassState] = {}
+        self.rejected: collections.Counter[str] = collections.Counter()
+        self.accepted = 0
+        self.updates = 0  # estimator updates applied (for views: "something changed")
+
+    # -- input ---------------------------------------------------------------------------------
+    def on_segment(self, payload: bytes, key_vehicle: str | None = None) -> list[Ack]:
+        try:
+            seg = decode_ap_segment(payload)
+        except DecodeError as e:
+            return self._reject(e.reason, str(e))
+        reason = self._check(seg, key_vehicle)
+        if reason:
+            return self._reject(reason, f"{seg.vehicle_id}/{seg.pass_id} tile {seg.tile}")
+        slot = (seg.vehicle_id, seg.pass_id, seg.route_id, seg.tile, seg.axle)
+        old = self.segments.get(slot)
+        if old is not None:
+            if old.calib_version > seg.calib_version:
+                return self._reject("stale_calibration", f"{slot} v{seg.calib_version} < v{old.calib_version}")
+            if old.calib_version == seg.calib_version:
+                self.rejected["duplicate"] += 1  # idempotent: a redelivery changes nothing
+                return self._maybe_ack(seg.vehicle_id, seg.pass_id)
+            for est in self.estimators:
+                est.retract(old)
+        self.segments[slot] = seg
+        for est in self.estimators:
+            est.update(seg)
+        self.accepted += 1
+        self.updates += 1
+        ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
+        if seg.calib_version > ps.calib_version:
+            ps.calib_version, ps.seqs, ps.expected, ps.acked = seg.calib_version, set(), None, False
+        if seg.calib_version == ps.calib_version:
+            ps.seqs.add(seg.seq)
+        return self._maybe_ack(seg.vehicle_id, seg.pass_id)
+
+    def on_pass_done(self, payload: bytes) -> list[Ack]:
+        try:
+            done = decode_pass_done(payload)
+        except DecodeError as e:
+            return self._reject(e.reason, str(e))
+        if done.route_id not in self.routes:
+            return self._reject("unknown_route", done.route_id)
+        ps = self.passes.setdefault((done.vehicle_id, done.pass_id), PassState(done.vehicle_id, done.route_id))
+        if done.calib_version < ps.calib_version:
+            return self._reject("stale_calibration", f"done {done.pass_id} v{done.calib_version}")
+        if done.calib_version > ps.calib_version:
+            ps.calib_version, ps.seqs, ps.acked = done.calib_version, set(), False
+        ps.expected = done.n_segments
+        return self._maybe_ack(done.vehicle_id, done.pass_id)
+
+    # -- rules ---------------------------------------------------------------------------------
+    def _check(self, seg: ApSegment, key_vehicle: str | None) -> str | None:
+        if key_vehicle is not None and key_vehicle != seg.vehicle_id:
+            return "key_mismatch"
+        length = self.routes.get(seg.route_id)
+        if length is None:
+            return "unknown_route"
+        if seg.start_index * seg.spacing_m > length + MAX_ROUTE_OVERHANG_M:
+            return "beyond_route"
+        if not (0.5 <= seg.speed_mps <= 100.0):
+            return "impossible_speed"
+        if not all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators):
+            return "grid_mismatch"
+        values = seg.values
+        if not (math.isfinite(float(values.max())) and float(abs(values).max()) < 1.0):
+            return "implausible_ap"
+        return None
+
+    def _reject(self, reason: str, detail: str) -> list[Ack]:
+        self.rejected[reason] += 1
+        log.warning("rejected segment (%s): %s", reason, detail)
+        return []
+
+    def _maybe_ack(self, vehicle_id: str, pass_id: str) -> list[Ack]:
+        ps = self.passes.get((vehicle_id, pass_id))
+        if ps is None or ps.acked or ps.expected is None or len(ps.seqs) < ps.expected:
+            return []
+        ps.acked = True
+        return [Ack(vehicle_id=vehicle_id, pass_id=pass_id, n_segments_accepted=len(ps.seqs),
+                    calib_version=ps.calib_version)]
+
+    def stats(self) -> dict:
+        return {
+            "accepted": self.accepted,
+            "rejected": dict(self.rejected),
+            "segments_held": len(self.segments),
+            "passes": len(self.passes),
+            "passes_complete": sum(p.acked for p in self.passes.values()),
+        }
