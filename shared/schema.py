@@ -1,0 +1,1025 @@
+"""Versioned Arrow IPC messages of the driveby bus: one frozen dataclass and one decoder per kind.
+
+Wire form
+---------
+Every payload is an Arrow IPC *stream* holding exactly one record batch of exactly
+one row.  Scalars are typed columns; arrays are ``list<...>`` columns (one list in
+the single row).  The schema metadata key ``driveby`` holds
+``{"kind": <kind>, "version": SCHEMA_VERSION}``.  Decoders ignore columns they do not
+know, so a message may grow optional columns without a version bump.
+
+Every constructor validates its fields; ``decode_<kind>`` validates the payload
+(``bytes``, or a ``zenoh.ZBytes`` such as ``sample.payload``: size, Arrow framing,
+header, column presence and types, nulls) and then the fields,
+raising :class:`DecodeError` whose ``reason`` is one short, countable word from
+:data:`REASONS`.
+
+AP values on the wire (:class:`ApSegment`)
+------------------------------------------
+* values: ``int16`` codes ``q`` with ``value = offset_m + scale_m * q``; :meth:`ApSegment.make`
+  chooses ``offset_m`` = mid-range and ``scale_m`` = half-range / 32767, so the
+  rounding error is at most ``scale_m / 2 = (max - min) / 131068`` (0.3 um for a
+  tile whose AP spans 40 mm).
+* sigma: ``int16`` codes ``q <= 0`` on a log2 scale, ``sigma = sigma_ref_m * 2**(q / 2048)``
+  with ``sigma_ref_m`` = max(sigma); codes are rounded *up*, so a decoded sigma is
+  never smaller than the encoded one and at most 0.034 % larger (sigmas below
+  ``sigma_ref_m * 2**-16`` are raised to that floor).  A log scale keeps the
+  relative precision of the smallest (most informative) sigmas, which a linear
+  int16 code would not.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any, ClassVar, NoReturn
+
+import numpy as np
+import pyarrow as pa
+
+from shared.keys import is_valid_id
+
+SCHEMA_VERSION = 1
+META_KEY = b"driveby"
+
+MAX_PAYLOAD_BYTES = 4 * 1024 * 1024
+MAX_DECODED_BYTES = 64 * 1024 * 1024  # guards against compressed IPC bodies expanding
+MAX_SAMPLES = 1 << 20
+MAX_CHANNELS = 32
+MAX_PARAMS = 64
+MAX_TEXT = 256
+MAX_MESSAGE_TEXT = 4096
+MAX_SPEED_MPS = 150.0
+MAX_ABS_AP_M = 1.0e3
+MAX_ABS_CHAINAGE_M = 1.0e7
+MAX_INDEX = 1 << 40
+MAX_INT32 = (1 << 31) - 1
+
+VEHICLE_MODELS = frozenset({"sprung_mass", "quarter_car", "half_car", "bogie_half_car", "carriage"})
+
+FLAG_UNRELIABLE = 1 << 0
+"""ApSegment.flags bit 0: the segment contains warm-up or otherwise unreliable points."""
+
+Q_MAX = 32767
+SIGMA_CODES_PER_OCTAVE = 2048
+
+REASONS = (
+    "not_arrow",  # not bytes, empty, not an Arrow IPC stream, corrupt buffers
+    "bad_header",  # no or unreadable `driveby` metadata
+    "wrong_kind",
+    "wrong_version",
+    "missing_field",  # a required column is absent or null
+    "bad_type",  # a column (or a constructor argument) has the wrong type
+    "non_finite",  # NaN or inf where a finite number is required
+    "bad_shape",  # not one batch of one row, duplicate columns, or array lengths disagree
+    "oversize",  # payload or decoded data over the caps
+    "bad_value",  # a value out of its range or set, a malformed id
+)
+
+_NAME_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")
+_PARAM_RE = re.compile(r"[A-Za-z0-9_./-]{1,64}")
+
+
+class InvalidMessage(ValueError):
+    """A message field or payload is invalid; ``reason`` is one word of :data:`REASONS`."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(f"{reason}: {detail}" if detail else reason)
+        self.reason = reason
+        self.detail = detail
+
+
+class DecodeError(InvalidMessage):
+    """A payload could not be decoded; ``reason`` is one word of :data:`REASONS`."""
+
+
+# -- field validation (raises InvalidMessage) -------------------------------------------
+
+
+def _fail(reason: str, detail: str) -> NoReturn:
+    raise InvalidMessage(reason, detail)
+
+
+def _id(name: str, v: object) -> str:
+    if not isinstance(v, str):
+        _fail("bad_type", f"{name} must be str")
+    if not is_valid_id(v):
+        _fail("bad_value", f"{name} {v!r} is not [A-Za-z0-9_.-]{{1,128}}")
+    return v  # type: ignore[return-value]
+
+
+def _text(name: str, v: object, max_len: int = MAX_TEXT, *, printable: bool = True) -> str:
+    if not isinstance(v, str):
+        _fail("bad_type", f"{name} must be str")
+    if len(v) > max_len:  # type: ignore[arg-type]
+        _fail("oversize", f"{name} longer than {max_len}")
+    if (printable and not v.isprintable()) or "\x00" in v:  # type: ignore[union-attr,operator]
+        _fail("bad_value", f"{name} has control characters")
+    return v  # type: ignore[return-value]
+
+
+def _int(name: str, v: object, lo: int, hi: int) -> int:
+    if isinstance(v, bool | np.bool_) or not isinstance(v, int | np.integer):
+        _fail("bad_type", f"{name} must be int")
+    v = int(v)  # type: ignore[arg-type]
+    if not lo <= v <= hi:
+        _fail("bad_value", f"{name}={v} outside [{lo}, {hi}]")
+    return v
+
+
+def _float(
+    name: str, v: object, lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False
+) -> float:
+    if isinstance(v, bool | np.bool_) or not isinstance(v, int | float | np.integer | np.floating):
+        _fail("bad_type", f"{name} must be a real number")
+    try:
+        v = float(v)  # type: ignore[arg-type]
+    except OverflowError:
+        v = math.inf
+    if not math.isfinite(v):
+        _fail("non_finite", f"{name} is {v}")
+    if v < lo or v > hi or (lo_open and v == lo):
+        _fail("bad_value", f"{name}={v} outside {'(' if lo_open else '['}{lo}, {hi}]")
+    return v
+
+
+def _bool(name: str, v: object) -> bool:
+    if not isinstance(v, bool | np.bool_):
+        _fail("bad_type", f"{name} must be bool")
+    return bool(v)
+
+
+def _array(name: str, v: object, dtype: type, *, finite: bool = True) -> np.ndarray:
+    """A read-only 1-D copy of ``v`` as ``dtype``; integer targets are range-checked."""
+    try:
+        a = np.asarray(v)
+    except (TypeError, ValueError):
+        _fail("bad_type", f"{name} is not an array")
+    if a.dtype.kind not in "iuf":
+        _fail("bad_type", f"{name} has dtype {a.dtype}, expected numbers")
+    if a.ndim != 1:
+        _fail("bad_shape", f"{name} must be 1-D, got shape {a.shape}")
+    if a.size > MAX_SAMPLES:
+        _fail("oversize", f"{name} has {a.size} > {MAX_SAMPLES} points")
+    target = np.dtype(dtype)
+    if target.kind in "iu":
+        if a.dtype.kind == "f":
+            if not np.all(np.isfinite(a)):
+                _fail("non_finite", f"{name} has NaN or inf")
+            if np.any(a != np.round(a)):
+                _fail("bad_type", f"{name} must hold integers")
+        info = np.iinfo(target)
+        if a.size and (a.min() < info.min or a.max() > info.max):
+            _fail("bad_value", f"{name} outside the {target} range")
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = np.array(a, dtype=target, copy=True)
+    if finite and target.kind == "f" and not np.all(np.isfinite(out)):
+        _fail("non_finite", f"{name} has NaN or inf")
+    out.setflags(write=False)
+    return out
+
+
+def _params(name: str, v: object) -> dict[str, float]:
+    if not isinstance(v, Mapping):
+        _fail("bad_type", f"{name} must be a mapping name -> float")
+    if len(v) > MAX_PARAMS:  # type: ignore[arg-type]
+        _fail("oversize", f"{name} has more than {MAX_PARAMS} entries")
+    out: dict[str, float] = {}
+    for k, x in v.items():  # type: ignore[union-attr]
+        if not isinstance(k, str):
+            _fail("bad_type", f"{name} keys must be str")
+        if _PARAM_RE.fullmatch(k) is None:
+            _fail("bad_value", f"{name} key {k!r} is not [A-Za-z0-9_./-]{{1,64}}")
+        out[k] = _float(f"{name}[{k}]", x)
+    return out
+
+
+def _utc(name: str, v: object) -> str:
+    s = _text(name, v, 64)
+    try:
+        t = datetime.fromisoformat(s)
+    except ValueError:
+        _fail("bad_value", f"{name} {s!r} is not ISO 8601")
+    if t.tzinfo is None:
+        _fail("bad_value", f"{name} {s!r} has no time zone")
+    return s
+
+
+# -- Arrow framing --------------------------------------------------------------------
+
+
+def _list_column(a: np.ndarray, value_type: pa.DataType) -> pa.Array:
+    offsets = pa.array(np.array([0, a.size], dtype=np.int32))
+    return pa.ListArray.from_arrays(offsets, pa.array(a, type=value_type))
+
+
+_PARAMS_TYPE = pa.map_(pa.string(), pa.float64())
+
+
+def _params_column(p: Mapping[str, float] | None) -> pa.Array:
+    return pa.array([None if p is None else list(p.items())], type=_PARAMS_TYPE)
+
+
+def _scalar(v: object, t: pa.DataType) -> pa.Array:
+    return pa.array([v], type=t)
+
+
+def _encode(kind: str, columns: dict[str, pa.Array]) -> bytes:
+    header = json.dumps({"kind": kind, "version": SCHEMA_VERSION}).encode()
+    schema = pa.schema([pa.field(k, c.type) for k, c in columns.items()], metadata={META_KEY: header})
+    batch = pa.RecordBatch.from_arrays(list(columns.values()), schema=schema)
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, schema) as writer:
+        writer.write_batch(batch)
+    payload = sink.getvalue().to_pybytes()
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise InvalidMessage("oversize", f"{kind} payload of {len(payload)} B > {MAX_PAYLOAD_BYTES} B")
+    return payload
+
+
+def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
+    """Parse the framing and header; returns ``(kind, version, batch)`` or raises DecodeError."""
+    zenoh = sys.modules.get("zenoh")  # accept sample.payload as is, without importing zenoh here
+    if zenoh is not None and isinstance(payload, zenoh.ZBytes):
+        payload = payload.to_bytes()
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise DecodeError("not_arrow", f"payload is {type(payload).__name__}, expected bytes")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise DecodeError("oversize", f"payload of {len(payload)} B > {MAX_PAYLOAD_BYTES} B")
+    if len(payload) == 0:
+        raise DecodeError("not_arrow", "empty payload")
+    try:
+        reader = pa.ipc.open_stream(pa.py_buffer(payload))
+        batches = []
+        for batch in reader:
+            batches.append(batch)
+            if len(batches) > 1:
+                break
+        for batch in batches:
+            # Validate before touching anything else: even `nbytes` follows the
+            # offsets, and corrupt offsets crash the process (found by fuzzing).
+            batch.validate(full=True)
+            if batch.nbytes > MAX_DECODED_BYTES:
+                raise DecodeError("oversize", f"decoded batch of {batch.nbytes} B")
+        schema = reader.schema
+        names = schema.names  # raises UnicodeDecodeError (a ValueError) on corrupt names
+    except (pa.ArrowException, OSError, ValueError) as e:
+        if isinstance(e, DecodeError):
+            raise
+        raise DecodeError("not_arrow", str(e)[:200]) from None
+    raw = (schema.metadata or {}).get(META_KEY)
+    if raw is None:
+        raise DecodeError("bad_header", "no 'driveby' schema metadata")
+    try:
+        header = json.loads(raw)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise DecodeError("bad_header", "'driveby' metadata is not JSON") from None
+    kind = header.get("kind") if isinstance(header, dict) else None
+    version = header.get("version") if isinstance(header, dict) else None
+    if not isinstance(kind, str) or isinstance(version, bool) or not isinstance(version, int):
+        raise DecodeError("bad_header", "'driveby' metadata needs a str kind and an int version")
+    if len(set(names)) != len(names):
+        raise DecodeError("bad_shape", "duplicate column names")
+    if len(batches) != 1 or batches[0].num_rows != 1:
+        n_rows = [b.num_rows for b in batches]
+        raise DecodeError("bad_shape", f"expected one batch of one row, got rows {n_rows}")
+    return kind, version, batches[0]
+
+
+class _Row:
+    """Typed access to the single row of a decoded batch (raises InvalidMessage)."""
+
+    def __init__(self, batch: pa.RecordBatch) -> None:
+        self.batch = batch
+        self.names = set(batch.schema.names)
+
+    def _col(self, name: str) -> pa.Array | None:
+        if name not in self.names:
+            return None
+        return self.batch.column(name)
+
+    def _required(self, name: str, check, what: str) -> pa.Array:
+        col = self._col(name)
+        if col is None:
+            _fail("missing_field", f"no column {name!r}")
+        if not check(col.type):
+            _fail("bad_type", f"column {name!r} is {col.type}, expected {what}")
+        if col.null_count:
+            _fail("missing_field", f"column {name!r} is null")
+        return col
+
+    def text(self, name: str) -> str:
+        col = self._required(name, lambda t: pa.types.is_string(t) or pa.types.is_large_string(t), "string")
+        return col[0].as_py()
+
+    def integer(self, name: str) -> int:
+        return self._required(name, pa.types.is_integer, "integer")[0].as_py()
+
+    def real(self, name: str) -> float:
+        return self._required(name, pa.types.is_floating, "float")[0].as_py()
+
+    def flag(self, name: str) -> bool:
+        return self._required(name, pa.types.is_boolean, "bool")[0].as_py()
+
+    def opt_real(self, name: str) -> float | None:
+        col = self._col(name)
+        if col is None or col.null_count:
+            return None
+        return self.real(name)
+
+    def array(self, name: str, value_type: pa.DataType) -> np.ndarray:
+        def check(t: pa.DataType) -> bool:
+            return (pa.types.is_list(t) or pa.types.is_large_list(t)) and t.value_type.equals(value_type)
+
+        values = self._required(name, check, f"list<{value_type}>")[0].values
+        if values.null_count:
+            _fail("missing_field", f"column {name!r} has null items")
+        return values.to_numpy(zero_copy_only=False)
+
+    def params(self, name: str, *, optional: bool) -> dict[str, float] | None:
+        col = self._col(name)
+        if optional and (col is None or col.null_count):
+            return None
+
+        def check(t: pa.DataType) -> bool:
+            return pa.types.is_map(t) and pa.types.is_string(t.key_type) and pa.types.is_float64(t.item_type)
+
+        col = self._required(name, check, str(_PARAMS_TYPE))
+        items = col[0].as_py()
+        keys = [k for k, _ in items]
+        if len(set(keys)) != len(keys):
+            _fail("bad_value", f"column {name!r} has duplicate keys")
+        if any(v is None for _, v in items):
+            _fail("missing_field", f"column {name!r} has null values")
+        return dict(items)
+
+
+# -- messages ---------------------------------------------------------------------------
+
+
+class _Message:
+    """Shared behaviour: field-wise equality that understands numpy arrays."""
+
+    KIND: ClassVar[str]
+    __hash__ = None  # type: ignore[assignment]  # arrays make messages unhashable
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return all(
+            _same(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)  # type: ignore[arg-type]
+        )
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and np.array_equal(a, b)
+        )
+    if isinstance(a, Mapping) and isinstance(b, Mapping):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    return a == b
+
+
+def _decoding(kind: str, payload: object, build) -> Any:
+    got, version, batch = _read_batch(payload)
+    if got != kind:
+        raise DecodeError("wrong_kind", f"expected {kind}, got {got}")
+    return _build(kind, version, batch, build)
+
+
+def _build(kind: str, version: int, batch: pa.RecordBatch, build) -> Any:
+    if version != SCHEMA_VERSION:
+        raise DecodeError("wrong_version", f"{kind} version {version}, expected {SCHEMA_VERSION}")
+    try:
+        return build(_Row(batch))
+    except DecodeError:
+        raise
+    except InvalidMessage as e:
+        raise DecodeError(e.reason, e.detail) from None
+
+
+@dataclass(frozen=True, eq=False)
+class SensorChunk(_Message):
+    """A chunk of one vehicle's raw sensor stream (simfleet -> edge).
+
+    ``chainage`` (m) and ``speed`` (m/s) are float64, every channel float32, all of the
+    chunk's length ``n``; sample ``i`` is at ``t0 + i / sample_rate_hz`` seconds since
+    the start of the log.  ``seq`` numbers the chunks of a pass from 0; ``final``
+    marks the pass's last chunk (which may be empty).
+    """
+
+    KIND: ClassVar[str] = "sensor_chunk"
+
+    vehicle_id: str
+    pass_id: str
+    route_id: str
+    vehicle_model: str
+    seq: int
+    t0: float
+    sample_rate_hz: float
+    chainage: np.ndarray
+    speed: np.ndarray
+    channels: Mapping[str, np.ndarray]
+    final: bool = False
+    nominal_params: Mapping[str, float] | None = None
+    lane_offset_m: float | None = None
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        _id("vehicle_id", self.vehicle_id)
+        _text("pass_id", self.pass_id, MAX_TEXT)
+        if not self.pass_id:
+            _fail("bad_value", "pass_id is empty")
+        _id("route_id", self.route_id)
+        if _text("vehicle_model", self.vehicle_model) not in VEHICLE_MODELS:
+            _fail("bad_value", f"vehicle_model {self.vehicle_model!r} not in {sorted(VEHICLE_MODELS)}")
+        set_(self, "seq", _int("seq", self.seq, 0, MAX_INT32))
+        set_(self, "t0", _float("t0", self.t0, 0.0))
+        set_(self, "sample_rate_hz", _float("sample_rate_hz", self.sample_rate_hz, 0.0, 1.0e5, lo_open=True))
+        chainage = _array("chainage", self.chainage, np.float64)
+        speed = _array("speed", self.speed, np.float64)
+        n = chainage.size
+        if speed.size != n:
+            _fail("bad_shape", f"speed has {speed.size} samples, chainage {n}")
+        if n and np.max(np.abs(chainage)) > MAX_ABS_CHAINAGE_M:
+            _fail("bad_value", f"|chainage| > {MAX_ABS_CHAINAGE_M} m")
+        if n and np.max(np.abs(speed)) > MAX_SPEED_MPS:
+            _fail("bad_value", f"|speed| > {MAX_SPEED_MPS} m/s")
+        if not isinstance(self.channels, Mapping):
+            _fail("bad_type", "channels must be a mapping name -> array")
+        if len(self.channels) > MAX_CHANNELS:
+            _fail("oversize", f"more than {MAX_CHANNELS} channels")
+        channels = {}
+        for name, values in self.channels.items():
+            if not isinstance(name, str) or _NAME_RE.fullmatch(name) is None:
+                _fail("bad_value", f"channel name {name!r} is not an identifier")
+            a = _array(f"channels[{name}]", values, np.float32)
+            if a.size != n:
+                _fail("bad_shape", f"channel {name} has {a.size} samples, chainage {n}")
+            channels[name] = a
+        set_(self, "chainage", chainage)
+        set_(self, "speed", speed)
+        set_(self, "channels", channels)
+        set_(self, "final", _bool("final", self.final))
+        if self.nominal_params is not None:
+            set_(self, "nominal_params", _params("nominal_params", self.nominal_params))
+        if self.lane_offset_m is not None:
+            set_(self, "lane_offset_m", _float("lane_offset_m", self.lane_offset_m, -10.0, 10.0))
+
+    @property
+    def n(self) -> int:
+        """Number of samples in the chunk."""
+        return int(self.chainage.size)
+
+    @property
+    def t(self) -> np.ndarray:
+        """Sample times (s since the start of the log), float64."""
+        return self.t0 + np.arange(self.n) / self.sample_rate_hz
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this chunk."""
+        cols = {
+            "vehicle_id": _scalar(self.vehicle_id, pa.string()),
+            "pass_id": _scalar(self.pass_id, pa.string()),
+            "route_id": _scalar(self.route_id, pa.string()),
+            "vehicle_model": _scalar(self.vehicle_model, pa.string()),
+            "seq": _scalar(self.seq, pa.int64()),
+            "t0": _scalar(self.t0, pa.float64()),
+            "sample_rate_hz": _scalar(self.sample_rate_hz, pa.float64()),
+            "final": _scalar(self.final, pa.bool_()),
+            "nominal_params": _params_column(self.nominal_params),
+            "lane_offset_m": _scalar(self.lane_offset_m, pa.float64()),
+            "chainage": _list_column(self.chainage, pa.float64()),
+            "speed": _list_column(self.speed, pa.float64()),
+        }
+        for name, values in self.channels.items():
+            cols["ch." + name] = _list_column(values, pa.float32())
+        return _encode(self.KIND, cols)
+
+
+def _build_sensor_chunk(r: _Row) -> SensorChunk:
+    channels = {
+        name[3:]: r.array(name, pa.float32()) for name in r.batch.schema.names if name.startswith("ch.")
+    }
+    return SensorChunk(
+        vehicle_id=r.text("vehicle_id"),
+        pass_id=r.text("pass_id"),
+        route_id=r.text("route_id"),
+        vehicle_model=r.text("vehicle_model"),
+        seq=r.integer("seq"),
+        t0=r.real("t0"),
+        sample_rate_hz=r.real("sample_rate_hz"),
+        chainage=r.array("chainage", pa.float64()),
+        speed=r.array("speed", pa.float64()),
+        channels=channels,
+        final=r.flag("final"),
+        nominal_params=r.params("nominal_params", optional=True),
+        lane_offset_m=r.opt_real("lane_offset_m"),
+    )
+
+
+
+def decode_sensor_chunk(payload: bytes) -> SensorChunk:
+    """Decode and validate a :class:`SensorChunk` payload; raises :class:`DecodeError`."""
+    return _decoding(SensorChunk.KIND, payload, _build_sensor_chunk)
+
+
+def quantize_values(values_m: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Linear int16 code of finite values: returns ``(q, scale_m, offset_m)``.
+
+    ``values ~= offset_m + scale_m * q`` with an error of at most ``scale_m / 2``.
+    """
+    v = np.asarray(values_m, dtype=np.float64)
+    lo, hi = float(v.min()), float(v.max())
+    offset = 0.5 * (lo + hi)
+    half = 0.5 * (hi - lo)
+    scale = half / Q_MAX
+    if not scale > 0.0:  # constant segment (or a half-range below the smallest float)
+        scale = 1.0
+    q = np.clip(np.rint((v - offset) / scale), -Q_MAX, Q_MAX).astype(np.int16)
+    return q, scale, offset
+
+
+def quantize_sigma(sigma_m: np.ndarray) -> tuple[np.ndarray, float]:
+    """Log2 int16 code of positive sigmas, rounded up: returns ``(q, sigma_ref_m)``.
+
+    ``sigma ~= sigma_ref_m * 2**(q / 2048)``, never below the true sigma.
+    """
+    s = np.asarray(sigma_m, dtype=np.float64)
+    ref = float(s.max())
+    code = np.ceil(SIGMA_CODES_PER_OCTAVE * np.log2(s / ref))
+    q = np.clip(code, -Q_MAX - 1, 0).astype(np.int16)
+    return q, ref
+
+
+@dataclass(frozen=True, eq=False)
+class ApSegment(_Message):
+    """A segment of one pass's apparent profile on the route's global grid (edge -> cloud).
+
+    Point ``i`` lies at chainage ``(start_index + i) * spacing_m`` of route ``route_id``,
+    under axle ``axle`` (1-based, 1 = leading); ``tile`` is the tile the segment
+    belongs to.  Build with :meth:`make`; read with :attr:`values` and :attr:`sigma`
+    (float64, m).  Identity for idempotent fusion: :attr:`identity`.
+    """
+
+    KIND: ClassVar[str] = "ap_segment"
+
+    vehicle_id: str
+    pass_id: str
+    route_id: str
+    tile: int
+    axle: int
+    start_index: int
+    spacing_m: float
+    values_q: np.ndarray
+    scale_m: float
+    offset_m: float
+    sigma_q: np.ndarray
+    sigma_ref_m: float
+    calib_version: int
+    speed_mps: float
+    t_first: float
+    t_last: float
+    seq: int
+    n_segments_in_pass: int = -1
+    flags: int = 0
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        _id("vehicle_id", self.vehicle_id)
+        _text("pass_id", self.pass_id, MAX_TEXT)
+        if not self.pass_id:
+            _fail("bad_value", "pass_id is empty")
+        _id("route_id", self.route_id)
+        set_(self, "tile", _int("tile", self.tile, 0, MAX_INT32))
+        set_(self, "axle", _int("axle", self.axle, 1, 16))
+        set_(self, "start_index", _int("start_index", self.start_index, 0, MAX_INDEX))
+        set_(self, "spacing_m", _float("spacing_m", self.spacing_m, 0.0, 100.0, lo_open=True))
+        values_q = _array("values_q", self.values_q, np.int16)
+        sigma_q = _array("sigma_q", self.sigma_q, np.int16)
+        if values_q.size == 0:
+            _fail("bad_shape", "a segment needs at least one point")
+        if sigma_q.size != values_q.size:
+            _fail("bad_shape", f"sigma has {sigma_q.size} points, values {values_q.size}")
+        if np.any(sigma_q > 0):
+            _fail("bad_value", "sigma codes must be <= 0")
+        set_(self, "values_q", values_q)
+        set_(self, "sigma_q", sigma_q)
+        set_(self, "scale_m", _float("scale_m", self.scale_m, 0.0, 1.0, lo_open=True))
+        set_(self, "offset_m", _float("offset_m", self.offset_m, -MAX_ABS_AP_M, MAX_ABS_AP_M))
+        set_(self, "sigma_ref_m", _float("sigma_ref_m", self.sigma_ref_m, 0.0, MAX_ABS_AP_M, lo_open=True))
+        set_(self, "calib_version", _int("calib_version", self.calib_version, 0, MAX_INT32))
+        set_(self, "speed_mps", _float("speed_mps", self.speed_mps, 0.0, MAX_SPEED_MPS))
+        set_(self, "t_first", _float("t_first", self.t_first))
+        set_(self, "t_last", _float("t_last", self.t_last))
+        if self.t_last < self.t_first:
+            _fail("bad_value", f"t_last {self.t_last} < t_first {self.t_first}")
+        set_(self, "seq", _int("seq", self.seq, 0, MAX_INT32))
+        set_(self, "n_segments_in_pass", _int("n_segments_in_pass", self.n_segments_in_pass, -1, MAX_INT32))
+        if self.n_segments_in_pass >= 0 and self.seq >= self.n_segments_in_pass:
+            _fail("bad_value", f"seq {self.seq} >= n_segments_in_pass {self.n_segments_in_pass}")
+        set_(self, "flags", _int("flags", self.flags, 0, MAX_INT32))
+
+    @classmethod
+    def make(
+        cls,
+        values_m: np.ndarray,
+        sigma_m: np.ndarray,
+        *,
+        vehicle_id: str,
+        pass_id: str,
+        route_id: str,
+        tile: int,
+        axle: int,
+        start_index: int,
+        spacing_m: float,
+        calib_version: int,
+        speed_mps: float,
+        t_first: float,
+        t_last: float,
+        seq: int,
+        n_segments_in_pass: int = -1,
+        flags: int = 0,
+    ) -> ApSegment:
+        """Quantise float AP values and sigmas (m) into a segment.
+
+        Parameters
+        ----------
+        values_m : array (n,)
+            Apparent profile (m, up positive), finite, ``|v| <= 1000``.
+        sigma_m : array (n,)
+            Per-point error scale (m), finite and positive.
+        """
+        values = _array("values_m", values_m, np.float64)
+        sigma = _array("sigma_m", sigma_m, np.float64)
+        if values.size == 0:
+            _fail("bad_shape", "a segment needs at least one point")
+        if sigma.size != values.size:
+            _fail("bad_shape", f"sigma has {sigma.size} points, values {values.size}")
+        if np.max(np.abs(values)) > MAX_ABS_AP_M:
+            _fail("bad_value", f"|AP| > {MAX_ABS_AP_M} m")
+        if np.min(sigma) <= 0.0 or np.max(sigma) > MAX_ABS_AP_M:
+            _fail("bad_value", f"sigma must lie in (0, {MAX_ABS_AP_M}] m")
+        q, scale, offset = quantize_values(values)
+        sq, ref = quantize_sigma(sigma)
+        return cls(
+            vehicle_id=vehicle_id,
+            pass_id=pass_id,
+            route_id=route_id,
+            tile=tile,
+            axle=axle,
+            start_index=start_index,
+            spacing_m=spacing_m,
+            values_q=q,
+            scale_m=scale,
+            offset_m=offset,
+            sigma_q=sq,
+            sigma_ref_m=ref,
+            calib_version=calib_version,
+            speed_mps=speed_mps,
+            t_first=t_first,
+            t_last=t_last,
+            seq=seq,
+            n_segments_in_pass=n_segments_in_pass,
+            flags=flags,
+        )
+
+    @property
+    def n(self) -> int:
+        """Number of grid points."""
+        return int(self.values_q.size)
+
+    @property
+    def end_index(self) -> int:
+        """Grid index one past the segment's last point."""
+        return self.start_index + self.n
+
+    @property
+    def values(self) -> np.ndarray:
+        """AP values (m), float64."""
+        return self.offset_m + self.scale_m * self.values_q.astype(np.float64)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Per-point error scale (m), float64, never below what was encoded."""
+        return self.sigma_ref_m * np.exp2(self.sigma_q.astype(np.float64) / SIGMA_CODES_PER_OCTAVE)
+
+    @property
+    def chainage_m(self) -> np.ndarray:
+        """Route chainage (m) of each point."""
+        return (self.start_index + np.arange(self.n)) * self.spacing_m
+
+    @property
+    def identity(self) -> tuple[str, str, str, int, int, int]:
+        """``(vehicle_id, pass_id, route_id, tile, axle, calib_version)``: same identity,
+        same segment, so a redelivery replaces rather than adds."""
+        return (self.vehicle_id, self.pass_id, self.route_id, self.tile, self.axle, self.calib_version)
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this segment."""
+        return _encode(
+            self.KIND,
+            {
+                "vehicle_id": _scalar(self.vehicle_id, pa.string()),
+                "pass_id": _scalar(self.pass_id, pa.string()),
+                "route_id": _scalar(self.route_id, pa.string()),
+                "tile": _scalar(self.tile, pa.int64()),
+                "axle": _scalar(self.axle, pa.int64()),
+                "start_index": _scalar(self.start_index, pa.int64()),
+                "spacing_m": _scalar(self.spacing_m, pa.float64()),
+                "values_q": _list_column(self.values_q, pa.int16()),
+                "scale_m": _scalar(self.scale_m, pa.float64()),
+                "offset_m": _scalar(self.offset_m, pa.float64()),
+                "sigma_q": _list_column(self.sigma_q, pa.int16()),
+                "sigma_ref_m": _scalar(self.sigma_ref_m, pa.float64()),
+                "calib_version": _scalar(self.calib_version, pa.int64()),
+                "speed_mps": _scalar(self.speed_mps, pa.float64()),
+                "t_first": _scalar(self.t_first, pa.float64()),
+                "t_last": _scalar(self.t_last, pa.float64()),
+                "seq": _scalar(self.seq, pa.int64()),
+                "n_segments_in_pass": _scalar(self.n_segments_in_pass, pa.int64()),
+                "flags": _scalar(self.flags, pa.int64()),
+            },
+        )
+
+
+def _build_ap_segment(r: _Row) -> ApSegment:
+    return ApSegment(
+        vehicle_id=r.text("vehicle_id"),
+        pass_id=r.text("pass_id"),
+        route_id=r.text("route_id"),
+        tile=r.integer("tile"),
+        axle=r.integer("axle"),
+        start_index=r.integer("start_index"),
+        spacing_m=r.real("spacing_m"),
+        values_q=r.array("values_q", pa.int16()),
+        scale_m=r.real("scale_m"),
+        offset_m=r.real("offset_m"),
+        sigma_q=r.array("sigma_q", pa.int16()),
+        sigma_ref_m=r.real("sigma_ref_m"),
+        calib_version=r.integer("calib_version"),
+        speed_mps=r.real("speed_mps"),
+        t_first=r.real("t_first"),
+        t_last=r.real("t_last"),
+        seq=r.integer("seq"),
+        n_segments_in_pass=r.integer("n_segments_in_pass"),
+        flags=r.integer("flags"),
+    )
+
+
+
+def decode_ap_segment(payload: bytes) -> ApSegment:
+    """Decode and validate an :class:`ApSegment` payload; raises :class:`DecodeError`."""
+    return _decoding(ApSegment.KIND, payload, _build_ap_segment)
+
+
+@dataclass(frozen=True, eq=False)
+class PassDone(_Message):
+    """The edge's end-of-pass marker: segments ``0 .. n_segments-1`` of the pass were
+    published under ``calib_version``, so the cloud can acknowledge completion."""
+
+    KIND: ClassVar[str] = "pass_done"
+
+    vehicle_id: str
+    pass_id: str
+    route_id: str
+    calib_version: int
+    n_segments: int
+
+    def __post_init__(self) -> None:
+        _id("vehicle_id", self.vehicle_id)
+        _text("pass_id", self.pass_id, MAX_TEXT)
+        if not self.pass_id:
+            _fail("bad_value", "pass_id is empty")
+        _id("route_id", self.route_id)
+        object.__setattr__(self, "calib_version", _int("calib_version", self.calib_version, 0, MAX_INT32))
+        object.__setattr__(self, "n_segments", _int("n_segments", self.n_segments, 0, MAX_INT32))
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this marker."""
+        return _encode(
+            self.KIND,
+            {
+                "vehicle_id": _scalar(self.vehicle_id, pa.string()),
+                "pass_id": _scalar(self.pass_id, pa.string()),
+                "route_id": _scalar(self.route_id, pa.string()),
+                "calib_version": _scalar(self.calib_version, pa.int64()),
+                "n_segments": _scalar(self.n_segments, pa.int64()),
+            },
+        )
+
+
+def _build_pass_done(r: _Row) -> PassDone:
+    return PassDone(
+        vehicle_id=r.text("vehicle_id"),
+        pass_id=r.text("pass_id"),
+        route_id=r.text("route_id"),
+        calib_version=r.integer("calib_version"),
+        n_segments=r.integer("n_segments"),
+    )
+
+
+
+def decode_pass_done(payload: bytes) -> PassDone:
+    """Decode and validate a :class:`PassDone` payload; raises :class:`DecodeError`."""
+    return _decoding(PassDone.KIND, payload, _build_pass_done)
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration(_Message):
+    """Vehicle parameters published by the cloud (``version`` grows with each update).
+
+    ``params`` maps a name (a model parameter such as ``K`` or a ratio such as
+    ``K/M``) to its value in SI units; ``source`` says how it was obtained
+    (e.g. ``fleet``, ``nominal``).
+    """
+
+    KIND: ClassVar[str] = "calibration"
+
+    vehicle_id: str
+    version: int
+    vehicle_model: str
+    params: Mapping[str, float]
+    source: str
+
+    def __post_init__(self) -> None:
+        _id("vehicle_id", self.vehicle_id)
+        object.__setattr__(self, "version", _int("version", self.version, 0, MAX_INT32))
+        if _text("vehicle_model", self.vehicle_model) not in VEHICLE_MODELS:
+            _fail("bad_value", f"vehicle_model {self.vehicle_model!r} not in {sorted(VEHICLE_MODELS)}")
+        object.__setattr__(self, "params", _params("params", self.params))
+        _text("source", self.source)
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this calibration."""
+        return _encode(
+            self.KIND,
+            {
+                "vehicle_id": _scalar(self.vehicle_id, pa.string()),
+                "version": _scalar(self.version, pa.int64()),
+                "vehicle_model": _scalar(self.vehicle_model, pa.string()),
+                "params": _params_column(self.params),
+                "source": _scalar(self.source, pa.string()),
+            },
+        )
+
+
+def _build_calibration(r: _Row) -> Calibration:
+    return Calibration(
+        vehicle_id=r.text("vehicle_id"),
+        version=r.integer("version"),
+        vehicle_model=r.text("vehicle_model"),
+        params=r.params("params", optional=False),
+        source=r.text("source"),
+    )
+
+
+
+def decode_calibration(payload: bytes) -> Calibration:
+    """Decode and validate a :class:`Calibration` payload; raises :class:`DecodeError`."""
+    return _decoding(Calibration.KIND, payload, _build_calibration)
+
+
+@dataclass(frozen=True, eq=False)
+class Alarm(_Message):
+    """A bridge alarm: ``kind`` (e.g. ``crack``), finite element ``element`` (-1: the
+    whole bridge) at ``x_m`` from the first support, ``severity`` (>= 0, e.g. relative
+    stiffness loss) with ``probability`` in [0, 1]; ``time_utc`` is ISO 8601 with zone."""
+
+    KIND: ClassVar[str] = "alarm"
+
+    bridge_id: str
+    time_utc: str
+    kind: str
+    element: int
+    x_m: float
+    severity: float
+    probability: float
+    message: str = ""
+
+    def __post_init__(self) -> None:
+        _id("bridge_id", self.bridge_id)
+        _utc("time_utc", self.time_utc)
+        _id("kind", self.kind)
+        object.__setattr__(self, "element", _int("element", self.element, -1, MAX_INT32))
+        object.__setattr__(self, "x_m", _float("x_m", self.x_m))
+        object.__setattr__(self, "severity", _float("severity", self.severity, 0.0))
+        object.__setattr__(self, "probability", _float("probability", self.probability, 0.0, 1.0))
+        _text("message", self.message, MAX_MESSAGE_TEXT, printable=False)
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this alarm."""
+        return _encode(
+            self.KIND,
+            {
+                "bridge_id": _scalar(self.bridge_id, pa.string()),
+                "time_utc": _scalar(self.time_utc, pa.string()),
+                "kind": _scalar(self.kind, pa.string()),
+                "element": _scalar(self.element, pa.int64()),
+                "x_m": _scalar(self.x_m, pa.float64()),
+                "severity": _scalar(self.severity, pa.float64()),
+                "probability": _scalar(self.probability, pa.float64()),
+                "message": _scalar(self.message, pa.string()),
+            },
+        )
+
+
+def _build_alarm(r: _Row) -> Alarm:
+    return Alarm(
+        bridge_id=r.text("bridge_id"),
+        time_utc=r.text("time_utc"),
+        kind=r.text("kind"),
+        element=r.integer("element"),
+        x_m=r.real("x_m"),
+        severity=r.real("severity"),
+        probability=r.real("probability"),
+        message=r.text("message"),
+    )
+
+
+
+def decode_alarm(payload: bytes) -> Alarm:
+    """Decode and validate an :class:`Alarm` payload; raises :class:`DecodeError`."""
+    return _decoding(Alarm.KIND, payload, _build_alarm)
+
+
+@dataclass(frozen=True, eq=False)
+class Ack(_Message):
+    """The cloud's acknowledgement of a pass (cloud -> run orchestrator): it accepted
+    ``n_segments_accepted`` segments of ``pass_id`` under ``calib_version``."""
+
+    KIND: ClassVar[str] = "ack"
+
+    pass_id: str
+    vehicle_id: str
+    n_segments_accepted: int
+    calib_version: int = 0
+
+    def __post_init__(self) -> None:
+        _text("pass_id", self.pass_id, MAX_TEXT)
+        if not self.pass_id:
+            _fail("bad_value", "pass_id is empty")
+        _id("vehicle_id", self.vehicle_id)
+        object.__setattr__(
+            self, "n_segments_accepted", _int("n_segments_accepted", self.n_segments_accepted, 0, MAX_INT32)
+        )
+        object.__setattr__(self, "calib_version", _int("calib_version", self.calib_version, 0, MAX_INT32))
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this acknowledgement."""
+        return _encode(
+            self.KIND,
+            {
+                "pass_id": _scalar(self.pass_id, pa.string()),
+                "vehicle_id": _scalar(self.vehicle_id, pa.string()),
+                "n_segments_accepted": _scalar(self.n_segments_accepted, pa.int64()),
+                "calib_version": _scalar(self.calib_version, pa.int64()),
+            },
+        )
+
+
+def _build_ack(r: _Row) -> Ack:
+    return Ack(
+        pass_id=r.text("pass_id"),
+        vehicle_id=r.text("vehicle_id"),
+        n_segments_accepted=r.integer("n_segments_accepted"),
+        calib_version=r.integer("calib_version"),
+    )
+
+
+
+def decode_ack(payload: bytes) -> Ack:
+    """Decode and validate an :class:`Ack` payload; raises :class:`DecodeError`."""
+    return _decoding(Ack.KIND, payload, _build_ack)
+
+
+Message = SensorChunk | ApSegment | PassDone | Calibration | Alarm | Ack
+
+_BUILDERS = {
+    SensorChunk.KIND: _build_sensor_chunk,
+    ApSegment.KIND: _build_ap_segment,
+    PassDone.KIND: _build_pass_done,
+    Calibration.KIND: _build_calibration,
+    Alarm.KIND: _build_alarm,
+    Ack.KIND: _build_ack,
+}
+KINDS = tuple(_BUILDERS)
+
+
+def decode(payload: bytes) -> Message:
+    """Decode a payload of any kind (e.g. a journal replay); raises :class:`DecodeError`."""
+    kind, version, batch = _read_batch(payload)
+    build = _BUILDERS.get(kind)
+    if build is None:
+        raise DecodeError("wrong_kind", f"unknown kind {kind!r}")
+    return _build(kind, version, batch, build)
