@@ -10,14 +10,68 @@ import argparse
 import sys
 
 
+def _run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--logs", required=True, help="directory of drive logs (*.parquet)")
+    p.add_argument("--site", required=True, help="site registry TOML")
+    p.add_argument("--export", required=True, help="output directory for the Parquet export")
+    p.add_argument("--rrd", help="save the Rerun recording to this file")
+    p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
+                   help="fleet: self-calibrate (default); nominal: trust each log's nominal_params")
+    p.add_argument("--connect", help="use this Zenoh router instead of starting one")
+    p.add_argument("--net", default="net", help="network name in the key space")
+    p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
+    p.add_argument("--rate", type=float, help="replay at X× real time (default: as fast as possible)")
+
+
+def _cmd_run(args) -> int:
+    from pathlib import Path
+
+    from simfleet.run import RunError, run
+
+    try:
+        res = run(Path(args.logs), Path(args.site), Path(args.export), Path(args.rrd) if args.rrd else None,
+                  args.calibration, args.connect, args.net, args.viewer, rate=args.rate)
+    except RunError as e:
+        print(f"driveby run: {e}", file=sys.stderr)
+        return 1
+    rejected = sum(res.stats.get("rejected", {}).values())
+    print(f"{res.acked}/{res.passes} passes processed in {res.seconds:.1f} s; "
+          f"{res.stats.get('accepted', 0)} segments accepted, {rejected} rejected; export: {args.export}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from simfleet.demo import demo
+
+    return demo(args.out, seed=args.seed, passes=args.passes)
+
+
+def _daemon(module: str):
+    def handler(args) -> int:
+        mod = __import__(f"{module}.node", fromlist=["main"])
+        return mod.main(args.rest)
+
+    return handler
+
+
 def main(argv: list[str] | None = None) -> int:
     from simfleet.cli import add_sim_arguments, run_sim
 
     p = argparse.ArgumentParser(prog="driveby", description="fleet drive-by monitoring of roads, rail and bridges")
     sub = p.add_subparsers(dest="command", required=True)
+    demo = sub.add_parser("demo", help="simulate a small fleet over a road and a cracked bridge, run it, summarise")
+    demo.add_argument("--out", default="driveby-demo", help="working directory (default ./driveby-demo)")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--passes", type=int, default=20)
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
+    _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
+    for name, what in (("edge", "the edge daemon"), ("cloud", "the cloud aggregator daemon"),
+                       ("fleet", "live simulated fleet publishers")):
+        d = sub.add_parser(name, help=what, add_help=False)
+        d.add_argument("rest", nargs=argparse.REMAINDER)
     args = p.parse_args(argv)
-    handlers = {"sim": run_sim}
+    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "edge": _daemon("edge"),
+                "cloud": _daemon("cloud"), "fleet": _daemon("simfleet")}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:

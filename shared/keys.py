@@ -250,3 +250,11 @@ def parse_alive_key(key: object) -> tuple[str, str, str]:
     if len(parts) != 5 or parts[0] != ROOT or parts[2] != "alive":
         raise ValueError(f"not a liveliness key: {key!r}")
     return check_id(parts[1], "net"), check_id(parts[3], "role"), check_id(parts[4], "id")
+
+
+# -- control (the run orchestrator talking to its daemons) --------------------------------
+
+
+def control_key(net: str, target: str, verb: str) -> str:
+    """``driveby/<net>/control/<target>/<verb>``: a queryable a daemon answers (e.g. ``export``)."""
+    return _join(check_id(net, "net"), "control", check_id(target, "target"), check_id(verb, "verb"))

@@ -33,7 +33,8 @@ log = logging.getLogger(__name__)
 MODES = ("peer", "client", "router")
 READY = "ready"
 
-__all__ = ["MODES", "free_port", "zenoh_config", "run_router", "serve_router", "main"]
+__all__ = ["MODES", "free_port", "zenoh_config", "run_router", "serve_router", "add_zenoh_arguments",
+           "config_from_args", "main"]
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -178,6 +179,23 @@ def _watch_stdin(stop: threading.Event) -> None:
     stop.set()
 
 
+def add_zenoh_arguments(p: argparse.ArgumentParser, default_mode: str = "client") -> None:
+    """The ``--mode/--connect/--listen/--config`` options every daemon shares."""
+    p.add_argument("--mode", choices=MODES, default=None, help=f"zenoh session mode (default {default_mode})")
+    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on (repeatable)")
+    p.add_argument("--config", help="zenoh JSON5 config file (TLS, access control, ...)")
+    p.set_defaults(_default_mode=default_mode)
+
+
+def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+    """A ``zenoh.Config`` from :func:`add_zenoh_arguments` options."""
+    mode = args.mode or (None if args.config else args._default_mode)
+    if mode == "client" and not args.connect and not args.config:
+        mode = "peer"  # a client needs a router to connect to; alone, be a peer
+    return zenoh_config(mode, connect=args.connect, listen=args.listen, config_file=args.config)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m shared.transport router --listen ENDPOINT [--connect E] [--config FILE]``."""
     parser = argparse.ArgumentParser(prog="python -m shared.transport", description=__doc__.split("\n")[0])
@@ -215,3 +233,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+

@@ -125,9 +125,11 @@ def inverse_step(
 class InverseModel(NamedTuple):
     """The inverse of one vehicle at one time step as a state-space recursion.
 
-    ``keep`` indexes the full :class:`InverseState` vector entries that the recursion needs.
-    ``n_warmup`` is the number of samples after which a wrong initial state has decayed to 1e-4
-    of its effect, except for the integrators' offset and drift (removed by drift control).
+    ``A, B, C, D`` act on the full :class:`InverseState` vector entries indexed by ``keep`` (the
+    ones the recursion needs). ``realisation`` is the same recursion in the cheaper coordinates the
+    kernels run in (see :func:`realise`). ``n_warmup`` is the number of samples after which a wrong
+    initial state has decayed to 1e-4 of its effect, except for the integrators' offset and drift
+    (removed by drift control).
     """
 
     A: np.ndarray
@@ -138,6 +140,195 @@ class InverseModel(NamedTuple):
     n_warmup: int
     system: VehicleSystem
     constants: NewmarkConstants
+    realisation: "Realisation | None" = None
+
+
+class Realisation(NamedTuple):
+    """The recursion s' = A s + B z, y = C s + D z in coordinates w = Tinv·s where A is block diagonal.
+
+    Blocks, in order: a leading dense block of size ``nd`` (the neutral integrators of the measured
+    DOFs, |λ| = 1), ``p`` 2×2 blocks (a complex pair of decaying modes, or two real ones) and ``q``
+    1×1 blocks (at most one real mode). Modes the output never sees are dropped, so a sample costs
+    about 3·r multiply-adds instead of n² + 2n. ``form`` is ``"modal"`` for this, or ``"dense"``
+    (T = I, one dense block) where the transform would be ill-conditioned.
+    """
+
+    form: str
+    T: np.ndarray  # (n_keep, r): s = T w, up to modes the output never sees
+    Tinv: np.ndarray  # (r, n_keep)
+    Ad: np.ndarray  # (nd, nd)
+    A2: np.ndarray  # (p, 4): each 2×2 block row-major
+    A1: np.ndarray  # (q,)
+    B: np.ndarray  # (r, n_in)
+    C: np.ndarray  # (n_out, r)
+    D: np.ndarray  # (n_out, n_in)
+
+    @property
+    def structure(self) -> tuple[int, int, int]:
+        """(nd, p, q): realisations with equal structure can share one bank kernel."""
+        return self.Ad.shape[0], self.A2.shape[0], self.A1.shape[0]
+
+
+def dense_realisation(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray) -> Realisation:
+    """The recursion as it is: one dense block, T = I."""
+    n = A.shape[0]
+    f = np.ascontiguousarray
+    return Realisation("dense", np.eye(n), np.eye(n), f(A), np.zeros((0, 4)), np.zeros(0), f(B), f(C), f(D))
+
+
+#: Largest condition number accepted for the similarity transform (beyond the exact diagonal
+#: balancing): rounding is amplified by at most this factor, 1e8 × 1e-16 = 1e-8 relative, far below
+#: what any measurement resolves; a 256-sample comparison with the dense recursion checks it too.
+#: (Newmark's spurious roots near (γ − 1)/γ = −0.25 of different DOFs lie close together, so
+#: transforms of cond ~1e6 are common.)
+MAX_TRANSFORM_COND = 1e8
+#: Eigenvalues below this modulus form one (possibly defective) nilpotent cluster.
+_TINY_EIGENVALUE = 1e-5
+#: Real eigenvalues closer than this share a 2×2 block (they may be defective).
+_CLOSE_EIGENVALUES = 1e-4
+#: A block whose output weight is below this fraction of the output matrix's norm is unobservable.
+_UNOBSERVABLE = 1e-12
+
+
+def realise(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray, neutral_tol: float = 1e-6) -> Realisation:
+    """A block-diagonal realisation of s' = A s + B z, y = C s + D z with the same input→output map.
+
+    Steps (all in the diagonally balanced coordinates of A):
+
+    1. real Schur form ordered as neutral (|λ| ≥ 1 − ``neutral_tol``) | tiny (|λ| < 1e-5) | rest;
+    2. two Sylvester equations decouple the three groups (their spectra are well separated);
+    3. the rest is diagonalised into real 1×1 and 2×2 blocks; two real modes share a 2×2 block, so
+       the block structure depends only on the model, not on its parameter values;
+    4. blocks the output never sees (e.g. the tiny cluster: Newmark's pure input delays) are dropped,
+       which is exact for any initial state because the blocks no longer feed each other.
+
+    Falls back to :func:`dense_realisation` when a step fails, the transform's condition number
+    exceeds :data:`MAX_TRANSFORM_COND`, or a 256-sample check against the dense recursion disagrees.
+    """
+    A, B, C, D = (np.asarray(X, dtype=np.float64) for X in (A, B, C, D))
+    dense = dense_realisation(A, B, C, D)
+    if A.shape[0] < 2:
+        return dense
+    try:
+        fast = _modal_realisation(A, B, C, D, neutral_tol)
+    except (np.linalg.LinAlgError, ValueError, ArithmeticError):
+        return dense
+    if fast is None or not _agrees(fast, dense, A):
+        return dense
+    return fast
+
+
+def _clusters(lam: np.ndarray, neutral_tol: float) -> list[np.ndarray] | None:
+    """Eigenvalues grouped into the blocks of the realisation, in order: the neutral group, the tiny
+    group, then complex pairs, pairs of (nearly) equal real eigenvalues, and single real ones."""
+    mod = np.abs(lam)
+    neutral = lam[mod >= 1.0 - neutral_tol]
+    tiny = lam[mod < _TINY_EIGENVALUE]
+    rest = lam[(mod < 1.0 - neutral_tol) & (mod >= _TINY_EIGENVALUE)]
+    pairs = [np.array([x, np.conj(x)]) for x in rest[rest.imag > 0]]
+    if 2 * len(pairs) != np.count_nonzero(rest.imag != 0):
+        return None
+    reals = np.sort(rest[rest.imag == 0].real)[::-1]
+    singles, i = [], 0
+    while i < len(reals):
+        if i + 1 < len(reals) and reals[i] - reals[i + 1] < _CLOSE_EIGENVALUES:
+            pairs.append(reals[i : i + 2].astype(complex))  # coincident or defective: one 2×2 block
+            i += 2
+        else:
+            singles.append(reals[i : i + 1].astype(complex))
+            i += 1
+    return [neutral, tiny] + pairs + singles
+
+
+def _modal_realisation(A, B, C, D, neutral_tol):
+    import scipy.linalg as sla  # heavy import, only when a model is built
+
+    n = A.shape[0]
+    _, (scale, _) = sla.matrix_balance(A, permute=False, separate=True)  # exact powers of two
+    Ab = A * scale[None, :] / scale[:, None]
+    clusters = _clusters(np.linalg.eigvals(Ab), neutral_tol)
+    if clusters is None:
+        return None
+    # Peel the clusters off one at a time: an ordered real Schur form of what is left brings the
+    # cluster to the top, then Y = [[I, X], [0, I]] with T11 X − X T22 = −T12 decouples it.
+    P, Pinv = np.eye(n), np.eye(n)
+    rest = Ab
+    spans: list[tuple[int, int]] = []
+    pos = 0
+    for cluster in clusters:
+        k = len(cluster)
+        if k == 0:
+            spans.append((pos, pos))
+            continue
+        tol = 1e-6 + np.ptp(np.abs(cluster))
+        Ts, Zs, sdim = sla.schur(
+            rest, output="real", sort=lambda re, im: np.min(np.abs(complex(re, im) - cluster)) <= tol
+        )
+        if sdim != k:
+            return None
+        P[:, pos:] = P[:, pos:] @ Zs
+        Pinv[pos:] = Zs.T @ Pinv[pos:]
+        if pos + k < n:
+            X = sla.solve_sylvester(Ts[:k, :k], -Ts[k:, k:], -Ts[:k, k:])
+            P[:, pos + k :] += P[:, pos : pos + k] @ X
+            Pinv[pos : pos + k] -= X @ Pinv[pos + k :]
+        rest = Ts[k:, k:]
+        spans.append((pos, pos + k))
+        pos += k
+    if not np.isfinite(P).all() or np.linalg.cond(P) > MAX_TRANSFORM_COND:
+        return None
+    # Drop blocks the output never sees; the neutral (and an observable tiny) group stays dense.
+    Cw = (C * scale[None, :]) @ P
+    c_ref = np.linalg.norm(C * scale[None, :], 2)
+
+    def seen(span):
+        return span[1] > span[0] and np.linalg.norm(Cw[:, span[0] : span[1]], 2) > _UNOBSERVABLE * c_ref
+
+    neutral, tiny, *modes = spans
+    lead = list(range(*neutral)) + (list(range(*tiny)) if seen(tiny) else [])
+    modes = [span for span in modes if seen(span)]
+    blocks2 = [list(range(*span)) for span in modes if span[1] - span[0] == 2]
+    n_coupled = len(blocks2)
+    singles = [span[0] for span in modes if span[1] - span[0] == 1]
+    blocks2 += [singles[i : i + 2] for i in range(0, len(singles) - 1, 2)]  # two real modes share a block
+    blocks1 = singles[-1:] if len(singles) % 2 else []
+    order = lead + [c for blk in blocks2 for c in blk] + blocks1
+    Af = (Pinv @ Ab @ P)[np.ix_(order, order)]
+    nd, p, q = len(lead), len(blocks2), len(blocks1)
+    structured = np.zeros_like(Af)
+    structured[:nd, :nd] = Af[:nd, :nd]
+    A2 = np.zeros((p, 4))
+    for b in range(p):
+        i = nd + 2 * b
+        A2[b] = Af[i : i + 2, i : i + 2].ravel()
+        if b >= n_coupled:  # two separate real modes: their coupling is rounding noise
+            A2[b, 1] = A2[b, 2] = 0.0
+        structured[i : i + 2, i : i + 2] = A2[b].reshape(2, 2)
+    A1 = np.array([Af[nd + 2 * p + b, nd + 2 * p + b] for b in range(q)])
+    for b in range(q):
+        structured[nd + 2 * p + b, nd + 2 * p + b] = A1[b]
+    if np.linalg.norm(Af - structured) > 1e-10 * max(np.linalg.norm(Af), 1.0):
+        return None
+    T = scale[:, None] * P[:, order]
+    Tinv = Pinv[order] / scale[None, :]
+    f = np.ascontiguousarray
+    return Realisation("modal", f(T), f(Tinv), f(Af[:nd, :nd]), A2, A1, f(Tinv @ B), f(C @ T), f(D))
+
+
+def _agrees(fast: Realisation, dense: Realisation, A: np.ndarray, n_check: int = 256) -> bool:
+    """Run both realisations from one random state on one random input; compare the outputs."""
+    rng = np.random.default_rng(12345)
+    import scipy.linalg as sla
+
+    _, (scale, _) = sla.matrix_balance(A, permute=False, separate=True)
+    s0 = scale * rng.standard_normal(A.shape[0])  # every mode excited at its natural scale
+    z = rng.standard_normal((n_check, dense.B.shape[1]))
+    y_dense = np.empty((n_check, dense.C.shape[0]))
+    y_fast = np.empty_like(y_dense)
+    _run_blocks(dense.Ad, dense.A2, dense.A1, dense.B, dense.C, dense.D, s0.copy(), z, y_dense)
+    _run_blocks(fast.Ad, fast.A2, fast.A1, fast.B, fast.C, fast.D, fast.Tinv @ s0, z, y_fast)
+    ref = np.abs(y_dense).max()
+    return bool(np.isfinite(y_fast).all() and np.abs(y_fast - y_dense).max() <= 1e-9 * max(ref, 1e-300))
 
 
 def build_inverse(system: VehicleSystem, dt: float, gamma: float = 0.8, beta: float | None = None) -> InverseModel:
@@ -169,71 +360,163 @@ def build_inverse(system: VehicleSystem, dt: float, gamma: float = 0.8, beta: fl
             break
         keep = keep[used]
     A, B, C = A[np.ix_(keep, keep)], B[keep], C[:, keep]
+    neutral_tol = 1e-6
     eig = np.abs(np.linalg.eigvals(A)) if len(keep) else np.zeros(0)
-    decaying = eig[eig < 1.0 - 1e-6]
+    decaying = eig[eig < 1.0 - neutral_tol]
     rho = float(decaying.max()) if decaying.size else 0.0
     n_warmup = 1 if rho <= 1e-12 else int(math.ceil(math.log(1e-4) / math.log(rho)))
-    return InverseModel(A, B, C, D, keep, max(n_warmup, 1), system, c)
+    return InverseModel(A, B, C, D, keep, max(n_warmup, 1), system, c, realise(A, B, C, D, neutral_tol))
 
 
-@njit(cache=True, fastmath=True)
-def _run(A, B, C, D, s, z, y):
-    """s' = A s + B z_k ; y_k = C s + D z_k, over all samples k (state ``s`` updated in place)."""
+# Only FMA contraction: no reassociation, so every sample is computed by the same operations in the
+# same order whatever the chunking, and the bank kernel matches the single-stream one bit for bit.
+_FLAGS = dict(cache=True, fastmath={"contract"})
+
+
+@njit(**_FLAGS)
+def _run_blocks(Ad, A2, A1, B, C, D, w, z, y):
+    """y_k = C w + D z_k ; w' = A w + B z_k over all samples k, A block diagonal (see Realisation).
+
+    ``w`` (r,) is updated in place; z (K, n_in), y (K, n_out).
+    """
     n_samples, n_in = z.shape
-    n = s.shape[0]
     n_out = y.shape[1]
-    s_new = np.empty(n)
+    nd, p, q = Ad.shape[0], A2.shape[0], A1.shape[0]
+    r = nd + 2 * p + q
+    tmp = np.empty(nd)
     for k in range(n_samples):
         for o in range(n_out):
             acc = 0.0
-            for j in range(n):
-                acc += C[o, j] * s[j]
+            for j in range(r):
+                acc += C[o, j] * w[j]
             for m in range(n_in):
                 acc += D[o, m] * z[k, m]
             y[k, o] = acc
-        for i in range(n):
+        for i in range(nd):
             acc = 0.0
-            for j in range(n):
-                acc += A[i, j] * s[j]
+            for j in range(nd):
+                acc += Ad[i, j] * w[j]
             for m in range(n_in):
                 acc += B[i, m] * z[k, m]
-            s_new[i] = acc
-        for i in range(n):
-            s[i] = s_new[i]
+            tmp[i] = acc
+        for i in range(nd):
+            w[i] = tmp[i]
+        for b in range(p):
+            i = nd + 2 * b
+            w0 = w[i]
+            w1 = w[i + 1]
+            acc0 = 0.0
+            acc0 += A2[b, 0] * w0
+            acc0 += A2[b, 1] * w1
+            acc1 = 0.0
+            acc1 += A2[b, 2] * w0
+            acc1 += A2[b, 3] * w1
+            for m in range(n_in):
+                acc0 += B[i, m] * z[k, m]
+                acc1 += B[i + 1, m] * z[k, m]
+            w[i] = acc0
+            w[i + 1] = acc1
+        for b in range(q):
+            i = nd + 2 * p + b
+            acc = 0.0
+            acc += A1[b] * w[i]
+            for m in range(n_in):
+                acc += B[i, m] * z[k, m]
+            w[i] = acc
 
 
-@njit(cache=True, fastmath=True)
-def _run_bank(A, B, C, D, s, z, y):
-    """Many streams at once, streams innermost so the loop vectorises.
+@njit(**_FLAGS)
+def _run_blocks_bank(Ad, A2, A1, B, C, D, w, z, y):
+    """:func:`_run_blocks` for many streams, streams innermost (contiguous) so every loop vectorises.
 
-    A (n, n, S), B (n, m, S), C (o, n, S), D (o, m, S), s (n, S), z (K, m, S), y (K, o, S).
+    Ad (nd, nd, S), A2 (p, 4, S), A1 (q, S), B (r, n_in, S), C (n_out, r, S), D (n_out, n_in, S),
+    w (r, S), z (K, n_in, S), y (K, n_out, S). Same operations in the same order as the single
+    stream, so each stream's output is bit-identical to running it alone.
     """
     n_samples, n_in, n_streams = z.shape
-    n = s.shape[0]
     n_out = y.shape[1]
-    s_new = np.empty((n, n_streams))
+    nd, p, q = Ad.shape[0], A2.shape[0], A1.shape[0]
+    r = nd + 2 * p + q
+    tmp = np.empty((nd, n_streams))
+    acc = np.empty(n_streams)
+    acc1 = np.empty(n_streams)
     for k in range(n_samples):
         for o in range(n_out):
-            for q in range(n_streams):
-                y[k, o, q] = 0.0
-            for j in range(n):
-                for q in range(n_streams):
-                    y[k, o, q] += C[o, j, q] * s[j, q]
+            for s in range(n_streams):
+                acc[s] = 0.0
+            for j in range(r):
+                for s in range(n_streams):
+                    acc[s] += C[o, j, s] * w[j, s]
             for m in range(n_in):
-                for q in range(n_streams):
-                    y[k, o, q] += D[o, m, q] * z[k, m, q]
-        for i in range(n):
-            for q in range(n_streams):
-                s_new[i, q] = 0.0
-            for j in range(n):
-                for q in range(n_streams):
-                    s_new[i, q] += A[i, j, q] * s[j, q]
+                for s in range(n_streams):
+                    acc[s] += D[o, m, s] * z[k, m, s]
+            for s in range(n_streams):
+                y[k, o, s] = acc[s]
+        for i in range(nd):
+            for s in range(n_streams):
+                tmp[i, s] = 0.0
+            for j in range(nd):
+                for s in range(n_streams):
+                    tmp[i, s] += Ad[i, j, s] * w[j, s]
             for m in range(n_in):
-                for q in range(n_streams):
-                    s_new[i, q] += B[i, m, q] * z[k, m, q]
-        for i in range(n):
-            for q in range(n_streams):
-                s[i, q] = s_new[i, q]
+                for s in range(n_streams):
+                    tmp[i, s] += B[i, m, s] * z[k, m, s]
+        for i in range(nd):
+            for s in range(n_streams):
+                w[i, s] = tmp[i, s]
+        for b in range(p):
+            i = nd + 2 * b
+            for s in range(n_streams):
+                w0 = w[i, s]
+                w1 = w[i + 1, s]
+                a0 = 0.0
+                a0 += A2[b, 0, s] * w0
+                a0 += A2[b, 1, s] * w1
+                a1 = 0.0
+                a1 += A2[b, 2, s] * w0
+                a1 += A2[b, 3, s] * w1
+                acc[s] = a0
+                acc1[s] = a1
+            for m in range(n_in):
+                for s in range(n_streams):
+                    acc[s] += B[i, m, s] * z[k, m, s]
+                    acc1[s] += B[i + 1, m, s] * z[k, m, s]
+            for s in range(n_streams):
+                w[i, s] = acc[s]
+                w[i + 1, s] = acc1[s]
+        for b in range(q):
+            i = nd + 2 * p + b
+            for s in range(n_streams):
+                a0 = 0.0
+                a0 += A1[b, s] * w[i, s]
+                acc[s] = a0
+            for m in range(n_in):
+                for s in range(n_streams):
+                    acc[s] += B[i, m, s] * z[k, m, s]
+            for s in range(n_streams):
+                w[i, s] = acc[s]
+
+
+def _initial_state(model: InverseModel, initial: InverseState | None, z0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The kept state entries and the output at the first sample.
+
+    With ``initial`` that is the given state; without it the vehicle is taken at rest with the first
+    measured values, which is all a logger switched on while driving knows.
+    """
+    system = model.system
+    if initial is not None:
+        state = initial
+    else:
+        state = InverseState.zeros(system)
+        for ch, value in zip(system.channels, z0):
+            (state.a if ch.kind == "acc" else state.v)[ch.dof] = value
+    return state.as_vector()[model.keep], np.array(state.y, dtype=float)
+
+
+def _realisation_of(model: InverseModel) -> Realisation:
+    if model.realisation is not None:
+        return model.realisation
+    return dense_realisation(model.A, model.B, model.C, model.D)
 
 
 class InverseStream:
@@ -252,24 +535,14 @@ class InverseStream:
     def __init__(self, model: InverseModel, initial: InverseState | None = None):
         self.model = model
         self._initial = initial
-        self._s = np.zeros(len(model.keep))
+        self._real = _realisation_of(model)
+        self._s = np.zeros(self._real.Tinv.shape[0])
         self.n_seen = 0
 
     @property
     def reliable_from(self) -> int:
         """Index of the first sample not affected by the unknown initial state."""
         return 0 if self._initial is not None else self.model.n_warmup
-
-    def _start(self, z0: np.ndarray) -> np.ndarray:
-        system = self.model.system
-        if self._initial is not None:
-            state = self._initial
-        else:
-            state = InverseState.zeros(system)
-            for ch, value in zip(system.channels, z0):
-                (state.a if ch.kind == "acc" else state.v)[ch.dof] = value
-        self._s = state.as_vector()[self.model.keep].copy()
-        return np.array(state.y, dtype=float)
 
     def update(self, z: np.ndarray) -> np.ndarray:
         z = np.ascontiguousarray(z, dtype=np.float64)
@@ -282,10 +555,11 @@ class InverseStream:
             return out
         start = 0
         if self.n_seen == 0:
-            out[0] = self._start(z[0])
+            s0, out[0] = _initial_state(self.model, self._initial, z[0])
+            self._s = self._real.Tinv @ s0
             start = 1
-        m = self.model
-        _run(m.A, m.B, m.C, m.D, self._s, z[start:], out[start:])
+        r = self._real
+        _run_blocks(r.Ad, r.A2, r.A1, r.B, r.C, r.D, self._s, z[start:], out[start:])
         self.n_seen += z.shape[0]
         return out
 
@@ -307,36 +581,64 @@ class InverseBank:
 
     Every stream must have the same model (same state size); parameters may differ.
     ``update(z)`` takes (n_samples, n_channels, n_streams) and returns (n_samples, n_contacts,
-    n_streams). Streams start at rest like :class:`InverseStream` without ``initial``.
+    n_streams). Streams start at rest like :class:`InverseStream` without ``initial``, and each
+    stream's output is bit-identical to that of its own :class:`InverseStream`. (Streams whose
+    realisations differ in structure, e.g. one that fell back to the dense form, run as separate
+    groups.)
     """
 
     def __init__(self, models: list[InverseModel]):
         if not models:
             raise ValueError("InverseBank: needs at least one model")
-        n = len(models[0].keep)
-        if any(len(m.keep) != n or not np.array_equal(m.keep, models[0].keep) for m in models):
+        keep = models[0].keep
+        if any(not np.array_equal(m.keep, keep) for m in models):
             raise ValueError("InverseBank: all streams must share one vehicle model")
         self.models = models
-        self.A = np.ascontiguousarray(np.stack([m.A for m in models], axis=-1))
-        self.B = np.ascontiguousarray(np.stack([m.B for m in models], axis=-1))
-        self.C = np.ascontiguousarray(np.stack([m.C for m in models], axis=-1))
-        self.D = np.ascontiguousarray(np.stack([m.D for m in models], axis=-1))
-        self._s = np.zeros((n, len(models)))
-        self._streams = [InverseStream(m) for m in models]
+        self._reals = [_realisation_of(m) for m in models]
+        by_structure: dict[tuple, list[int]] = {}
+        for q, r in enumerate(self._reals):
+            by_structure.setdefault((r.form, r.structure), []).append(q)
+        self._groups = [_BankGroup(np.array(idx), [self._reals[q] for q in idx]) for idx in by_structure.values()]
         self.n_seen = 0
 
     def update(self, z: np.ndarray) -> np.ndarray:
         z = np.ascontiguousarray(z, dtype=np.float64)
+        n_channels = len(self.models[0].system.channels)
+        if z.ndim != 3 or z.shape[1] != n_channels or z.shape[2] != len(self.models):
+            raise ValueError(f"expected (n_samples, {n_channels}, {len(self.models)}), got {z.shape}")
         n_out = self.models[0].system.n_contacts
         out = np.empty((z.shape[0], n_out, z.shape[2]))
         if z.shape[0] == 0:
             return out
         start = 0
         if self.n_seen == 0:
-            for q, stream in enumerate(self._streams):
-                out[0, :, q] = stream._start(z[0, :, q])
-                self._s[:, q] = stream._s
+            for group in self._groups:
+                for j, q in enumerate(group.streams):
+                    s0, out[0, :, q] = _initial_state(self.models[q], None, z[0, :, q])
+                    group.s[:, j] = self._reals[q].Tinv @ s0
             start = 1
-        _run_bank(self.A, self.B, self.C, self.D, self._s, z[start:], out[start:])
+        if len(self._groups) == 1:
+            self._groups[0].run(z[start:], out[start:])
+        else:
+            for group in self._groups:
+                part = np.empty((z.shape[0] - start, n_out, len(group.streams)))
+                group.run(np.ascontiguousarray(z[start:, :, group.streams]), part)
+                out[start:, :, group.streams] = part
         self.n_seen += z.shape[0]
         return out
+
+
+class _BankGroup:
+    """Streams whose realisations share one block structure: matrices stacked streams-last."""
+
+    def __init__(self, streams: np.ndarray, reals: list[Realisation]):
+        self.streams = streams
+
+        def stack(name):
+            return np.ascontiguousarray(np.stack([getattr(r, name) for r in reals], axis=-1))
+
+        self.Ad, self.A2, self.A1, self.B, self.C, self.D = (stack(x) for x in ("Ad", "A2", "A1", "B", "C", "D"))
+        self.s = np.zeros((reals[0].Tinv.shape[0], len(reals)))
+
+    def run(self, z: np.ndarray, y: np.ndarray) -> None:
+        _run_blocks_bank(self.Ad, self.A2, self.A1, self.B, self.C, self.D, self.s, z, y)

@@ -1,0 +1,57 @@
+"""Scoring estimates against a simulation's truth (for the demo summary, tests and reports only)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+from scipy.signal import butter, sosfiltfilt
+
+
+@dataclass(frozen=True)
+class ProfileScore:
+    rel_error: float  # std of band-passed (estimate − truth) / std of band-passed truth
+    coverage: float  # fraction of grid points whose 95 % band holds the truth (offset removed)
+    n_points: int
+    max_passes: int
+
+
+def band_pass(x: np.ndarray, spacing_m: float, lo_m: float = 0.5, hi_m: float = 50.0) -> np.ndarray:
+    """Zero-phase band-pass to wavelengths lo_m..hi_m (4th-order Butterworth, forward-backward)."""
+    sos = butter(4, [1.0 / hi_m, 1.0 / lo_m], btype="band", fs=1.0 / spacing_m, output="sos")
+    return sosfiltfilt(sos, x)
+
+
+def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0) -> ProfileScore:
+    """Profile error as the issues define it: both band-passed to 0.5–50 m, ends trimmed."""
+    t = pq.read_table(Path(export_dir) / "profile.parquet").to_pydict()
+    route = truth["route"]["id"]
+    rows = [i for i, r in enumerate(t["route_id"]) if r == route]
+    x = np.asarray(t["chainage_m"])[rows]
+    est = np.asarray(t["elevation_m"])[rows]
+    lo = np.asarray(t["lo95_m"])[rows]
+    hi = np.asarray(t["hi95_m"])[rows]
+    npass = np.asarray(t["n_passes"])[rows]
+    p = truth["profile"]
+    h = p["spacing_m"]
+    tx = p["start_m"] + h * np.arange(len(p["elevation_m"]))
+    true = np.interp(x, tx, p["elevation_m"])
+    # Score the longest stretch on a regular grid (points without any pass are not exported).
+    gaps = np.flatnonzero(np.diff(x) > 1.5 * h)
+    bounds = np.split(np.arange(x.size), gaps + 1)
+    seg = max(bounds, key=len)
+    k = int(round(trim_m / h))
+    a = band_pass(est[seg], h)[k:-k]
+    b = band_pass(true[seg], h)[k:-k]
+    rel = float(np.std(a - b) / np.std(b))
+    # Coverage: the absolute level is unobservable, so compare after removing the mean offset.
+    off = float(np.mean(est[seg] - true[seg]))
+    inside = (true[seg] + off >= lo[seg]) & (true[seg] + off <= hi[seg])
+    return ProfileScore(rel, float(np.mean(inside[k:-k])), int(a.size), int(npass.max(initial=0)))
+
+
+def load_truth(path: Path) -> dict:
+    return json.loads(Path(path).read_text())
