@@ -112,8 +112,10 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
     def on_state(query):
         with query:
             try:
-                _, _, _, _, _, route, tile = str(query.key_expr).split("/")
-                tile_i = int(tile)
+                parts = str(query.key_expr).split("/")
+                if len(parts) != 6 or "*" in parts[4] or "*" in parts[5]:
+                    raise ValueError
+                route, tile_i = parts[4], int(parts[5])
             except ValueError:
                 query.reply_err(b"expected driveby/<net>/state/profile/<route>/<tile>")
                 return

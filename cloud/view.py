@@ -1,0 +1,442 @@
+"""The cloud's Rerun view: current estimates logged to an explicit recording stream, one default blueprint.
+
+One ``log_<thing>()`` per group of entities; every temporal row carries the ``pass`` (completed
+passes so far, set with `View.set_pass`) and ``wall_time`` timelines. Entity paths are keys::
+
+    profile/<route>/mean              LineStrips2D, (chainage m, -elevation mm), NaN gaps split strips
+    profile/<route>/band              LineStrips2D, the 95 % band as thinner lower and upper strips
+    profile/<route>/passes_per_tile   BarChart, passes per tile against tile-centre chainage (m)
+    stats/<key>, stats/<key>/<sub>    Scalars, aggregator counters (``rejected/<reason>``, ``rejected/total``)
+    fleet/status                      TextDocument, a markdown table of per-vehicle status
+    bridge/<bridge>/stiffness         Scalars, element stiffness ratio: mean, lo95, hi95 per element
+    bridge/<bridge>/alarms            TextLog, alarms with a severity level
+
+Rerun's 2D view draws +y downwards and ignores view coordinates in 2D (rerun-io/rerun#1387), so the
+profile strips store ``-elevation`` in mm: up on the screen is up on the road. Readers of the
+recording flip the sign back (`SCREEN_Y`).
+
+Rerun is imported at module top: only the cloud node imports this module, and it does so lazily.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+log = logging.getLogger(__name__)
+
+APPLICATION_ID = "driveby"
+MAX_STRIP_POINTS = 4000  # per profile curve sent to the viewer
+SCREEN_Y = -1.0  # stored y = SCREEN_Y * elevation_mm (the 2D view's y axis points down)
+DEFAULT_PROFILE_RANGE_MM = 50.0
+DEFAULT_VIEWER_PORT = 9876
+
+MEAN_COLOUR = (70, 160, 255)
+BAND_COLOUR = (150, 150, 170)
+TILE_COLOUR = (110, 190, 130)
+MEAN_RADIUS = rr.Radius.ui_points(1.5)
+BAND_RADIUS = rr.Radius.ui_points(0.75)
+STATS_COLOURS = {
+    "accepted": (80, 200, 120),
+    "passes_complete": (70, 160, 255),
+    "passes": (160, 120, 255),
+    "segments_held": (200, 200, 200),
+    "rejected/total": (235, 80, 70),
+}
+REJECT_COLOUR = (240, 160, 60)
+OTHER_COLOUR = (170, 170, 170)
+TEXT_LOG_LEVELS = ("TRACE", "DEBUG", "INFO", "WARN", "ERROR", "CRITICAL")
+
+
+# -- paths and the blueprint --------------------------------------------------------------------------
+def _part(name: str) -> str:
+    return rr.escape_entity_path_part(str(name))
+
+
+def profile_path(route_id: str) -> str:
+    """Entity path of a route's profile group, ``profile/<route>``."""
+    return f"profile/{_part(route_id)}"
+
+
+def bridge_path(bridge_id: str) -> str:
+    """Entity path of a bridge's group, ``bridge/<bridge>``."""
+    return f"bridge/{_part(bridge_id)}"
+
+
+def _bridge_id(bridge: Any) -> str:
+    """A bridge given as an id or as a registry `Bridge` (anything with ``.id``)."""
+    return str(getattr(bridge, "id", bridge))
+
+
+def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
+              profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM) -> rrb.Blueprint:
+    """The one default layout: profiles per route, aggregator counters and fleet, bridges.
+
+    Parameters
+    ----------
+    routes : mapping route id → route length (m); each gets a profile panel bounded to
+        [0, length] m by ±``profile_range_mm`` and a passes-per-tile bar chart.
+    bridges : bridge ids or registry `Bridge` objects; each gets a stiffness time series and an
+        alarm log. No bridge, no bridge row.
+    """
+    route_tabs = []
+    for rid, length in routes.items():
+        root = profile_path(rid)
+        bounds = rrb.VisualBounds2D(x_range=[0.0, float(length)], y_range=[-profile_range_mm, profile_range_mm])
+        route_tabs.append(rrb.Vertical(
+            rrb.Spatial2DView(origin=root, contents=["$origin/mean", "$origin/band"],
+                              name=f"{rid}: profile (mm, up) vs chainage (m)", visual_bounds=bounds),
+            rrb.BarChartView(origin=f"{root}/passes_per_tile", name=f"{rid}: passes per tile"),
+            row_shares=[3, 1], name=str(rid)))
+    rows: list = []
+    if route_tabs:
+        rows.append(rrb.Tabs(*route_tabs, name="profiles"))
+    rows.append(rrb.Horizontal(
+        rrb.TimeSeriesView(origin="stats", name="aggregator counters"),
+        rrb.TextDocumentView(origin="fleet/status", name="fleet"),
+        column_shares=[3, 2]))
+    bridge_tabs = []
+    for b in bridges:
+        bid = _bridge_id(b)
+        root = bridge_path(bid)
+        bridge_tabs.append(rrb.Horizontal(
+            rrb.TimeSeriesView(origin=f"{root}/stiffness", name=f"{bid}: stiffness / design"),
+            rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: alarms"),
+            column_shares=[3, 2], name=bid))
+    if bridge_tabs:
+        rows.append(rrb.Tabs(*bridge_tabs, name="bridges"))
+    shares = [3] * bool(route_tabs) + [2] + [2] * bool(bridge_tabs)
+    return rrb.Blueprint(rrb.Vertical(*rows, row_shares=shares), auto_views=False)
+
+
+# -- array helpers (pure) -----------------------------------------------------------------------------
+def _bin_reduce(y: np.ndarray, k: int, how: str) -> np.ndarray:
+    """Reduce consecutive bins of ``k`` samples, ignoring NaN; a bin with no finite sample is NaN."""
+    pad = (-y.size) % k
+    yb = np.concatenate([y, np.full(pad, np.nan)]).reshape(-1, k)
+    ok = np.isfinite(yb)
+    has = ok.any(axis=1)
+    if how == "mean":
+        out = np.where(ok, yb, 0.0).sum(axis=1) / np.maximum(ok.sum(axis=1), 1)
+    elif how == "min":
+        out = np.where(ok, yb, np.inf).min(axis=1)
+    else:
+        out = np.where(ok, yb, -np.inf).max(axis=1)
+    return np.where(has, out, np.nan)
+
+
+def decimate_profile(x: np.ndarray, mean: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                     max_points: int = MAX_STRIP_POINTS):
+    """Bin a profile to at most ``max_points`` points: mean of x and of the mean, band as envelope.
+
+    Binning (not striding) keeps short waves from aliasing, and the band stays conservative
+    (lowest lower bound, highest upper bound in each bin). Returns ``(x, mean, lo, hi)``.
+    """
+    if max_points < 2:
+        raise ValueError("decimate_profile: max_points must be at least 2")
+    k = -(-x.size // max_points)
+    if k <= 1:
+        return x, mean, lo, hi
+    return (_bin_reduce(x, k, "mean"), _bin_reduce(mean, k, "mean"),
+            _bin_reduce(lo, k, "min"), _bin_reduce(hi, k, "max"))
+
+
+def finite_runs(x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
+    """Split ``(x, y)`` at non-finite values into strips of (n, 2) points, each with n ≥ 2."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    edges = np.flatnonzero(np.diff(np.concatenate([[False], ok, [False]]).astype(np.int8)))
+    return [np.column_stack([x[a:b], y[a:b]]) for a, b in zip(edges[::2], edges[1::2]) if b - a >= 2]
+
+
+def _flatten_stats(stats: Mapping[str, Any]) -> dict[str, float]:
+    """Numbers as ``key``; a mapping of counters as ``key/<sub>`` plus ``key/total``."""
+    out: dict[str, float] = {}
+    for key, value in stats.items():
+        if isinstance(value, Mapping):
+            subs = {f"{key}/{sub}": float(v) for sub, v in value.items()
+                    if isinstance(v, (int, float, np.number)) and not isinstance(v, bool)}
+            out.update(subs)
+            out[f"{key}/total"] = float(sum(subs.values()))
+        elif isinstance(value, (int, float, np.number)) and not isinstance(value, bool):
+            out[str(key)] = float(value)
+    return out
+
+
+def _stats_path(flat_key: str) -> str:
+    return "stats/" + "/".join(_part(p) for p in flat_key.split("/"))
+
+
+def _markdown_cell(value: Any) -> str:
+    return "–" if value is None or value == "" else str(value).replace("|", "\\|")
+
+
+# -- the view -----------------------------------------------------------------------------------------
+class View:
+    """The cloud's live view: an explicit `rerun.RecordingStream`, never the global one.
+
+    Parameters
+    ----------
+    rrd_path : save the recording to this .rrd file.
+    spawn_viewer : start the viewer that ships with the wheel (needs a display) and stream to it.
+    connect_url : stream to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
+    routes : route id → length (m), for the blueprint's profile panels.
+    bridges : bridge ids or registry `Bridge` objects, for the blueprint's bridge panels.
+    recording_id : defaults to a fresh UUID.
+    clock : seconds since the epoch for the ``wall_time`` timeline (tests pass a fixed clock).
+
+    At least one output is required. Methods are thread-safe; calls after `close` are ignored.
+    """
+
+    def __init__(self, rrd_path: Path | str | None = None, spawn_viewer: bool = False,
+                 connect_url: str | None = None, routes: Mapping[str, float] | None = None,
+                 bridges: Sequence[Any] = (), *, recording_id: str | None = None,
+                 clock: Callable[[], float] = time.time, viewer_port: int = DEFAULT_VIEWER_PORT,
+                 profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM):
+        sinks: list = []
+        if rrd_path is not None:
+            Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(rrd_path)))
+        urls = []
+        if spawn_viewer:
+            rr.spawn(port=viewer_port, connect=False)
+            urls.append(f"rerun+http://127.0.0.1:{viewer_port}/proxy")
+        if connect_url and connect_url not in urls:
+            urls.append(connect_url)
+        sinks += [rr.GrpcSink(u) for u in urls]
+        if not sinks:
+            raise ValueError("View: no output; give rrd_path, spawn_viewer or connect_url")
+        self._lock = threading.RLock()
+        self._clock = clock
+        self._pass = 0
+        self._closed = False
+        self._styled: dict[str, Any] = {}  # entity path → what its static style was made for
+        self.recording_id = recording_id or str(uuid.uuid4())
+        self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.recording_id)
+        # Exactly two timelines: `pass` and `wall_time` (log_time would duplicate wall_time).
+        self._rec.set_log_time_enabled(False)
+        self._rec.set_log_tick_enabled(False)
+        self._rec.set_sinks(*sinks, default_blueprint=blueprint(dict(routes or {}), list(bridges),
+                                                                profile_range_mm))
+
+    # -- time ------------------------------------------------------------------------------------------
+    @property
+    def pass_count(self) -> int:
+        """The current value of the ``pass`` timeline."""
+        return self._pass
+
+    def set_pass(self, n: int) -> None:
+        """Set the ``pass`` timeline (completed passes so far) for the rows logged next."""
+        n = int(n)
+        if n < 0:
+            raise ValueError(f"View.set_pass: n must be >= 0, got {n}")
+        with self._lock:
+            self._pass = n
+
+    def _stamp(self) -> None:
+        # Set on every call, under the lock: the stream's time is per thread, and callers may
+        # log from zenoh's threads.
+        self._rec.set_time("pass", sequence=self._pass)
+        self._rec.set_time("wall_time", timestamp=float(self._clock()))
+
+    def _style_once(self, path: str, key: Any, make: Callable[[], Any]) -> None:
+        if self._styled.get(path) != key:
+            self._rec.log(path, make(), static=True)
+            self._styled[path] = key
+
+    # -- profile ---------------------------------------------------------------------------------------
+    def log_profile(self, snapshot: Any) -> None:
+        """Log one update of a route's profile: the mean and its 95 % band, mm against chainage m.
+
+        ``snapshot`` is a `cloud.estimators.mean_profile.ProfileSnapshot` (or anything with
+        ``route_id``, ``chainage_m``, ``elevation_m``, ``lo95_m``, ``hi95_m`` in metres). Curves are
+        binned to at most `MAX_STRIP_POINTS` points and split at NaN gaps.
+        """
+        x = np.asarray(snapshot.chainage_m, dtype=float)
+        cols = [np.asarray(a, dtype=float) * 1e3 for a in (snapshot.elevation_m, snapshot.lo95_m, snapshot.hi95_m)]
+        if x.ndim != 1 or any(c.shape != x.shape for c in cols):
+            raise ValueError("log_profile: chainage_m, elevation_m, lo95_m and hi95_m must be 1-D of one length")
+        x, mean, lo, hi = decimate_profile(x, *cols)
+        mean_strips = finite_runs(x, SCREEN_Y * mean)
+        band_strips = finite_runs(x, SCREEN_Y * lo) + finite_runs(x, SCREEN_Y * hi)
+        root = profile_path(snapshot.route_id)
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(f"{root}/mean", rr.LineStrips2D(mean_strips, radii=MEAN_RADIUS, colors=MEAN_COLOUR))
+            self._rec.log(f"{root}/band", rr.LineStrips2D(band_strips, radii=BAND_RADIUS, colors=BAND_COLOUR))
+
+    def log_tile_counts(self, route_id: str, tile_m: float, counts: np.ndarray) -> None:
+        """Log passes per tile of ``tile_m`` (m) as a bar chart against tile-centre chainage (m).
+
+        The whole array is one row (a BarChart tensor) at the current pass: a ``tile`` timeline
+        would hide the other panels whenever it is the selected one.
+        """
+        counts = np.asarray(counts)
+        if counts.ndim != 1 or not (tile_m > 0):
+            raise ValueError("log_tile_counts: counts must be 1-D and tile_m positive")
+        if counts.size and counts.min() < 0:
+            raise ValueError("log_tile_counts: counts must be non-negative")
+        centres = (np.arange(counts.size) + 0.5) * float(tile_m)
+        chart = rr.BarChart(counts.astype(np.int64), abscissa=centres,
+                            widths=np.full(counts.size, 0.9 * float(tile_m), dtype=np.float32), color=TILE_COLOUR)
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(f"{profile_path(route_id)}/passes_per_tile", chart)
+
+    # -- fleet and aggregator --------------------------------------------------------------------------
+    def log_vehicle_status(self, status: Mapping[str, Mapping[str, Any]]) -> None:
+        """Log the fleet table: vehicle → passes, last_pass, calib_version, segments, rejected."""
+        fields = ("passes", "last_pass", "calib_version", "segments", "rejected")
+        lines = [f"**{len(status)} vehicles** at pass {self._pass}", "",
+                 "| vehicle | passes | last pass | calibration | segments | rejected |",
+                 "|---|---:|---|---:|---:|---:|"]
+        for vid in sorted(status):
+            row = status[vid]
+            lines.append("| " + " | ".join([_markdown_cell(vid)] + [_markdown_cell(row.get(f)) for f in fields]) + " |")
+        doc = rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN)
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log("fleet/status", doc)
+
+    def log_stats(self, stats: Mapping[str, Any]) -> None:
+        """Log the aggregator's counters at the current pass (``Aggregator.stats()`` as it is).
+
+        Numbers go to ``stats/<key>``; a mapping such as ``rejected`` to ``stats/rejected/<reason>``
+        and ``stats/rejected/total``. Other values are skipped.
+        """
+        with self._lock:
+            self.log_stats_history([self._pass], [float(self._clock())], [stats])
+
+    def log_stats_history(self, passes: Sequence[int], wall_time_s: Sequence[float],
+                          history: Sequence[Mapping[str, Any]]) -> None:
+        """Send a history of counters in one columnar call per series (e.g. replayed from a journal).
+
+        Parameters
+        ----------
+        passes, wall_time_s : the ``pass`` value and wall time (s since the epoch) of each entry.
+        history : one ``stats`` mapping per entry, as for `log_stats`. A key (or reason) absent
+            from an entry leaves that row out of its series, exactly as entry-by-entry
+            `log_stats` calls would: a series starts when its key first appears.
+        """
+        passes = np.asarray(passes, dtype=np.int64)
+        times = np.asarray(wall_time_s, dtype=float)
+        if not (passes.ndim == 1 and passes.shape == times.shape and len(history) == passes.size):
+            raise ValueError("log_stats_history: passes, wall_time_s and history must have one length")
+        flat = [_flatten_stats(s) for s in history]
+        series: dict[str, tuple[list[int], list[float]]] = {}
+        for i, f in enumerate(flat):
+            for key, value in f.items():
+                rows, values = series.setdefault(key, ([], []))
+                rows.append(i)
+                values.append(value)
+        with self._lock:
+            if self._closed:
+                return
+            for key, (rows, values) in sorted(series.items()):
+                path = _stats_path(key)
+                colour = STATS_COLOURS.get(key, REJECT_COLOUR if key.startswith("rejected/") else OTHER_COLOUR)
+                self._style_once(path, key, lambda: rr.SeriesLines(names=[key], colors=[colour], widths=[2.0]))
+                self._rec.send_columns(
+                    path,
+                    indexes=[rr.TimeColumn("pass", sequence=passes[rows]),
+                             rr.TimeColumn("wall_time", timestamp=times[rows])],
+                    columns=rr.Scalars.columns(scalars=np.asarray(values, dtype=float)))
+
+    # -- bridges ---------------------------------------------------------------------------------------
+    def log_bridge_stiffness(self, bridge_id: str, element_x_m: np.ndarray, ratio_mean: np.ndarray,
+                             lo: np.ndarray, hi: np.ndarray) -> None:
+        """Log each element's stiffness ratio (EI / design EI) with its 95 % band at the current pass.
+
+        One entity ``bridge/<id>/stiffness`` with three series per element (mean, lo95, hi95),
+        named by the element's centre ``element_x_m`` (m from the first support).
+        """
+        arrays = [np.asarray(a, dtype=float) for a in (element_x_m, ratio_mean, lo, hi)]
+        x = arrays[0]
+        if x.ndim != 1 or any(a.shape != x.shape for a in arrays):
+            raise ValueError("log_bridge_stiffness: element_x_m, ratio_mean, lo and hi must be 1-D of one length")
+        values = np.column_stack(arrays[1:]).ravel()  # mean, lo, hi of element 0, then element 1, ...
+        path = f"{bridge_path(bridge_id)}/stiffness"
+
+        def style():
+            names, colours, widths = [], [], []
+            for k, xk in enumerate(x):
+                hue = _element_colour(k, x.size)
+                for label, w in (("", 2.0), (" lo95", 0.75), (" hi95", 0.75)):
+                    names.append(f"x={xk:.1f} m{label}")
+                    colours.append(hue)
+                    widths.append(w)
+            return rr.SeriesLines(names=names, colors=colours, widths=widths)
+
+        with self._lock:
+            if self._closed:
+                return
+            self._style_once(path, tuple(np.round(x, 6)), style)
+            self._stamp()
+            self._rec.log(path, rr.Scalars(values))
+
+    def log_alarm(self, bridge_id: str, message: str, severity: str = "WARN") -> None:
+        """Log an alarm for a bridge; ``severity`` is a text-log level (INFO, WARN, ERROR, CRITICAL...)."""
+        level = str(severity).upper()
+        level = {"WARNING": "WARN", "FATAL": "CRITICAL"}.get(level, level)
+        if level not in TEXT_LOG_LEVELS:
+            raise ValueError(f"log_alarm: severity must be one of {TEXT_LOG_LEVELS}, got {severity!r}")
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(f"{bridge_path(bridge_id)}/alarms", rr.TextLog(str(message), level=level))
+
+    # -- lifetime --------------------------------------------------------------------------------------
+    def flush(self, timeout_s: float = 10.0) -> bool:
+        """Push everything logged so far to the file / viewer, waiting at most about ``timeout_s``.
+
+        Returns False (and logs a warning) if an output could not take it, e.g. an unreachable
+        viewer: the view is a side subscriber and never raises into the daemon for that.
+        """
+        with self._lock:
+            if self._closed:
+                return True
+            try:
+                self._rec.flush(timeout_sec=timeout_s)
+            except Exception as e:  # rerun raises RuntimeError when a gRPC sink cannot connect
+                log.warning("rerun flush failed: %s", e)
+                return False
+            return True
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Flush and disconnect every output; the file is complete afterwards. Idempotent.
+
+        With an unreachable viewer, rerun itself waits some seconds before giving up on it.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self.flush(timeout_s)
+            self._closed = True
+            self._rec.disconnect()
+
+    def __enter__(self) -> View:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _element_colour(k: int, n: int) -> tuple[int, int, int]:
+    """Blue (first support) to orange (second) along the span."""
+    t = k / max(n - 1, 1)
+    return (int(60 + 195 * t), int(140 + 20 * t), int(255 - 195 * t))

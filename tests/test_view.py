@@ -1,0 +1,284 @@
+"""The cloud's Rerun view, read back from real .rrd files (no viewer, no display)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun")
+from rerun.chunk import RrdReader  # noqa: E402
+
+from cloud.estimators.mean_profile import ProfileSnapshot  # noqa: E402
+from cloud.view import (  # noqa: E402
+    MAX_STRIP_POINTS,
+    SCREEN_Y,
+    View,
+    blueprint,
+    decimate_profile,
+    finite_runs,
+)
+
+T0 = 1_700_000_000.0
+
+
+class FakeClock:
+    """Wall time that tests move by hand."""
+
+    def __init__(self, t: float = T0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def snapshot(route_id="R1", length_m=100.0, spacing_m=0.5, gap=None, offset_m=0.0, n_passes=1):
+    x = np.arange(int(round(length_m / spacing_m)) + 1) * spacing_m
+    y = 0.01 * np.sin(2 * np.pi * x / 20.0) + offset_m
+    if gap is not None:
+        y = np.where((x >= gap[0]) & (x < gap[1]), np.nan, y)
+    n = np.where(np.isfinite(y), n_passes, 0).astype(np.int64)
+    return ProfileSnapshot(route_id, x, y, y - 0.002, y + 0.002, n)
+
+
+def temporal_rows(path: Path, entity: str) -> list[dict]:
+    """Every temporal row of ``entity`` as {timeline or component: value}, sorted by ``pass``."""
+    rows = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path != entity or chunk.is_static:
+            continue
+        rb = chunk.to_record_batch()
+        cols = {n: (rb.column(n).cast("int64") if n in chunk.timeline_names else rb.column(n)).to_pylist()
+                for n in rb.schema.names if not n.startswith("rerun.controls")}
+        rows += [{n: v[i] for n, v in cols.items()} for i in range(chunk.num_rows)]
+    return sorted(rows, key=lambda r: r["pass"])
+
+
+def entities(path: Path) -> set[str]:
+    return {c.entity_path for c in RrdReader(path).stream()}
+
+
+@pytest.fixture
+def rrd(tmp_path):
+    return tmp_path / "view.rrd"
+
+
+def test_profile_updates_are_rows_on_the_pass_timeline(rrd):
+    clock = FakeClock()
+    n = 5
+    with View(rrd, routes={"R1": 100.0}, bridges=["B1"], clock=clock, recording_id="rec-1") as view:
+        for k in range(1, n + 1):
+            view.set_pass(k)
+            clock.t = T0 + 60.0 * k
+            view.log_profile(snapshot(offset_m=0.001 * k))
+    reader = RrdReader(rrd)
+    assert [r.recording_id for r in reader.recordings()] == ["rec-1"]
+    assert len(reader.blueprints()) >= 1
+    mean = temporal_rows(rrd, "/profile/R1/mean")
+    assert [r["pass"] for r in mean] == list(range(1, n + 1))
+    assert [r["wall_time"] for r in mean] == [int((T0 + 60.0 * k) * 1e9) for k in range(1, n + 1)]
+    assert set(mean[0]) == {"pass", "wall_time", "LineStrips2D:strips", "LineStrips2D:radii", "LineStrips2D:colors"}
+    band = temporal_rows(rrd, "/profile/R1/band")
+    assert [r["pass"] for r in band] == list(range(1, n + 1))
+    # the last update holds the last snapshot: mean in mm, drawn up (SCREEN_Y), band on either side
+    s = snapshot(offset_m=0.005)
+    (strip,) = mean[-1]["LineStrips2D:strips"]
+    pts = np.array(strip)
+    np.testing.assert_allclose(pts[:, 0], s.chainage_m, atol=1e-4)
+    np.testing.assert_allclose(pts[:, 1] * SCREEN_Y, s.elevation_m * 1e3, atol=1e-4)
+    lo, hi = (np.array(b) for b in band[-1]["LineStrips2D:strips"])
+    np.testing.assert_allclose(lo[:, 1] * SCREEN_Y, s.lo95_m * 1e3, atol=1e-4)
+    np.testing.assert_allclose(hi[:, 1] * SCREEN_Y, s.hi95_m * 1e3, atol=1e-4)
+
+
+def test_nan_gaps_split_strips_without_nan_coordinates(rrd):
+    with View(rrd, routes={"R1": 100.0}, clock=FakeClock()) as view:
+        view.set_pass(1)
+        view.log_profile(snapshot(gap=(30.0, 45.0)))
+        view.set_pass(2)
+        view.log_profile(snapshot(gap=(0.0, 200.0)))  # no data at all yet: empty, not NaN
+    mean = temporal_rows(rrd, "/profile/R1/mean")
+    band = temporal_rows(rrd, "/profile/R1/band")
+    strips = [np.array(s) for s in mean[0]["LineStrips2D:strips"]]
+    assert len(strips) == 2
+    assert all(np.isfinite(s).all() for s in strips)
+    assert strips[0][-1, 0] < 30.0 and strips[1][0, 0] >= 45.0
+    assert len(band[0]["LineStrips2D:strips"]) == 4
+    assert all(np.isfinite(np.array(s)).all() for s in band[0]["LineStrips2D:strips"])
+    assert mean[1]["LineStrips2D:strips"] == [] and band[1]["LineStrips2D:strips"] == []
+
+
+def test_long_profiles_are_binned_for_the_viewer(rrd):
+    s = snapshot(length_m=1000.0, spacing_m=0.05, gap=(400.0, 410.0))  # 20001 points
+    with View(rrd, routes={"R1": 1000.0}, clock=FakeClock()) as view:
+        view.log_profile(s)
+    (row,) = temporal_rows(rrd, "/profile/R1/mean")
+    strips = [np.array(p) for p in row["LineStrips2D:strips"]]
+    assert len(strips) == 2
+    assert sum(len(p) for p in strips) <= MAX_STRIP_POINTS
+    assert all(np.isfinite(p).all() for p in strips)
+    assert strips[0][0, 0] < 1.0 and strips[-1][-1, 0] > 999.0
+
+
+def test_decimate_profile_against_a_loop():
+    rng = np.random.default_rng(1)
+    n, max_points = 103, 10
+    x = np.arange(n) * 0.1
+    y = rng.normal(size=n)
+    y[20:37] = np.nan  # spans whole bins and parts of bins
+    lo, hi = y - rng.uniform(size=n), y + rng.uniform(size=n)
+    xd, yd, lod, hid = decimate_profile(x, y, lo, hi, max_points)
+    k = -(-n // max_points)
+    assert xd.size <= max_points
+    for b in range(xd.size):
+        sl = slice(b * k, min((b + 1) * k, n))
+        fin = np.isfinite(y[sl])
+        assert xd[b] == pytest.approx(x[sl].mean())
+        if fin.any():
+            assert yd[b] == pytest.approx(y[sl][fin].mean())
+            assert lod[b] == pytest.approx(lo[sl][fin].min())
+            assert hid[b] == pytest.approx(hi[sl][fin].max())
+        else:
+            assert np.isnan(yd[b]) and np.isnan(lod[b]) and np.isnan(hid[b])
+    same = decimate_profile(x, y, lo, hi, n)
+    assert all(a is b for a, b in zip(same, (x, y, lo, hi)))
+
+
+def test_finite_runs_drops_nan_and_single_points():
+    x = np.arange(10.0)
+    y = np.array([0, 1, np.nan, 3, np.nan, 5, 6, 7, np.nan, np.nan])
+    runs = finite_runs(x, y)
+    assert [r[:, 0].tolist() for r in runs] == [[0, 1], [5, 6, 7]]
+    assert finite_runs(x, np.full(10, np.nan)) == []
+
+
+def test_tile_counts_are_a_bar_chart_per_pass(rrd):
+    with View(rrd, routes={"R1": 200.0}, clock=FakeClock()) as view:
+        view.set_pass(1)
+        view.log_tile_counts("R1", 50.0, np.array([1, 0, 0, 0]))
+        view.set_pass(2)
+        view.log_tile_counts("R1", 50.0, np.array([2, 1, 1, 0]))
+    rows = temporal_rows(rrd, "/profile/R1/passes_per_tile")
+    assert [r["pass"] for r in rows] == [1, 2]
+    (values,), (abscissa,) = rows[1]["BarChart:values"], rows[1]["BarChart:abscissa"]
+    assert values["shape"] == [4] and values["buffer"] == [2, 1, 1, 0]
+    assert abscissa["buffer"] == [25.0, 75.0, 125.0, 175.0]
+    with pytest.raises(ValueError):
+        View(rrd.with_name("x.rrd")).log_tile_counts("R1", 50.0, np.array([-1]))
+
+
+def test_stats_are_columns_with_reasons_and_totals(rrd):
+    clock = FakeClock()
+    history = [
+        {"accepted": 3, "rejected": {}, "passes_complete": 0, "segments_held": 3},
+        {"accepted": 7, "rejected": {"duplicate": 2}, "passes_complete": 1, "segments_held": 7},
+        {"accepted": 9, "rejected": {"duplicate": 2, "impossible_speed": 1}, "passes_complete": 2,
+         "segments_held": 9},
+    ]
+    with View(rrd, clock=clock) as view:
+        for k, stats in enumerate(history, start=1):
+            view.set_pass(k)
+            clock.t = T0 + k
+            view.log_stats(stats)
+        # a replay of the same history in one columnar call per series, at later passes
+        view.log_stats_history([11, 12, 13], [T0 + 11, T0 + 12, T0 + 13], history)
+
+    def series(entity):
+        return [(r["pass"], r["Scalars:scalars"][0]) for r in temporal_rows(rrd, entity)]
+
+    assert series("/stats/accepted") == [(1, 3), (2, 7), (3, 9), (11, 3), (12, 7), (13, 9)]
+    assert series("/stats/passes_complete") == [(1, 0), (2, 1), (3, 2), (11, 0), (12, 1), (13, 2)]
+    # a reason's series starts when it first appears, whether logged entry by entry or in one call
+    assert series("/stats/rejected/duplicate") == [(2, 2), (3, 2), (12, 2), (13, 2)]
+    assert series("/stats/rejected/impossible_speed") == [(3, 1), (13, 1)]
+    assert series("/stats/rejected/total") == [(1, 0), (2, 2), (3, 3), (11, 0), (12, 2), (13, 3)]
+    ts = [r["wall_time"] for r in temporal_rows(rrd, "/stats/accepted")]
+    assert ts == [int((T0 + k) * 1e9) for k in (1, 2, 3, 11, 12, 13)]
+    assert "/stats/accepted" in {c.entity_path for c in RrdReader(rrd).stream() if c.is_static}  # series style
+
+
+def test_vehicle_status_is_a_markdown_table(rrd):
+    status = {"V2": {"passes": 1, "last_pass": "p1", "calib_version": 0, "segments": 4},
+              "V1": {"passes": 3, "last_pass": "p7", "calib_version": 2, "segments": 12, "rejected": 1}}
+    with View(rrd, clock=FakeClock()) as view:
+        view.set_pass(4)
+        view.log_vehicle_status(status)
+    (row,) = temporal_rows(rrd, "/fleet/status")
+    text = row["TextDocument:text"][0]
+    assert row["TextDocument:media_type"] == ["text/markdown"]
+    lines = text.splitlines()
+    body = [ln for ln in lines if ln.startswith("| V")]
+    assert body == ["| V1 | 3 | p7 | 2 | 12 | 1 |", "| V2 | 1 | p1 | 0 | 4 | – |"]
+    assert "2 vehicles" in lines[0]
+
+
+def test_bridge_stiffness_and_alarms(rrd):
+    x = np.array([1.0, 3.0, 5.0])
+    with View(rrd, routes={"R1": 100.0}, bridges=["B1"], clock=FakeClock()) as view:
+        view.set_pass(10)
+        view.log_bridge_stiffness("B1", x, [1.0, 0.8, 1.0], [0.9, 0.7, 0.9], [1.1, 0.9, 1.1])
+        view.log_alarm("B1", "element at 3.0 m below 85 % of design", severity="warning")
+        with pytest.raises(ValueError):
+            view.log_alarm("B1", "?", severity="loud")
+        with pytest.raises(ValueError):
+            view.log_bridge_stiffness("B1", x, [1.0], [1.0], [1.0])
+    (row,) = temporal_rows(rrd, "/bridge/B1/stiffness")
+    assert row["pass"] == 10
+    np.testing.assert_allclose(row["Scalars:scalars"], [1.0, 0.9, 1.1, 0.8, 0.7, 0.9, 1.0, 0.9, 1.1])
+    (alarm,) = temporal_rows(rrd, "/bridge/B1/alarms")
+    assert alarm["TextLog:level"] == ["WARN"] and alarm["TextLog:text"][0].startswith("element at 3.0 m")
+    static = {c.entity_path: c.to_record_batch() for c in RrdReader(rrd).stream() if c.is_static}
+    names = static["/bridge/B1/stiffness"].column("SeriesLines:names").to_pylist()[0]
+    assert names[:3] == ["x=1.0 m", "x=1.0 m lo95", "x=1.0 m hi95"] and len(names) == 9
+
+
+def test_close_is_idempotent_and_later_calls_are_ignored(rrd):
+    view = View(rrd, routes={"R1": 100.0}, clock=FakeClock())
+    view.set_pass(1)
+    view.log_profile(snapshot())
+    assert view.flush()
+    view.close()
+    view.close()
+    assert view.flush()
+    view.log_profile(snapshot())
+    view.log_stats({"accepted": 1})
+    assert len(temporal_rows(rrd, "/profile/R1/mean")) == 1
+    assert "/stats/accepted" not in entities(rrd)
+
+
+def test_a_view_needs_an_output(rrd):
+    with pytest.raises(ValueError, match="no output"):
+        View()
+    with View(rrd) as view, pytest.raises(ValueError):
+        view.set_pass(-1)
+
+
+def test_blueprint_is_one_value_for_routes_and_bridges():
+    assert isinstance(blueprint({"R1": 100.0, "R2": 50.0}, ["B1"]), rr.blueprint.Blueprint)
+    assert isinstance(blueprint({}, []), rr.blueprint.Blueprint)
+
+
+def test_rrd_verify_accepts_the_file(rrd, tmp_path):
+    clock = FakeClock()
+    with View(rrd, routes={"R1": 100.0}, bridges=["B1"], clock=clock) as view:
+        for k in range(1, 4):
+            view.set_pass(k)
+            view.log_profile(snapshot(gap=(40.0, 50.0)))
+            view.log_tile_counts("R1", 50.0, np.array([k, k, 0]))
+            view.log_stats({"accepted": k, "rejected": {"duplicate": 1}, "passes_complete": k})
+            view.log_vehicle_status({"V1": {"passes": k}})
+            view.log_bridge_stiffness("B1", [2.5, 7.5], [1.0, 1.0], [0.9, 0.9], [1.1, 1.1])
+        view.log_alarm("B1", "test", "INFO")
+    cli = Path(sys.executable).with_name("rerun")
+    if not cli.exists():
+        pytest.skip("rerun CLI not installed beside the interpreter")
+    # The CLI's first run writes an analytics config and prints a notice on stderr: keep the
+    # config inside tmp_path and ignore the notice.
+    env = dict(os.environ, HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / "config"))
+    done = subprocess.run([str(cli), "rrd", "verify", str(rrd)], capture_output=True, text=True, env=env,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
