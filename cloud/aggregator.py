@@ -30,6 +30,7 @@ class PassState:
     seqs: set = dataclasses.field(default_factory=set)
     expected: int | None = None
     acked: bool = False
+    model: str = ""
 
 
 class Aggregator:
@@ -89,6 +90,7 @@ class Aggregator:
         if done.calib_version > ps.calib_version:
             ps.calib_version, ps.seqs, ps.acked = done.calib_version, set(), False
         ps.expected = done.n_segments
+        ps.model = done.vehicle_model or ps.model
         return self._maybe_ack(done.vehicle_id, done.pass_id)
 
     # -- rules ---------------------------------------------------------------------------------

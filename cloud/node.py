@@ -8,8 +8,10 @@ import json
 import logging
 import queue
 import signal
+import struct
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -22,20 +24,29 @@ from shared.transport import add_zenoh_arguments, config_from_args
 
 from .aggregator import Aggregator
 from .estimators.mean_profile import MeanProfile
-from .export import profile_table, write_export
+from .export import profile_table, vehicles_table, write_export
+from .fleet_calibration import FleetCalibrator
 
 log = logging.getLogger("driveby.cloud")
 
 TILE_M = 50.0
 
+#: Latency tracing (benchmarks): a raw chunk published with this zenoh attachment (its publication
+#: time, Unix s, little-endian float64) passes it, via the edge, to the segments it releases; the
+#: cloud records (sent, applied) for each such segment it accepts and answers ``control/<id>/latency``.
+TRACE = struct.Struct("<d")
+TRACE_RECORDS = 100_000
+
 
 class Cloud:
     """Transport-free core of the daemon: the aggregator, its estimators and the view."""
 
-    def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05):
-        self.net, self.site, self.publish, self.view = net, site, publish, view
+    def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05,
+                 calibration: str = "nominal", node_id: str = "cloud-1"):
+        self.net, self.site, self.publish, self.view, self.node_id = net, site, publish, view, node_id
         self.profile = MeanProfile({r.id: r.length_m for r in site.routes}, spacing_m)
         self.aggregator = Aggregator(site, [self.profile])
+        self.calibrator = FleetCalibrator(site, self.profile) if calibration == "fleet" else None
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
@@ -53,6 +64,12 @@ class Cloud:
 
     def _acks(self, acks) -> None:
         for ack in acks:
+            ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
+            if self.calibrator is not None and ps is not None and ps.model:
+                try:
+                    self.calibrator.note_pass(ack.vehicle_id, ps.model)
+                except KeyError:  # no vehicle class for this model in the registry: not calibrated
+                    pass
             self.passes_complete += 1
             v = self.vehicles[ack.vehicle_id]
             v["passes"] += 1
@@ -62,6 +79,40 @@ class Cloud:
             self.publish(keys.ack_key(self.net, ack.vehicle_id), ack.encode())
             if self.view is not None:
                 self._log_view()
+        if acks:
+            self.publish_status()
+
+    def current_version(self, vehicle_id: str) -> int:
+        st = self.calibrator.vehicles.get(vehicle_id) if self.calibrator is not None else None
+        return st.version if st is not None else 0
+
+    def status(self) -> dict:
+        passes = self.aggregator.passes
+        current = sum(1 for (vid, _), ps in passes.items() if ps.acked and ps.calib_version == self.current_version(vid))
+        busy = False
+        if self.calibrator is not None:
+            c = self.calibrator
+            busy = c.dirty and c.rounds < c.max_rounds and len(passes) >= c.min_passes
+        return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
+                "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0}
+
+    def publish_status(self) -> None:
+        self.publish(keys.status_key(self.net, self.node_id), json.dumps(self.status()).encode())
+
+    def maybe_calibrate(self) -> bool:
+        """Run one calibration round if one is due; publish what changed. True if a round ran."""
+        c = self.calibrator
+        if c is None or not c.ready(self.aggregator.segments):
+            return False
+        for cal in c.round(self.aggregator.segments):
+            self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
+        if self.view is not None:
+            try:
+                self.view.log_calibration(c) if hasattr(self.view, "log_calibration") else None
+            except Exception:
+                log.exception("rerun calibration view failed")
+        self.publish_status()
+        return True
 
     def _log_view(self) -> None:
         try:
@@ -91,7 +142,10 @@ class Cloud:
         return sink.getvalue().to_pybytes()
 
     def export(self, out_dir: Path) -> list[Path]:
-        written = write_export(out_dir, {"profile": profile_table(self.profile.snapshot())})
+        tables = {"profile": profile_table(self.profile.snapshot())}
+        if self.calibrator is not None:
+            tables["vehicles"] = vehicles_table(self.calibrator.table())
+        written = write_export(out_dir, tables)
         if self.view is not None:
             self.view.flush()
         return written
@@ -102,12 +156,15 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
     """Subscriptions feed one worker thread; queries are answered from the worker's state under a lock."""
     inbox: queue.Queue = queue.Queue(maxsize=65536)
     lock = threading.Lock()
+    traced: collections.deque = collections.deque(maxlen=TRACE_RECORDS)  # (sent, applied), Unix s
 
     def on_ap(sample):
-        inbox.put(("ap", str(sample.key_expr), sample.payload.to_bytes()))
+        trace = sample.attachment
+        inbox.put(("ap", str(sample.key_expr), sample.payload.to_bytes(),
+                   None if trace is None else trace.to_bytes()))
 
     def on_done(sample):
-        inbox.put(("done", str(sample.key_expr), sample.payload.to_bytes()))
+        inbox.put(("done", str(sample.key_expr), sample.payload.to_bytes(), None))
 
     def on_state(query):
         with query:
@@ -150,23 +207,45 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
                 body = {"stats": cloud.aggregator.stats(), "passes_complete": cloud.passes_complete}
             query.reply(keys.control_key(cloud.net, node_id, "stats"), json.dumps(body).encode())
 
+    def on_latency(query):  # ?since=T: the traced segments whose raw chunk was published at T or later
+        with query:
+            params = dict(p.split("=", 1) for p in str(query.parameters).split(";") if "=" in p)
+            try:
+                since = float(params.get("since", "-inf"))
+            except ValueError:
+                query.reply_err(b"since: expected Unix seconds")
+                return
+            with lock:
+                rows = [r for r in traced if r[0] >= since]
+            body = {"sent": [r[0] for r in rows], "applied": [r[1] for r in rows]}
+            query.reply(keys.control_key(cloud.net, node_id, "latency"), json.dumps(body).encode())
+
     decl = [
         session.declare_subscriber(keyexpr, on_ap),
         session.declare_subscriber(keys.done_keyexpr(cloud.net), on_done),
         session.declare_queryable(keys.state_profile_keyexpr(cloud.net), on_state),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "export"), on_export),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "stats"), on_stats),
+        session.declare_queryable(keys.control_key(cloud.net, node_id, "latency"), on_latency),
     ]
     token = session.liveliness().declare_token(keys.alive_key(cloud.net, "cloud", node_id))
     try:
         while not stop.is_set():
             try:
-                kind, key, payload = inbox.get(timeout=0.2)
+                kind, key, payload, trace = inbox.get(timeout=0.2)
             except queue.Empty:
+                try:
+                    with lock:
+                        cloud.maybe_calibrate()  # calibrate when the bus is quiet
+                except Exception:
+                    log.exception("calibration round failed")
                 continue
             try:
                 with lock:
+                    accepted = cloud.aggregator.accepted
                     (cloud.on_segment if kind == "ap" else cloud.on_done)(key, payload)
+                    if trace is not None and len(trace) == TRACE.size and cloud.aggregator.accepted > accepted:
+                        traced.append((TRACE.unpack(trace)[0], time.time()))
             except Exception:  # a daemon never dies of one message; it is counted and logged
                 cloud.aggregator.rejected["internal_error"] += 1
                 log.exception("failed to process %s", key)
@@ -185,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--id", default="cloud-1", help="this daemon's id (liveliness, control keys)")
     p.add_argument("--site", required=True, help="site registry TOML")
     p.add_argument("--keyexpr", help="the shard of AP segments to own (default: all routes)")
+    p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
+                   help="fleet: calibrate every vehicle from the fleet's consensus; nominal: trust the edges")
     p.add_argument("--export", type=Path, help="default export directory")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
@@ -213,7 +294,7 @@ def main(argv: list[str] | None = None) -> int:
             def publish(key, payload):
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
-            cloud = Cloud(args.net, site, publish, view)
+            cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id)
             serve(session, cloud, args.id, args.keyexpr or keys.ap_keyexpr(args.net), stop, args.export)
             if args.export:
                 cloud.export(args.export)

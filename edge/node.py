@@ -29,7 +29,7 @@ from .pipeline import EdgeConfig, PassProcessor
 
 log = logging.getLogger("driveby.edge")
 
-SPOOL_PASSES = 8  # raw passes kept per vehicle for recomputation when calibration changes
+SPOOL_PASSES = 64  # raw passes kept per vehicle for recomputation when calibration changes
 
 
 @dataclass
@@ -57,6 +57,9 @@ class Edge:
         self.tasks: dict[str, VehicleTask] = {}
         self.rejected: collections.Counter[str] = collections.Counter()
         self.segments_published = 0
+        # Opaque tag of the message being processed (the zenoh attachment of a raw chunk, if any): what
+        # that chunk releases is published with it, so a benchmark can time a segment from its raw chunk.
+        self.trace: bytes | None = None
         self._models: dict[tuple, InverseModel] = {}
 
     # -- calibration -----------------------------------------------------------------------
@@ -120,7 +123,7 @@ class Edge:
             params, version = chosen
             model = self._model(chunk.vehicle_model, params, 1.0 / chunk.sample_rate_hz)
             task.current = PassProcessor(model, chunk.vehicle_id, chunk.pass_id, chunk.route_id, version,
-                                         self.config)
+                                         self.config, chunk.vehicle_model)
             task.current_chunks, task.expected_seq = [], 0
         if chunk.seq != task.expected_seq:
             self.rejected["sequence_gap"] += 1
@@ -165,7 +168,8 @@ class Edge:
         for pass_id, chunks in list(task.spool.items()):
             first = chunks[0]
             model = self._model(first.vehicle_model, dict(cal.params), 1.0 / first.sample_rate_hz)
-            proc = PassProcessor(model, first.vehicle_id, pass_id, first.route_id, cal.version, self.config)
+            proc = PassProcessor(model, first.vehicle_id, pass_id, first.route_id, cal.version, self.config,
+                                 first.vehicle_model)
             for ch in chunks:
                 self._publish_segments(proc.feed(ch))
             segments, done = proc.finish()
@@ -178,10 +182,12 @@ def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Even
     inbox: queue.Queue = queue.Queue(maxsize=4096)  # full → zenoh's thread waits: back-pressure
 
     def on_imu(sample):
-        inbox.put(("imu", str(sample.key_expr), sample.payload.to_bytes()))
+        trace = sample.attachment
+        inbox.put(("imu", str(sample.key_expr), sample.payload.to_bytes(),
+                   None if trace is None else trace.to_bytes()))
 
     def on_calib(sample):
-        inbox.put(("calib", str(sample.key_expr), sample.payload.to_bytes()))
+        inbox.put(("calib", str(sample.key_expr), sample.payload.to_bytes(), None))
 
     subs = [session.declare_subscriber(keys.imu_keyexpr(edge.net), on_imu),
             session.declare_subscriber(keys.calib_keyexpr(edge.net), on_calib)]
@@ -189,9 +195,10 @@ def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Even
     try:
         while not stop.is_set():
             try:
-                kind, key, payload = inbox.get(timeout=0.2)
+                kind, key, payload, trace = inbox.get(timeout=0.2)
             except queue.Empty:
                 continue
+            edge.trace = trace
             if kind == "imu":
                 try:
                     _, vehicle = keys.parse_vehicle_key(key, "imu")
@@ -236,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with zenoh.open(conf) as session:
             def publish(key, payload):
-                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, attachment=edge.trace)
 
             edge = Edge(args.net, publish, site, args.calibration,
                         vehicles=set(args.vehicle) if args.vehicle else None)

@@ -108,8 +108,9 @@ class PassProcessor:
     """Streams one pass: ``feed(chunk)`` → segments ready so far; ``finish()`` → the rest + done marker."""
 
     def __init__(self, model: InverseModel, vehicle_id: str, pass_id: str, route_id: str,
-                 calib_version: int, config: EdgeConfig = EdgeConfig()):
+                 calib_version: int, config: EdgeConfig = EdgeConfig(), model_name: str = ""):
         self.model = model
+        self.model_name = model_name
         self.system = model.system
         self.vehicle_id, self.pass_id, self.route_id = vehicle_id, pass_id, route_id
         self.calib_version = calib_version
@@ -146,7 +147,8 @@ class PassProcessor:
         segments = self._emit(final=True)
         self.finished = True
         done = PassDone(vehicle_id=self.vehicle_id, pass_id=self.pass_id, route_id=self.route_id,
-                        calib_version=self.calib_version, n_segments=self.seq)
+                        calib_version=self.calib_version, n_segments=self.seq,
+                        vehicle_model=self.model_name)
         return segments, done
 
     def _emit(self, final: bool) -> list[ApSegment]:

@@ -258,3 +258,8 @@ def parse_alive_key(key: object) -> tuple[str, str, str]:
 def control_key(net: str, target: str, verb: str) -> str:
     """``driveby/<net>/control/<target>/<verb>``: a queryable a daemon answers (e.g. ``export``)."""
     return _join(check_id(net, "net"), "control", check_id(target, "target"), check_id(verb, "verb"))
+
+
+def status_key(net: str, daemon: str) -> str:
+    """``driveby/<net>/status/<daemon>``: a daemon's JSON status as it changes (e.g. calibration settled)."""
+    return _join(check_id(net, "net"), "status", check_id(daemon, "daemon"))

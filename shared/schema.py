@@ -795,6 +795,7 @@ class PassDone(_Message):
     route_id: str
     calib_version: int
     n_segments: int
+    vehicle_model: str = ""  # optional (added in v1.1 of the message): lets the cloud calibrate
 
     def __post_init__(self) -> None:
         _id("vehicle_id", self.vehicle_id)
@@ -804,6 +805,8 @@ class PassDone(_Message):
         _id("route_id", self.route_id)
         object.__setattr__(self, "calib_version", _int("calib_version", self.calib_version, 0, MAX_INT32))
         object.__setattr__(self, "n_segments", _int("n_segments", self.n_segments, 0, MAX_INT32))
+        if self.vehicle_model and _text("vehicle_model", self.vehicle_model) not in VEHICLE_MODELS:
+            _fail("bad_value", f"vehicle_model {self.vehicle_model!r} not in {sorted(VEHICLE_MODELS)}")
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this marker."""
@@ -815,6 +818,7 @@ class PassDone(_Message):
                 "route_id": _scalar(self.route_id, pa.string()),
                 "calib_version": _scalar(self.calib_version, pa.int64()),
                 "n_segments": _scalar(self.n_segments, pa.int64()),
+                "vehicle_model": _scalar(self.vehicle_model, pa.string()),
             },
         )
 
@@ -826,6 +830,7 @@ def _build_pass_done(r: _Row) -> PassDone:
         route_id=r.text("route_id"),
         calib_version=r.integer("calib_version"),
         n_segments=r.integer("n_segments"),
+        vehicle_model=r.text("vehicle_model") if "vehicle_model" in r.names else "",
     )
 
 

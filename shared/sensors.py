@@ -2,20 +2,42 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
+def _nonnegative(name: str, value: object) -> float:
+    """``value`` as a finite float >= 0, or ValueError naming ``name``."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: must be a finite number >= 0, got {value!r}") from None
+    if not (math.isfinite(x) and x >= 0):
+        raise ValueError(f"{name}: must be a finite number >= 0, got {value!r}")
+    return x
+
+
 def add_noise(signal: np.ndarray, pct: float, rng: np.random.Generator) -> np.ndarray:
-    """Signal plus white Gaussian noise whose std is ``pct`` % of the signal's std (eq. 2.34–2.35)."""
+    """Signal plus white Gaussian noise whose std is ``pct`` % of the signal's std (eq. 2.34–2.35).
+
+    A 1-D ``signal`` is one channel; for an (n_samples, n_channels) array each column gets noise
+    scaled by its own std, so channels of different units (m/s², rad/s) keep their own level.
+    """
     signal = np.asarray(signal, dtype=float)
-    if pct < 0 or not np.isfinite(pct):
-        raise ValueError(f"noise pct: must be a finite percentage >= 0, got {pct!r}")
-    return signal + (pct / 100.0) * np.std(signal) * rng.standard_normal(signal.shape)
+    pct = _nonnegative("noise pct", pct)
+    return signal + (pct / 100.0) * np.std(signal, axis=0) * rng.standard_normal(signal.shape)
 
 
 def snr_db(pct: float) -> float:
-    """The signal-to-noise ratio of eq. (2.35) that a noise level of ``pct`` % corresponds to."""
-    return float(10.0 * np.log10(1.0 / (pct / 100.0) ** 2))
+    """The signal-to-noise ratio of eq. (2.35), dB, that a noise level of ``pct`` % corresponds to.
+
+    SNR = 10·log10(var(A) / E²) with E = pct/100·std(A), i.e. −20·log10(pct/100); inf for 0 %.
+    """
+    pct = _nonnegative("noise pct", pct)
+    if pct == 0.0:
+        return math.inf
+    return -20.0 * math.log10(pct / 100.0)
 
 
 def gnss_chainage(
@@ -32,6 +54,9 @@ def gnss_chainage(
     of the pass, and carries white jitter (sd ``jitter_sd_m``). Returns (reported, bias, scale error).
     """
     x = np.asarray(true_chainage_m, dtype=float)
+    bias_sd_m = _nonnegative("bias_sd_m", bias_sd_m)
+    jitter_sd_m = _nonnegative("jitter_sd_m", jitter_sd_m)
+    speed_error_sd = _nonnegative("speed_error_sd", speed_error_sd)
     bias = float(rng.normal(0.0, bias_sd_m)) if bias_sd_m > 0 else 0.0
     scale_err = float(rng.normal(0.0, speed_error_sd)) if speed_error_sd > 0 else 0.0
     reported = x[0] + bias + (1.0 + scale_err) * (x - x[0])

@@ -14,7 +14,7 @@ import numpy as np
 
 from .dynamics.forward import measured_channels, trapezoid_rate
 from .dynamics.newmark import NewmarkState, integrate, newmark_constants, step
-from .fe.beam import Beam, assemble, contact_vector
+from .fe.beam import Beam, assemble, contact_entries, hermite_shape
 from .vehicles.base import VehicleSystem
 
 
@@ -45,7 +45,11 @@ def simulate_vbi(
     """Simulate one pass at constant speed; ``beam`` None means a rigid road throughout.
 
     ``elevation(x)``/``slope(x)`` describe the surface (the deck's own profile included) in route
-    chainage. Contact damping rates use the exact ẏ = v·slope plus the beam's velocity.
+    chainage. Contact damping rates use the exact rate of the point under the contact,
+    ẏ = v·slope + ∂w/∂t + v·∂w/∂x (surface, beam velocity, and the convective term of moving over
+    the deflected deck), so the apparent profile an inverse recovers is surface + deflection.
+    The vehicle starts in static equilibrium: on the rigid surface, or, if a contact starts on the
+    span, together with the loaded beam.
     """
     c = newmark_constants(dt, gamma, beta)
     n = int(round(duration_s / dt)) + 1
@@ -90,36 +94,70 @@ def simulate_vbi(
         M = np.zeros((nv + nb, nv + nb))
         M[:nv, :nv] = Mv
         M[nv:, nv:] = Mb
-        kp = max(k1 - 1, 0)
-        state = NewmarkState(
-            np.concatenate([u[kp], np.zeros(nb)]), np.concatenate([v[kp], np.zeros(nb)]),
-            np.concatenate([a[kp], np.zeros(nb)]),
-        )
-        for k in range(k1, k2 + 1):
+
+        def coupled(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            """C, K, f of vehicle + beam at sample k, and the contact rows N (nb, nc)."""
             N = np.zeros((nb, nc))
+            Nx = np.zeros((nb, nc))  # ∂N/∂x: the contact moves over the deflected deck
             for i in np.flatnonzero(on_span[k]):
-                N[:, i] = contact_vector(beam, float(xloc[k, i]))
+                N[:, i], Nx[:, i] = _contact_rows(beam, float(xloc[k, i]))
+            # Force of contact i on the vehicle (up): kc·(y − Gᵀq) + cc·(ẏ − Gᵀq̇), with
+            # y = r + Nᵀu_b and ẏ = ṙ + Nᵀu̇_b + v·Nxᵀu_b; the beam feels −(W + that force).
+            kn = kc[:, None] * N.T + speed_mps * cc[:, None] * Nx.T  # (nc, nb): contact force per u_b
             Kf = np.zeros_like(M)
             Cf = np.zeros_like(M)
             Kf[:nv, :nv] = Kv
             Cf[:nv, :nv] = Cv
-            Kf[nv:, nv:] = Kb + N @ (kc[:, None] * N.T)
+            Kf[nv:, nv:] = Kb + N @ kn
             Cf[nv:, nv:] = Cb + N @ (cc[:, None] * N.T)
-            Kf[:nv, nv:] = -G @ (kc[:, None] * N.T)
-            Kf[nv:, :nv] = Kf[:nv, nv:].T
+            Kf[:nv, nv:] = -G @ kn
+            Kf[nv:, :nv] = -N @ (kc[:, None] * G.T)
             Cf[:nv, nv:] = -G @ (cc[:, None] * N.T)
             Cf[nv:, :nv] = Cf[:nv, nv:].T
             f = np.concatenate([G @ g_road[k], -N @ (weights + g_road[k])])
+            return Cf, Kf, f, N
+
+        if k1 == 0:  # starts on the span: static equilibrium of vehicle and loaded beam together
+            _, Kf, f, _ = coupled(0)
+            state = NewmarkState(np.linalg.solve(Kf, f), np.zeros(nv + nb), np.zeros(nv + nb))
+        else:  # the beam is unloaded and at rest until the first contact reaches it
+            kp = k1 - 1
+            state = NewmarkState(
+                np.concatenate([u[kp], np.zeros(nb)]), np.concatenate([v[kp], np.zeros(nb)]),
+                np.concatenate([a[kp], np.zeros(nb)]),
+            )
+        for k in range(k1, k2 + 1):
+            Cf, Kf, f, N = coupled(k)
             if k > 0:
                 state = step(M, Cf, Kf, f, state, c)
             u[k], v[k], a[k] = state.u[:nv], state.v[:nv], state.a[:nv]
             defl[k] = N.T @ state.u[nv:]
-        # Rigid road after the span, continuing from the coupled state.
+        # Rigid road after the span, continuing from the coupled state. integrate() derives the
+        # first acceleration from force[0]; choosing force[0] = M a + C v + K u hands it the
+        # coupled acceleration instead of the rigid-road one, so Newmark's recurrence is unbroken.
         if k2 + 1 < n:
-            tail = integrate(Mv, Cv, Kv, g_road[k2:] @ G.T, c, u0=u[k2], v0=v[k2])
-            u[k2:], v[k2:], a[k2 + 1 :] = tail.u, tail.v, tail.a[1:]
+            force = g_road[k2:] @ G.T
+            force[0] = Mv @ a[k2] + Cv @ v[k2] + Kv @ u[k2]
+            tail = integrate(Mv, Cv, Kv, force, c, u0=u[k2], v0=v[k2])
+            u[k2:], v[k2:], a[k2:] = tail.u, tail.v, tail.a
     vstate = NewmarkState(u, v, a)
     return VbiResponse(t, x_cg, vstate, r + defl, defl, measured_channels(system, vstate))
+
+
+def _contact_rows(beam: Beam, x_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Contact row N(x) and its chainage derivative ∂N/∂x (1/m) on the beam's free DOFs."""
+    entries = contact_entries(beam, x_m)
+    n, le = beam.n_elements, beam.element_length_m
+    e = min(max(int(np.floor(x_m / le)), 0), n - 1)  # as contact_entries: x = span is in the last element
+    xi = min(max(x_m / le - e, 0.0), 1.0)
+    slope = hermite_shape(xi, le, derivative=1)
+    N = np.zeros(2 * n)
+    Nx = np.zeros(2 * n)
+    dofs, values = entries.dofs[0], entries.values[0]
+    keep = dofs >= 0
+    N[dofs[keep]] = values[keep]
+    Nx[dofs[keep]] = slope[keep]
+    return N, Nx
 
 
 __all__ = ["VbiResponse", "simulate_vbi", "trapezoid_rate"]

@@ -44,17 +44,30 @@ def run_sim(args: argparse.Namespace) -> int:
     if args.noise is not None and not (0 <= args.noise < 100):
         print(f"driveby sim: --noise must be a percentage in [0, 100), got {args.noise}", file=sys.stderr)
         return 2
+    if args.seed < 0:  # numpy's seeding rejects negative integers with a traceback
+        print(f"driveby sim: --seed must be >= 0, got {args.seed}", file=sys.stderr)
+        return 2
     from .sim import generate
 
-    truth = generate(SCENARIOS[args.scenario], args.out, seed=args.seed, passes=args.passes,
-                     vehicles=args.vehicles, noise_pct=args.noise, nominal=args.nominal)
+    try:
+        truth = generate(SCENARIOS[args.scenario], args.out, seed=args.seed, passes=args.passes,
+                         vehicles=args.vehicles, noise_pct=args.noise, nominal=args.nominal)
+    except OSError as e:  # e.g. --out names an existing file, or a read-only place
+        print(f"driveby sim: cannot write to {args.out}: {e.strerror or e}", file=sys.stderr)
+        return 1
     print(f"wrote {len(truth['passes'])} drive logs, site.toml and truth.json to {args.out}")
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["fleet"]:  # its own parser (and its heavier imports) only when asked for
+        from .fleet import main as fleet_main
+
+        return fleet_main(argv[1:])
     p = argparse.ArgumentParser(prog="python -m simfleet", description="simulated fleet")
     sub = p.add_subparsers(dest="command", required=True)
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs"))
+    sub.add_parser("fleet", help="live simulated fleet publishers (fleet --help for its options)")
     args = p.parse_args(argv)
     return run_sim(args)

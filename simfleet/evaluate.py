@@ -55,3 +55,16 @@ def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0) -> Profil
 
 def load_truth(path: Path) -> dict:
     return json.loads(Path(path).read_text())
+
+
+def score_vehicles(export_dir: Path, truth: dict) -> dict[str, tuple[float, float]]:
+    """Per calibrated quantity: (median, max) relative error of the exported means against truth."""
+    from cloud.calibration import to_calibration
+
+    t = pq.read_table(Path(export_dir) / "vehicles.parquet").to_pydict()
+    model = truth["vehicle_model"]
+    errs: dict[str, list[float]] = {}
+    for vid, param, mean in zip(t["vehicle_id"], t["param"], t["mean"]):
+        true = to_calibration(model, truth["vehicles"][vid])[param]
+        errs.setdefault(param, []).append(abs(mean / true - 1.0))
+    return {p: (float(np.median(e)), float(np.max(e))) for p, e in errs.items()}

@@ -44,6 +44,7 @@ class RunResult:
     export: list[str]
     stats: dict
     seconds: float
+    calibration_rounds: int = 0
 
 
 def load_inputs(logs_dir: Path, site_path: Path) -> tuple[Site, list[DriveLog]]:
@@ -106,7 +107,7 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
     router = run_router() if connect is None else contextlib.nullcontext(connect)
     with router as endpoint:
         common = ["--connect", endpoint, "--net", net, "--site", str(Path(site_path).resolve())]
-        cloud_args = [*common, "--id", "cloud-1"]
+        cloud_args = [*common, "--id", "cloud-1", "--calibration", calibration]
         if rrd is not None:
             cloud_args += ["--rrd", str(Path(rrd).resolve())]
         if viewer:
@@ -127,6 +128,19 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
         progressed = threading.Event()
         expected = {(log.meta.vehicle_id, log.meta.pass_id) for log in logs}
         all_done = threading.Event()
+        status: dict = {}
+
+        def check_done():
+            if expected <= acked and status.get("settled") and status.get("passes_current", 0) >= len(expected):
+                all_done.set()
+
+        def on_status(sample):
+            try:
+                status.update(json.loads(sample.payload.to_bytes()))
+            except ValueError:
+                return
+            progressed.set()
+            check_done()
 
         def on_alive(sample):
             try:
@@ -145,11 +159,11 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
                 return
             acked.add((ack.vehicle_id, ack.pass_id))
             progressed.set()
-            if expected <= acked:
-                all_done.set()
+            check_done()
 
         live = session.liveliness().declare_subscriber(keys.alive_keyexpr(net), on_alive, history=True)
         acks = session.declare_subscriber(keys.ack_keyexpr(net), on_ack)
+        stat = session.declare_subscriber(keys.status_key(net, "cloud-1"), on_status)
         _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start")
         publisher_opts = dict(congestion_control=zenoh.CongestionControl.BLOCK)
 
@@ -170,10 +184,13 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
                                    f"{len(missing)} pass(es) missing, e.g. {missing[:3]}")
                 _check_alive(procs, work)
                 bar.advance(len(acked & expected) - bar.done)
+                if status.get("calibration_rounds"):
+                    bar.label = f"passes (calibration round {status['calibration_rounds']})"
         feeder.join(timeout=10.0)
         replies = list(session.get(keys.control_key(net, "cloud-1", "export") + f"?dir={export_dir.resolve()}",
                                    timeout=60.0))
         acks.undeclare()
+        stat.undeclare()
         live.undeclare()
     body = None
     for r in replies:
@@ -183,7 +200,8 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
             raise RunError(f"cloud export failed: {r.err.payload.to_bytes().decode(errors='replace')}")
     if body is None:
         raise RunError("cloud did not answer the export request")
-    return RunResult(len(expected), len(acked & expected), body["written"], body["stats"], time.monotonic() - t0)
+    return RunResult(len(expected), len(acked & expected), body["written"], body["stats"], time.monotonic() - t0,
+                     int(status.get("calibration_rounds", 0)))
 
 
 def _check_alive(procs, work) -> None:

@@ -134,7 +134,19 @@ def _run_one(args):
 def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | None = None,
              vehicles: int | None = None, noise_pct: float | None = None, nominal: str = "class",
              workers: int | None = None, progress: bool | None = None) -> dict:
-    """Simulate ``scenario`` into ``out_dir`` (logs/, site.toml, truth.json); returns the truth dict."""
+    """Simulate ``scenario`` into ``out_dir`` (logs/, site.toml, truth.json); returns the truth dict.
+
+    ``passes``, ``vehicles`` and ``noise_pct`` override the scenario's (vehicles cycle when passes
+    exceed vehicles); ``nominal`` is "class" (the class mean in every log) or "true" (each vehicle's
+    own parameters). Invalid values raise ValueError before anything is written.
+    """
+    for name, value in (("passes", passes), ("vehicles", vehicles)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
+            raise ValueError(f"{name}: must be a positive integer, got {value!r}")
+    if noise_pct is not None and not (isinstance(noise_pct, (int, float, np.number)) and 0 <= noise_pct < 100):
+        raise ValueError(f"noise_pct: must be a percentage in [0, 100), got {noise_pct!r}")
+    if nominal not in ("class", "true"):
+        raise ValueError(f"nominal: must be 'class' or 'true', got {nominal!r}")
     out_dir = Path(out_dir)
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
     for old in (out_dir / "logs").glob("*.parquet"):

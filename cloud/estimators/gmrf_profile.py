@@ -1,0 +1,430 @@
+"""Bayesian road profile: the exact Gaussian posterior of a GMRF prior and every pass's AP, incrementally.
+
+Model (per route, on the global grid ``x_i = i · spacing_m``)
+------------------------------------------------------------
+* Prior: Gaussian random walk (thesis eq. 4.8) of order 1 — increments ``R_i − R_{i−1} ~ N(0, 1/τ)``
+  per grid step — or of order 2 (second differences ``~ N(0, 1/τ)``), plus a vanishing ridge
+  ``ridge · I`` that makes the level proper (the data fix it; the absolute level is unobservable
+  anyway, segments are drift-controlled on the edge). In the thesis's parametrisation
+  ``τ₁ = τ · spacing_m²``.
+* Likelihood: each segment observes the profile directly, ``y = R[lo:hi] + e`` with
+  ``e ~ N(0, D C D)``, ``D = diag(sigma)`` and ``C`` the AR(1) correlation ``ρ^|i−j|``; ``C⁻¹`` is
+  tridiagonal, so a segment adds a tridiagonal block ``Hᵀ R⁻¹ H`` to the precision and ``Hᵀ R⁻¹ y``
+  to the information vector: O(segment length), exact, order-independent. ``retract`` recomputes
+  the same contribution from the segment (a deterministic function of it) and subtracts it.
+* τ: fixed when given; otherwise learnt by empirical Bayes (type-II maximum likelihood) at
+  snapshot time. The score equation of the marginal likelihood is the EM fixed point
+  ``τ = rank / (μᵀAμ + tr(A Σ))`` (``A`` the difference-operator precision), whose trace needs
+  only the band of ``Σ`` the selected inverse gives; it is solved by secant iteration on log τ,
+  warm-started from the previous τ, to a relative tolerance ``tau_tol``.
+
+Posterior
+---------
+Only covered stretches are solved: runs of points covered by at least one segment, merged across
+gaps of at most ``max_gap_m`` (interpolated by the prior, with wider bands). Each such block's
+precision ``τ A + ridge I + Q_data`` is factorised by a banded Cholesky (LAPACK ``pbtrf``); the
+mean is a banded solve, the marginal variances come from the selected inverse (Takahashi
+recursion on the banded factor, O(P b²)), and posterior draws are ``μ + L⁻ᵀ z``. Points outside
+every block are NaN. Blocks are solved independently; the random walk's coupling across a gap
+longer than ``max_gap_m`` is weak and ignored. The result is cached per route until the next
+update or retract touching it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from scipy.linalg import cho_solve_banded, cholesky_banded
+
+from shared.schema import ApSegment
+
+from .mean_profile import ProfileSnapshot
+
+log = logging.getLogger(__name__)
+
+_FLAGS = dict(cache=True)
+_Z95 = 1.959963984540054
+_DIFF = {1: np.array([-1.0, 1.0]), 2: np.array([1.0, -2.0, 1.0])}
+TAU_BOUNDS = (1.0, 1.0e16)
+"""Range τ is learnt within (1/m²): increment sd between 1 m and 10 nm per grid step."""
+
+
+def iso8608_tau(spacing_m: float, gd0_m3: float = 64e-6, order: int = 1) -> float:
+    """Precision of the order-``order`` differences of an ISO 8608 profile (w = 2) on ``spacing_m``.
+
+    For ``Gd(n) = Gd0 (n/n0)⁻²`` the increment over Δ has variance ``2π² Gd0 n0² Δ`` and the
+    second difference ``4π² Gd0 n0² Δ``. The default ``Gd0`` is class B's geometric mean; used as
+    the starting value when τ is learnt.
+    """
+    var = (2.0 if order == 1 else 4.0) * math.pi**2 * gd0_m3 * 0.1**2 * spacing_m
+    return 1.0 / var
+
+
+# -- banded kernels ------------------------------------------------------------------------------
+
+
+@njit(**_FLAGS)
+def _selected_inverse(cb):
+    """Band of ``Σ = (L Lᵀ)⁻¹`` from the lower banded Cholesky factor ``cb[d, i] = L[i + d, i]``.
+
+    Takahashi recursion, from the last row up: ``Σ_ij = δ_ij / L_ii² − Σ_k L_ki Σ_kj / L_ii`` over
+    ``i < k ≤ i + b``. Returns ``S[d, i] = Σ[i, i + d]`` for ``d ≤ b``. O(n b²).
+    """
+    u1, n = cb.shape
+    b = u1 - 1
+    S = np.zeros((u1, n))
+    for i in range(n - 1, -1, -1):
+        lii = cb[0, i]
+        kmax = min(b, n - 1 - i)
+        for dj in range(kmax, -1, -1):
+            j = i + dj
+            s = 0.0
+            for dk in range(1, kmax + 1):
+                k = i + dk
+                v = S[j - k, k] if k <= j else S[k - j, j]
+                s += cb[dk, i] * v
+            if dj == 0:
+                S[0, i] = (1.0 / lii - s) / lii
+            else:
+                S[dj, i] = -s / lii
+    return S
+
+
+@njit(**_FLAGS)
+def _solve_lt(cb, z):
+    """Solve ``Lᵀ x = z`` in place for every row of ``z`` (n_rhs, n): back substitution on the band."""
+    u1, n = cb.shape
+    b = u1 - 1
+    n_rhs = z.shape[0]
+    for r in range(n_rhs):
+        for i in range(n - 1, -1, -1):
+            acc = z[r, i]
+            for d in range(1, min(b, n - 1 - i) + 1):
+                acc -= cb[d, i] * z[r, i + d]
+            z[r, i] = acc / cb[0, i]
+
+
+def difference_precision(n: int, order: int) -> np.ndarray:
+    """``DᵀD`` of the order-``order`` difference operator on ``n`` points, lower banded (order + 1, n)."""
+    c = _DIFF[order]
+    band = np.zeros((order + 1, n))
+    rows = n - order
+    if rows <= 0:
+        return band
+    for p in range(order + 1):
+        for q in range(p + 1):
+            band[p - q, q : q + rows] += c[p] * c[q]
+    return band
+
+
+def segment_information(values: np.ndarray, sigma: np.ndarray, rho: float
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One segment's ``Hᵀ R⁻¹ H`` (diagonal, sub-diagonal) and ``Hᵀ R⁻¹ y`` on its own points.
+
+    ``R = D C D`` with ``D = diag(sigma)`` (m) and ``C_ij = ρ^|i−j|``; ``C⁻¹`` is tridiagonal with
+    diagonal ``(1, 1 + ρ², …, 1 + ρ², 1) / (1 − ρ²)`` and off-diagonal ``−ρ / (1 − ρ²)``.
+    """
+    inv = 1.0 / sigma
+    m = values.size
+    if rho == 0.0 or m == 1:
+        diag = inv * inv
+        off = np.zeros(max(m - 1, 0))
+        return diag, off, diag * values
+    g = 1.0 / (1.0 - rho * rho)
+    c = np.full(m, (1.0 + rho * rho) * g)
+    c[0] = c[-1] = g
+    diag = c * inv * inv
+    off = (-rho * g) * inv[:-1] * inv[1:]
+    rhs = diag * values
+    rhs[:-1] += off * values[1:]
+    rhs[1:] += off * values[:-1]
+    return diag, off, rhs
+
+
+# -- state ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Block:
+    start: int  # first grid index
+    stop: int  # one past the last
+    factor: np.ndarray  # lower banded Cholesky factor of the block's precision
+    mean: np.ndarray
+    cov_band: np.ndarray  # S[d, i] = Σ[i, i + d]
+
+
+@dataclass
+class _Posterior:
+    tau: float
+    blocks: list[_Block]
+    snapshot: ProfileSnapshot
+
+
+class _Route:
+    def __init__(self, n: int, tau: float):
+        self.q = np.zeros((2, n))  # data precision, lower banded: q[0] diagonal, q[1, i] = Q[i+1, i]
+        self.b = np.zeros(n)  # data information vector
+        self.cover = np.zeros(n, dtype=np.int64)  # segments covering each point (any axle)
+        self.passes = np.zeros(n, dtype=np.int64)  # axle-1 segments covering each point
+        self.tau = tau
+        self.posterior: _Posterior | None = None
+
+
+class GmrfProfile:
+    """Exact incremental GMRF posterior of each route's profile (see the module docstring).
+
+    Parameters
+    ----------
+    routes : dict
+        Route id → length (m); each route's grid runs from chainage 0 to its length.
+    spacing_m : float
+        Grid spacing (m); only segments on this grid are accepted.
+    tau : float, optional
+        Prior precision of the order-``order`` differences per grid step (1/m²). ``None`` (default)
+        learns it per route by empirical Bayes at snapshot time.
+    order : {1, 2}
+        Random walk order (1: eq. 4.8; 2: penalises curvature, pentadiagonal precision).
+    rho : float
+        Lag-one correlation of a segment's AP errors between neighbouring grid points, |ρ| < 1.
+        :meth:`estimate_rho` measures it from residuals; :meth:`set_rho` changes it.
+    ridge : float
+        Prior precision of the level (1/m²); vanishing next to the data's.
+    max_gap_m : float
+        Uncovered gaps up to this length are bridged by the prior; longer ones split the route
+        into independently solved blocks with NaN between them.
+    tau_init : float, optional
+        Starting value when τ is learnt (default :func:`iso8608_tau` for class B).
+    tau_tol : float
+        Relative tolerance on the learnt τ.
+    """
+
+    def __init__(self, routes: dict[str, float], spacing_m: float = 0.05, tau: float | None = None, *,
+                 order: int = 1, rho: float = 0.0, ridge: float = 1e-6, max_gap_m: float = 1.0,
+                 tau_init: float | None = None, tau_tol: float = 1e-6, max_tau_iter: int = 60):
+        if order not in _DIFF:
+            raise ValueError(f"order must be 1 or 2, got {order}")
+        if not (spacing_m > 0 and math.isfinite(spacing_m)):
+            raise ValueError(f"spacing_m must be finite and > 0, got {spacing_m}")
+        if tau is not None and not (tau > 0 and math.isfinite(tau)):
+            raise ValueError(f"tau must be finite and > 0, got {tau}")
+        if not (ridge > 0 and math.isfinite(ridge)):
+            raise ValueError(f"ridge must be finite and > 0, got {ridge}")
+        self.spacing_m = float(spacing_m)
+        self.order = order
+        self.learn_tau = tau is None
+        self.ridge = float(ridge)
+        self.max_gap = max(0, int(math.floor(max_gap_m / spacing_m + 1e-9)))
+        self.tau_tol = float(tau_tol)
+        self.max_tau_iter = int(max_tau_iter)
+        self.rho = self._check_rho(rho)
+        t0 = float(tau) if tau is not None else float(tau_init or iso8608_tau(spacing_m, order=order))
+        self.routes = {rid: _Route(int(round(length / spacing_m)) + 1, t0) for rid, length in routes.items()}
+        self.segments: dict[tuple, ApSegment] = {}  # identity → the segment whose information is in
+
+    @staticmethod
+    def _check_rho(rho: float) -> float:
+        rho = float(rho)
+        if not (abs(rho) < 1.0):
+            raise ValueError(f"rho must lie in (-1, 1), got {rho}")
+        return rho
+
+    # -- estimator interface ---------------------------------------------------------------------
+    def accepts(self, seg: ApSegment) -> bool:
+        return seg.route_id in self.routes and abs(seg.spacing_m - self.spacing_m) < 1e-12
+
+    def update(self, seg: ApSegment) -> None:
+        """Add a segment's information; a segment with the same identity replaces the earlier one."""
+        key = seg.identity
+        old = self.segments.get(key)
+        if old is not None:
+            self._apply(old, -1.0)
+        if self._apply(seg, +1.0):
+            self.segments[key] = seg
+        else:
+            self.segments.pop(key, None)
+
+    def retract(self, seg: ApSegment) -> None:
+        """Subtract exactly what :meth:`update` added for this segment's identity."""
+        old = self.segments.pop(seg.identity, None)
+        if old is None:
+            log.warning("retract of a segment never added: %s", seg.identity)
+            return
+        self._apply(old, -1.0)
+
+    def _apply(self, seg: ApSegment, sign: float) -> bool:
+        route = self.routes.get(seg.route_id)
+        if route is None:
+            return False
+        lo, hi = seg.start_index, min(seg.end_index, route.cover.size)
+        if hi <= lo:
+            return False
+        m = hi - lo
+        diag, off, rhs = segment_information(seg.values[:m], seg.sigma[:m], self.rho)
+        route.q[0, lo:hi] += sign * diag
+        route.q[1, lo : hi - 1] += sign * off
+        route.b[lo:hi] += sign * rhs
+        route.cover[lo:hi] += int(sign)
+        if seg.axle == 1:
+            route.passes[lo:hi] += int(sign)
+        route.posterior = None
+        return True
+
+    def snapshot(self, route_id: str | None = None) -> dict[str, ProfileSnapshot]:
+        """Posterior mean, 95 % band (mean ± 1.96 sd) and pass count per grid point of each route."""
+        return {rid: self._posterior(rid).snapshot for rid in self.routes if route_id in (None, rid)}
+
+    # -- more than the interface -----------------------------------------------------------------
+    @property
+    def tau(self) -> dict[str, float]:
+        """Current prior precision per route (1/m²): the given one, or the last learnt."""
+        return {rid: r.tau for rid, r in self.routes.items()}
+
+    def sample(self, route_id: str, n: int, rng: np.random.Generator | int | None = None) -> np.ndarray:
+        """``n`` draws from the posterior of a route's profile, shape (n, P), NaN outside covered blocks."""
+        post = self._posterior(route_id)
+        rng = np.random.default_rng(rng)
+        out = np.full((int(n), self.routes[route_id].cover.size), np.nan)
+        for blk in post.blocks:
+            z = rng.standard_normal((int(n), blk.stop - blk.start))
+            _solve_lt(blk.factor, z)
+            out[:, blk.start : blk.stop] = blk.mean + z
+        return out
+
+    def information(self, route_id: str, tau: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The full route's precision (lower banded, (b + 1, P)) and information vector, prior included.
+
+        ``tau`` defaults to the route's current τ. For checks and references, not the hot path.
+        """
+        route = self.routes[route_id]
+        t = route.tau if tau is None else tau
+        n = route.cover.size
+        u = max(1, self.order)
+        ab = np.zeros((u + 1, n))
+        ab[: self.order + 1] += t * difference_precision(n, self.order)
+        ab[:2] += route.q
+        ab[0] += self.ridge
+        return ab, route.b.copy()
+
+    def set_rho(self, rho: float) -> None:
+        """Change the AR(1) error correlation and rebuild every contribution from the held segments."""
+        rho = self._check_rho(rho)
+        if rho == self.rho:
+            return
+        for route in self.routes.values():  # rebuild from exact zeros, not from rounding residue
+            route.q[:] = 0.0
+            route.b[:] = 0.0
+            route.cover[:] = 0
+            route.passes[:] = 0
+            route.posterior = None
+        self.rho = rho
+        for seg in self.segments.values():
+            self._apply(seg, +1.0)
+
+    def estimate_rho(self, route_id: str | None = None) -> float:
+        """Pooled lag-one autocorrelation of the held segments' standardised residuals against the mean.
+
+        Residuals include the posterior mean's own error, which is smooth, so with few passes this
+        overestimates ρ; it is meant to be measured once with many passes and then set with
+        :meth:`set_rho`. Returns 0 when there is nothing to measure.
+        """
+        num = den = 0.0
+        means = {}
+        for seg in self.segments.values():
+            if route_id is not None and seg.route_id != route_id:
+                continue
+            if seg.route_id not in means:
+                means[seg.route_id] = self.snapshot(seg.route_id)[seg.route_id].elevation_m
+            mu = means[seg.route_id]
+            lo, hi = seg.start_index, min(seg.end_index, mu.size)
+            if hi - lo < 2:
+                continue
+            e = (seg.values[: hi - lo] - mu[lo:hi]) / seg.sigma[: hi - lo]
+            e = e[np.isfinite(e)]
+            e = e - e.mean()
+            num += float(np.dot(e[:-1], e[1:]))
+            den += float(np.dot(e, e))
+        return num / den if den > 0 else 0.0
+
+    # -- posterior ------------------------------------------------------------------------------
+    def _blocks(self, route: _Route) -> list[tuple[int, int]]:
+        covered = np.flatnonzero(route.cover > 0)
+        if covered.size == 0:
+            return []
+        breaks = np.flatnonzero(np.diff(covered) > self.max_gap + 1)
+        starts = np.concatenate([[covered[0]], covered[breaks + 1]])
+        stops = np.concatenate([covered[breaks], [covered[-1]]]) + 1
+        return list(zip(starts.tolist(), stops.tolist()))
+
+    def _solve(self, route: _Route, spans: list[tuple[int, int]], tau: float) -> tuple[list[_Block], float, int]:
+        """Factorise and solve every block at ``tau``; also return the EM statistic and the rank."""
+        blocks, stat, rank = [], 0.0, 0
+        u = max(1, self.order)
+        for a, e in spans:
+            m = e - a
+            A = difference_precision(m, self.order)
+            ab = np.zeros((u + 1, m))
+            ab[: self.order + 1] = tau * A
+            ab[0] += route.q[0, a:e] + self.ridge
+            ab[1, : m - 1] += route.q[1, a : e - 1]  # the coupling to the point after the block is not ours
+            cb = cholesky_banded(ab, lower=True, check_finite=False)
+            mean = cho_solve_banded((cb, True), route.b[a:e], check_finite=False)
+            S = _selected_inverse(cb)
+            blocks.append(_Block(a, e, cb, mean, S))
+            if m > self.order:
+                d = np.diff(mean, n=self.order)
+                tr = float(np.dot(A[0], S[0])) + 2.0 * sum(float(np.dot(A[k], S[k])) for k in range(1, self.order + 1))
+                stat += float(np.dot(d, d)) + tr
+                rank += m - self.order
+        return blocks, stat, rank
+
+    def _learn_tau(self, route: _Route, spans: list[tuple[int, int]]) -> tuple[list[_Block], float]:
+        """Solve the score equation ``log τ = log(rank / stat(τ))`` by secant steps on log τ."""
+        lo, hi = math.log(TAU_BOUNDS[0]), math.log(TAU_BOUNDS[1])
+
+        def em(u):
+            blocks, stat, rank = self._solve(route, spans, math.exp(u))
+            if rank == 0 or stat <= 0.0:
+                return blocks, 0.0
+            return blocks, min(max(math.log(rank / stat), lo), hi) - u
+
+        u0 = min(max(math.log(route.tau), lo), hi)
+        blocks, h0 = em(u0)
+        if abs(h0) <= self.tau_tol:
+            return blocks, math.exp(u0)
+        u1 = u0 + h0  # one EM step, then secant on h(u) = EM(u) − u
+        for _ in range(self.max_tau_iter):
+            blocks, h1 = em(u1)
+            if abs(h1) <= self.tau_tol or (u1 <= lo and h1 < 0) or (u1 >= hi and h1 > 0):
+                return blocks, math.exp(u1)
+            step = h1 if h1 == h0 else -h1 * (u1 - u0) / (h1 - h0)
+            if not math.isfinite(step) or step * h1 <= 0:  # the secant points the wrong way: EM step
+                step = h1
+            step = min(max(step, -3.0), 3.0)
+            u0, h0, u1 = u1, h1, min(max(u1 + step, lo), hi)
+        log.warning("tau did not converge in %d iterations (last change %.2e)", self.max_tau_iter, h1)
+        return blocks, math.exp(u1)
+
+    def _posterior(self, route_id: str) -> _Posterior:
+        route = self.routes[route_id]
+        if route.posterior is not None:
+            return route.posterior
+        spans = self._blocks(route)
+        if self.learn_tau and spans:
+            blocks, tau = self._learn_tau(route, spans)
+            route.tau = tau
+        else:
+            blocks, _, _ = self._solve(route, spans, route.tau)
+        n = route.cover.size
+        mean = np.full(n, np.nan)
+        sd = np.full(n, np.nan)
+        for blk in blocks:
+            mean[blk.start : blk.stop] = blk.mean
+            sd[blk.start : blk.stop] = np.sqrt(blk.cov_band[0])
+        x = np.arange(n) * self.spacing_m
+        snap = ProfileSnapshot(route_id, x, mean, mean - _Z95 * sd, mean + _Z95 * sd, route.passes.copy())
+        route.posterior = _Posterior(route.tau, blocks, snap)
+        return route.posterior
