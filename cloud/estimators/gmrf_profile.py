@@ -95,17 +95,20 @@ def _selected_inverse(cb):
 
 
 @njit(**_FLAGS)
-def _solve_lt(cb, z):
-    """Solve ``Lᵀ x = z`` in place for every row of ``z`` (n_rhs, n): back substitution on the band."""
+def _draw(cb, mean, z):
+    """Turn standard normal rows ``z`` (n_rhs, n) into ``mean + L⁻ᵀ z`` in place (back substitution)."""
     u1, n = cb.shape
     b = u1 - 1
     n_rhs = z.shape[0]
+    inv = 1.0 / cb[0]  # a multiply, not a division, on the recurrence's critical path
     for r in range(n_rhs):
         for i in range(n - 1, -1, -1):
             acc = z[r, i]
             for d in range(1, min(b, n - 1 - i) + 1):
                 acc -= cb[d, i] * z[r, i + d]
-            z[r, i] = acc / cb[0, i]
+            z[r, i] = acc * inv[i]
+        for i in range(n):
+            z[r, i] += mean[i]
 
 
 def difference_precision(n: int, order: int) -> np.ndarray:
@@ -199,7 +202,9 @@ class GmrfProfile:
     tau_init : float, optional
         Starting value when τ is learnt (default :func:`iso8608_tau` for class B).
     tau_tol : float
-        Relative tolerance on the learnt τ.
+        Relative tolerance on the learnt τ (each iteration is one factorisation of every block).
+    max_tau_iter : int
+        Iterations allowed for learning τ before settling for the last value (with a warning).
     """
 
     def __init__(self, routes: dict[str, float], spacing_m: float = 0.05, tau: float | None = None, *,
@@ -219,7 +224,7 @@ class GmrfProfile:
         self.ridge = float(ridge)
         self.max_gap = max(0, int(math.floor(max_gap_m / spacing_m + 1e-9)))
         self.tau_tol = float(tau_tol)
-        self.max_tau_iter = int(max_tau_iter)
+        self.max_tau_iter = max(1, int(max_tau_iter))
         self.rho = self._check_rho(rho)
         t0 = float(tau) if tau is not None else float(tau_init or iso8608_tau(spacing_m, order=order))
         self.routes = {rid: _Route(int(round(length / spacing_m)) + 1, t0) for rid, length in routes.items()}
@@ -287,11 +292,16 @@ class GmrfProfile:
         """``n`` draws from the posterior of a route's profile, shape (n, P), NaN outside covered blocks."""
         post = self._posterior(route_id)
         rng = np.random.default_rng(rng)
-        out = np.full((int(n), self.routes[route_id].cover.size), np.nan)
+        n = int(n)
+        out = np.empty((n, self.routes[route_id].cover.size))  # filled in place: draws are big
+        done = 0
         for blk in post.blocks:
-            z = rng.standard_normal((int(n), blk.stop - blk.start))
-            _solve_lt(blk.factor, z)
-            out[:, blk.start : blk.stop] = blk.mean + z
+            out[:, done : blk.start] = np.nan
+            for r in range(n):
+                rng.standard_normal(out=out[r, blk.start : blk.stop])
+            _draw(blk.factor, blk.mean, out[:, blk.start : blk.stop])
+            done = blk.stop
+        out[:, done:] = np.nan
         return out
 
     def information(self, route_id: str, tau: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -395,7 +405,7 @@ class GmrfProfile:
         blocks, h0 = em(u0)
         if abs(h0) <= self.tau_tol:
             return blocks, math.exp(u0)
-        u1 = u0 + h0  # one EM step, then secant on h(u) = EM(u) − u
+        u1, h1 = min(max(u0 + h0, lo), hi), h0  # one EM step, then secant on h(u) = EM(u) − u
         for _ in range(self.max_tau_iter):
             blocks, h1 = em(u1)
             if abs(h1) <= self.tau_tol or (u1 <= lo and h1 < 0) or (u1 >= hi and h1 > 0):
