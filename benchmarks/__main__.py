@@ -16,6 +16,7 @@ import sys
 #: Benchmark name → module. Add new benchmarks (bus, profile, bridge, …) here.
 REGISTRY: dict[str, str] = {
     "inverse": "benchmarks.inverse",
+    "bus": "benchmarks.bus",
 }
 
 

@@ -23,8 +23,9 @@ from shared.registry import RegistryError, Site, load_site
 from shared.transport import add_zenoh_arguments, config_from_args
 
 from .aggregator import Aggregator
+from .estimators.gmrf_profile import GmrfProfile
 from .estimators.mean_profile import MeanProfile
-from .export import profile_table, vehicles_table, write_export
+from .export import profile_table, roughness_table, vehicles_table, write_export
 from .fleet_calibration import FleetCalibrator
 
 log = logging.getLogger("driveby.cloud")
@@ -44,12 +45,17 @@ class Cloud:
     def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05,
                  calibration: str = "nominal", node_id: str = "cloud-1"):
         self.net, self.site, self.publish, self.view, self.node_id = net, site, publish, view, node_id
-        self.profile = MeanProfile({r.id: r.length_m for r in site.routes}, spacing_m)
-        self.aggregator = Aggregator(site, [self.profile])
-        self.calibrator = FleetCalibrator(site, self.profile) if calibration == "fleet" else None
+        routes = {r.id: r.length_m for r in site.routes}
+        self.profile = GmrfProfile(routes, spacing_m)
+        # The vehicle step compares against the data alone (the flat-prior limit of the posterior):
+        # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
+        self.consensus = MeanProfile(routes, spacing_m)
+        self.aggregator = Aggregator(site, [self.profile, self.consensus])
+        self.calibrator = FleetCalibrator(site, self.consensus) if calibration == "fleet" else None
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
+        self.completed: set[tuple[str, str]] = set()
 
     def on_segment(self, key: str, payload: bytes) -> None:
         try:
@@ -70,15 +76,18 @@ class Cloud:
                     self.calibrator.note_pass(ack.vehicle_id, ps.model)
                 except KeyError:  # no vehicle class for this model in the registry: not calibrated
                     pass
-            self.passes_complete += 1
+            first = (ack.vehicle_id, ack.pass_id) not in self.completed
+            self.completed.add((ack.vehicle_id, ack.pass_id))
             v = self.vehicles[ack.vehicle_id]
-            v["passes"] += 1
+            v["passes"] += first
             v["last_pass"] = ack.pass_id
             v["calib_version"] = ack.calib_version
             v["segments"] += ack.n_segments_accepted
             self.publish(keys.ack_key(self.net, ack.vehicle_id), ack.encode())
-            if self.view is not None:
-                self._log_view()
+            if first:  # the `pass` timeline counts distinct passes; recalibrated ones update in place
+                self.passes_complete += 1
+                if self.view is not None:
+                    self._log_view()
         if acks:
             self.publish_status()
 
@@ -107,10 +116,7 @@ class Cloud:
         for cal in c.round(self.aggregator.segments):
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
         if self.view is not None:
-            try:
-                self.view.log_calibration(c) if hasattr(self.view, "log_calibration") else None
-            except Exception:
-                log.exception("rerun calibration view failed")
+            self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
 
@@ -142,7 +148,12 @@ class Cloud:
         return sink.getvalue().to_pybytes()
 
     def export(self, out_dir: Path) -> list[Path]:
-        tables = {"profile": profile_table(self.profile.snapshot())}
+        snaps = self.profile.snapshot()
+        tables = {"profile": profile_table(snaps)}
+        rough = [roughness_table(rid, s.chainage_m, self.profile.sample(rid, 100, np.random.default_rng(0)),
+                                 self.profile.spacing_m) for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
+        if rough:
+            tables["roughness"] = pa.concat_tables(rough)
         if self.calibrator is not None:
             tables["vehicles"] = vehicles_table(self.calibrator.table())
         written = write_export(out_dir, tables)

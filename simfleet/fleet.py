@@ -104,7 +104,7 @@ def design_beam(bridge: Bridge) -> Beam:
     krot = None
     if bridge.supports == "rotational_springs":
         if bridge.krot_nm_per_rad is None:
-            raise FleetError(f"bridge {bridge.id!r}: krot_nm_per_rad is needed to simulate rotational_springs")
+            raise FleetError(f"bridge {bridge.id!r}: krot_nm_per_rad: needed to simulate rotational_springs bearings")
         krot = (bridge.krot_nm_per_rad, bridge.krot_nm_per_rad)
     return Beam(span_m=bridge.span_m, n_elements=bridge.n_elements, E_pa=bridge.E_pa, I_m4=bridge.I_m4,
                 mass_per_m=bridge.mass_per_m, damping_ratio=bridge.damping_ratio, supports=bridge.supports,
@@ -292,7 +292,7 @@ def _vehicle_class(site: Site, model: str | None) -> VehicleClass:
     classes = [c for c in site.vehicle_classes if model is None or c.model == model]
     if not classes:
         what = f"no vehicle_class for model {model!r}" if model else "no vehicle_class"
-        raise FleetError(f"{what}: the fleet draws its vehicles from one")
+        raise FleetError(f"vehicle_class: {what}; the fleet draws its vehicles from one")
     if len(classes) > 1:
         raise FleetError(f"several vehicle classes ({', '.join(c.model for c in classes)}): choose one with --model")
     if classes[0].model not in MODELS:
@@ -346,11 +346,14 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s fleet %(levelname)s %(message)s")
     try:
         _check_args(args)
-        site = load_site(args.site)
-        _vehicle_class(site, args.model)
-        for b in site.bridges:
-            design_beam(b)
         conf = config_from_args(args)
+        site = load_site(args.site)  # its errors name the file and the key
+        try:
+            _vehicle_class(site, args.model)
+            for bridge in site.bridges:
+                design_beam(bridge)
+        except (FleetError, ValueError) as e:
+            raise FleetError(f"{args.site}: {e}") from None
     except (FleetError, RegistryError, ValueError) as e:
         print(f"driveby fleet: {e}", file=sys.stderr)
         return 2

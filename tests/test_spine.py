@@ -46,7 +46,7 @@ def _driveby(*args: str, timeout: float = 600.0) -> subprocess.CompletedProcess:
 def test_run_end_to_end_writes_export_and_recording(road, tmp_path):
     rrd = tmp_path / "run.rrd"
     res = _driveby("run", "--logs", str(road / "logs"), "--site", str(road / "site.toml"),
-                   "--export", str(tmp_path / "export"), "--rrd", str(rrd))
+                   "--export", str(tmp_path / "export"), "--rrd", str(rrd), "--calibration", "nominal")
     assert res.returncode == 0, res.stderr
     assert "3/3 passes processed" in res.stdout
     table = pq.read_table(tmp_path / "export" / "profile.parquet")
