@@ -15,7 +15,7 @@ from shared.dynamics.inverse import InverseModel, InverseStream
 from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
 
 from .chainage import ChainageTracker
-from .drift import local_linear_trend
+from .drift import drift_trend
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,7 +182,7 @@ class PassProcessor:
             vals = g.values[wa - g.base : wb - g.base]
             valid = g.valid[wa - g.base : wb - g.base]
             if H > 0:
-                trend = local_linear_trend(vals, valid, H)
+                trend = drift_trend(vals, valid, H)
                 vals = vals - trend
             seg_vals = vals[a - wa : b - wa]
             seg_valid = valid[a - wa : b - wa]

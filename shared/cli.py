@@ -46,15 +46,18 @@ def _cmd_demo(args) -> int:
     return demo(args.out, seed=args.seed, passes=args.passes)
 
 
-def _daemon(module: str):
-    def handler(args) -> int:
-        mod = __import__(f"{module}.node", fromlist=["main"])
-        return mod.main(args.rest)
-
-    return handler
+DAEMONS = {"edge": "edge", "cloud": "cloud", "fleet": "simfleet"}  # subcommand → package with node.main
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] and argv[0] in DAEMONS:
+        # Daemons own their whole command line (Zenoh options, ...): hand it over untouched.
+        node = __import__(f"{DAEMONS[argv[0]]}.node", fromlist=["main"])
+        try:
+            return node.main(argv[1:])
+        except KeyboardInterrupt:
+            return 130
     from simfleet.cli import add_sim_arguments, run_sim
 
     p = argparse.ArgumentParser(prog="driveby", description="fleet drive-by monitoring of roads, rail and bridges")
@@ -65,13 +68,12 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--passes", type=int, default=20)
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
     _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
-    for name, what in (("edge", "the edge daemon"), ("cloud", "the cloud aggregator daemon"),
-                       ("fleet", "live simulated fleet publishers")):
-        d = sub.add_parser(name, help=what, add_help=False)
-        d.add_argument("rest", nargs=argparse.REMAINDER)
+    for name, what in (("edge", "the edge daemon (see driveby edge --help)"),
+                       ("cloud", "the cloud aggregator daemon (see driveby cloud --help)"),
+                       ("fleet", "live simulated fleet publishers (see driveby fleet --help)")):
+        sub.add_parser(name, help=what, add_help=False)
     args = p.parse_args(argv)
-    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "edge": _daemon("edge"),
-                "cloud": _daemon("cloud"), "fleet": _daemon("simfleet")}
+    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
