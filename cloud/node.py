@@ -24,6 +24,7 @@ from shared.transport import add_zenoh_arguments, config_from_args
 
 from .aggregator import Aggregator
 from .estimators.gmrf_profile import GmrfProfile
+from .estimators.long_wave import with_long_wave_band
 from .estimators.mean_profile import MeanProfile
 from .export import profile_table, roughness_table, vehicles_table, write_export
 from .fleet_calibration import FleetCalibrator
@@ -123,7 +124,7 @@ class Cloud:
     def _log_view(self) -> None:
         try:
             self.view.set_pass(self.passes_complete)
-            for snap in self.profile.snapshot().values():
+            for snap in self.snapshot().values():
                 self.view.log_profile(snap)
                 P = int(round(TILE_M / self.profile.spacing_m))
                 counts = [int(snap.n_passes[i : i + P].max(initial=0)) for i in range(0, snap.n_passes.size, P)]
@@ -147,8 +148,13 @@ class Cloud:
             w.write_table(table)
         return sink.getvalue().to_pybytes()
 
+    def snapshot(self) -> dict:
+        """The profile posterior per route, its band widened by the passes' long-wave scatter."""
+        segs = list(self.aggregator.segments.values())
+        return {rid: with_long_wave_band(s, segs) for rid, s in self.profile.snapshot().items()}
+
     def export(self, out_dir: Path) -> list[Path]:
-        snaps = self.profile.snapshot()
+        snaps = self.snapshot()
         tables = {"profile": profile_table(snaps)}
         rough = [roughness_table(rid, s.chainage_m, self.profile.sample(rid, 100, np.random.default_rng(0)),
                                  self.profile.spacing_m) for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
