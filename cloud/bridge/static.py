@@ -1,0 +1,860 @@
+"""Bridge stiffness and vehicle weights from passes' APs: the likelihood and its posterior.
+
+Model of one pass p (vehicle v, speed v_p) over the window, in AP units (m, up positive)::
+
+    ρ_p(x) = AP_p(x) − consensus(x) = μ(x) + s_p(x) − W_v · (1 + φ_p(x)) · J(x; θ) − W_v·ε_p(x) + e_p(x)
+
+* ``J(x; θ)`` (m/N) — the deflection under a unit wheel load at x (the moving-reference
+  influence line), zero off the span; for a simply supported span ``J = Σ_z G_z(x)/EI_z``
+  (unit-load theorem, :func:`shared.fe.beam.compliance_kernel`), linear in the compliances.
+  Every J is carried in a cubic B-spline basis with knots at the element nodes
+  (:class:`SpanBasis`, relative error < 2e-4), ``J = Σ_j a_j ψ_j``.
+* ``1 + φ_p`` — the dynamic wheel load over the static one, from the AP and the vehicle's
+  calibrated ratios (:class:`~cloud.bridge.passdata.VehicleFilter`); on a bridge entrance it
+  swings by ±10 %, so it is part of the model, not of the noise.
+* ``ε_p`` — the bridge's own dynamics (:mod:`cloud.bridge.dynamic`), zero in the quasi-static model.
+* ``s_p(x)`` — on a smooth deck (where the consensus is taken as 0 on the span) the consensus'
+  drift-control trend shows as a step of up to millimetres at the supports; it differs between
+  passes by a few per cent, so each pass has its own cubic on the span (``{1, ξ, ξ², ξ³}``,
+  values and slopes at both supports), projected out of its likelihood. A quadratic leaves an
+  antisymmetric error that reads as a stiffness gradient along the span (measured: ±6 %).
+* ``μ(x)`` — on a rough deck the consensus holds the fleet-mean deflection: a common unknown
+  shape on the span (basis ``{ψ_j}``), estimated with the rest.
+* ``W_v`` — the vehicle's static wheel load (N), prior ``N(W̄, s_W²)`` from its class: W̄ fixes the
+  scale between loads and compliances (thesis §4.5.5).
+
+AP errors are far from white (twice-integrated sensor noise), so each pass is compared in the
+measured-channel domain: everything above goes through the vehicle's forward model F_p
+(:meth:`~cloud.bridge.passdata.VehicleFilter.whiten`), where sensor noise is white; F_p
+annihilates offsets, slopes and (to O(ω²)) the drift-control trend. The result is band-limited
+to ``BAND_HZ`` and decimated (the model is trusted, and the deflection's information lives,
+below ~10 Hz), then prewhitened by an AR model of the pass's own residual on the approach, whose
+scale gives the pass's noise sd. Measured at 2 % sensor noise: one pass pins the global
+compliance to ≈ 27 % (1σ), so the information grows as 27 %/√passes.
+
+Inference: the weights enter linearly given J, so they are integrated out analytically, vehicle by
+vehicle (a pass shares W_v with the vehicle's other passes). What remains is a smooth
+log-posterior in the stiffness parameters and μ, maximised by Newton's method; the Laplace
+approximation gives 95 % intervals and the evidence. Integrating W (rather than maximising over
+it) matters: the joint mode over (θ, W) is biased by ≈ s_W²/W̄² ≈ 1 % in the global scale.
+
+All data reduce to small per-vehicle sufficient statistics (:class:`VehicleStats`), so a fit costs
+O(vehicles × basis²), independent of the record lengths.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from shared.fe.beam import Beam, compliance_kernel
+from shared.registry import Bridge
+
+from .passdata import PassData, Reference, Window, residual
+
+#: The likelihood window starts this far before the first support (m); the noise is estimated on
+#: the approach before it, after a burn-in of the forward model.
+LEAD_M = 5.0
+TAIL_M = 25.0  # and ends this far after the second support (or at the end of the pass)
+BURN_IN_M = 8.0
+DECKS = ("smooth", "rough")
+AR_ORDER = 8  # order of the per-pass autoregressive prewhitener of the measured-channel residual
+AR_ORDER_DECIMATED = 3  # the same after band limiting and decimation
+BAND_HZ = {"smooth": 20.0, "rough": 8.0}  # band limit of the likelihood per deck model, Hz (measured:
+# on a rough deck the 8–20 Hz band carries mostly the consensus' roughness mismatch, and with it
+# 30 passes read a healthy bridge 17 % soft; at 8 Hz they read it within 3 %)
+
+
+def ar_prewhitener(x: np.ndarray, order: int = AR_ORDER) -> np.ndarray:
+    """FIR coefficients ``[1, −φ_1, …, −φ_p]`` of the Yule–Walker AR(p) model of ``x``."""
+    from scipy.linalg import solve_toeplitz
+
+    x = np.asarray(x, dtype=float) - np.mean(x)
+    n = x.size
+    r = np.array([x[: n - k] @ x[k:] for k in range(order + 1)]) / n
+    if r[0] <= 0:
+        return np.r_[1.0, np.zeros(order)]
+    phi = solve_toeplitz(r[:order], r[1 : order + 1])
+    return np.r_[1.0, -phi]
+
+
+def _fir(coef: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Apply an FIR filter down the rows of ``cols`` (causal, zero initial state)."""
+    from scipy.signal import lfilter
+
+    return lfilter(coef, [1.0], cols, axis=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Basis on the span
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class SpanBasis:
+    """Cubic B-splines on the span with knots at the element nodes, sampled on the window grid.
+
+    ``design`` (n_span, n_b) evaluates a coefficient vector on the span points of the window;
+    ``projector`` (n_b, n_span) is its least-squares inverse.
+    """
+
+    window: Window
+    n_elements: int
+    design: np.ndarray
+    projector: np.ndarray
+
+    @classmethod
+    def of(cls, window: Window, n_elements: int) -> "SpanBasis":
+        from scipy.interpolate import BSpline
+
+        L = window.span_m
+        x = np.clip(window.x[window.on_span], 0.0, L)
+        knots = np.linspace(0.0, L, n_elements + 1)
+        t = np.r_[[0.0] * 3, knots, [L] * 3]
+        design = BSpline.design_matrix(x, t, 3).toarray()
+        return cls(window, n_elements, design, np.linalg.pinv(design))
+
+    @property
+    def n(self) -> int:
+        return self.design.shape[1]
+
+    @property
+    def integrals(self) -> np.ndarray:
+        """∫ψ_j dx over the span (m), so that ∫J dx = integrals @ a."""
+        return np.trapezoid(self.design, self.x, axis=0)
+
+    @property
+    def x(self) -> np.ndarray:
+        """Distance from the first support of the span points, m."""
+        return np.clip(self.window.x[self.window.on_span], 0.0, self.window.span_m)
+
+    def coefficients(self, values: np.ndarray) -> np.ndarray:
+        """Basis coefficients of function values on the span points (last axis)."""
+        return np.asarray(values) @ self.projector.T
+
+
+def mu_basis(window: Window, basis: SpanBasis, deck: str) -> np.ndarray:
+    """Columns (n_window, n_mu) of the nuisance μ common to all passes (see module docstring):
+    none on a smooth deck, the span's B-splines on a rough one (the fleet-mean deflection)."""
+    if deck not in DECKS:
+        raise ValueError(f"deck: must be one of {DECKS}, got {deck!r}")
+    if deck == "smooth":
+        return np.zeros((window.n, 0))
+    out = np.zeros((window.n, basis.n))
+    out[window.on_span] = basis.design
+    return out
+
+
+def step_basis(window: Window, deck: str) -> np.ndarray:
+    """Columns (n_window, 3) of each pass's own nuisance on a smooth deck: ``{1, ξ, ξ²}`` on the
+    span (the drift-control trend of the consensus, a step at the supports, which differs from
+    pass to pass by ~2 % — tens of µm, as much as the deflection signal of a precise pass); none on
+    a rough deck. Each pass's coefficients are projected out of its likelihood."""
+    if deck == "rough":
+        return np.zeros((window.n, 0))
+    on = window.on_span
+    xi = (window.x - 0.5 * window.span_m) / (0.5 * window.span_m)
+    return np.column_stack([on * 1.0, on * xi, on * xi**2, on * xi**3])
+
+
+# ---------------------------------------------------------------------------------------------
+# One pass, whitened
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Whitener:
+    """The linear map from a column on the window grid to a pass's likelihood points.
+
+    1. the vehicle's forward model (:meth:`~cloud.bridge.passdata.VehicleFilter.whiten`);
+    2. optionally a zero-phase low-pass at ``band_hz`` and decimation by ``step`` — the model is
+       trusted, and the deflection's information lives, below ~10 Hz;
+    3. the pass's autoregressive prewhitener ``ar`` (FIR), fitted on the approach;
+    4. the likelihood points ``rows`` (indices into the decimated series), divided by ``sigma``.
+    """
+
+    data: PassData
+    sos: np.ndarray | None
+    step: int
+    ar: np.ndarray
+    rows: np.ndarray
+    sigma: float
+    steps: np.ndarray | None = None  # (n_rows, k) whitened per-pass nuisance columns, projected out
+
+    def project(self, v: np.ndarray) -> np.ndarray:
+        """Remove the per-pass nuisance columns' span from whitened values (rows × k)."""
+        if self.steps is None or self.steps.shape[1] == 0:
+            return v
+        coef, *_ = np.linalg.lstsq(self.steps, v, rcond=None)
+        return v - self.steps @ coef
+
+    def raw(self, cols: np.ndarray) -> np.ndarray:
+        """Whitened likelihood values before the per-pass projection."""
+        cols = np.asarray(cols, dtype=float)
+        one = cols.ndim == 1
+        out = _fir(self.ar, self.stage1(cols[:, None] if one else cols))[self.rows] / self.sigma
+        return out[:, 0] if one else out
+
+    def stage1(self, cols: np.ndarray) -> np.ndarray:
+        """Steps 1–2: forward model, band limit, decimation; (n_window, k) → (n_dec, k)."""
+        white = self.data.vehicle_filter().whiten(cols)
+        if self.sos is not None:
+            from scipy.signal import sosfiltfilt
+
+            white = sosfiltfilt(self.sos, white, axis=0)
+        return white[:: self.step]
+
+    def __call__(self, cols: np.ndarray) -> np.ndarray:
+        """Whitened (projected) likelihood values of window column(s) (n_window,) or (n_window, k)."""
+        cols = np.asarray(cols, dtype=float)
+        one = cols.ndim == 1
+        out = self.project(self.raw(cols[:, None] if one else cols))
+        return out[:, 0] if one else out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class WhitenedPass:
+    """One pass in the measured-channel domain, divided by its noise sd (so unit-variance noise).
+
+    ``w`` (n,) data; ``Psi`` (n, n_b) basis columns of the load term; ``B`` (n, n_mu) nuisance
+    columns; ``whitener`` the map that made them (:meth:`whiten_extra` applies it to more columns).
+    """
+
+    vehicle_id: str
+    pass_id: str
+    w: np.ndarray
+    Psi: np.ndarray
+    B: np.ndarray
+    whitener: Whitener
+    raw: np.ndarray | None = None  # unprojected [w, Ψ, B] columns, to recover the step coefficients
+
+    def step_coefficients(self, a: np.ndarray, weight: float, mu: np.ndarray, delta: np.ndarray | None = None
+                          ) -> np.ndarray:
+        """This pass's nuisance step coefficients (m) given the load term ``a``, its wheel load (N),
+        the common μ and its dynamic column (projected or not: only its raw form is used)."""
+        st = self.whitener.steps
+        if st is None or st.shape[1] == 0 or self.raw is None:
+            return np.zeros(0)
+        nb = self.Psi.shape[1]
+        w, P, B = self.raw[:, 0], self.raw[:, 1 : 1 + nb], self.raw[:, 1 + nb :]
+        target = w - B @ mu + weight * (P @ a + (0.0 if delta is None else delta))
+        coef, *_ = np.linalg.lstsq(st, target, rcond=None)
+        return coef
+
+    @property
+    def data(self) -> PassData:
+        return self.whitener.data
+
+    @property
+    def sigma(self) -> float:
+        return self.whitener.sigma
+
+    def whiten_extra(self, column_on_window: np.ndarray) -> np.ndarray:
+        """Whiten another model column given on the window grid (e.g. a dynamic correction)."""
+        return self.whitener(column_on_window)
+
+
+def model_columns(p: PassData, basis: SpanBasis, deck: str = "smooth", band_hz: float | None = None
+                  ) -> tuple[Whitener, np.ndarray]:
+    """The pass's band-limited forward-model output of its model columns (load basis, μ basis, step
+    basis), (n_dec, n_b + n_mu + n_step), and the :class:`Whitener` skeleton (AR and rows not yet known). They do not
+    depend on the consensus, so a live estimator computes them once per pass."""
+    band_hz = BAND_HZ[deck] if band_hz is None else band_hz
+    w = p.window
+    on = w.on_span
+    load = np.zeros((w.n, basis.n))
+    load[on] = p.load_factor[on, None] * basis.design
+    cols = np.column_stack([load, mu_basis(w, basis, deck), step_basis(w, deck)])
+    fs = p.speed_mps / w.spacing_m  # grid points per second
+    sos, step = None, 1
+    if band_hz and band_hz < 0.4 * fs:
+        from scipy.signal import butter
+
+        sos = butter(6, band_hz / (0.5 * fs), output="sos")
+        step = max(1, int(fs / (2.5 * band_hz)))
+    skeleton = Whitener(p, sos, step, np.ones(1), np.zeros(0, dtype=int), 1.0)
+    return skeleton, skeleton.stage1(cols)
+
+
+def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smooth",
+                leave_out: bool = True, band_hz: float | None = None,
+                columns: tuple[Whitener, np.ndarray] | None = None) -> WhitenedPass:
+    """The :class:`WhitenedPass` of ``p`` against the consensus ``ref``.
+
+    The measured-channel residual is white only to first order (the AP was gridded in chainage,
+    the edge's inverse damps high frequencies, the band limit shapes it): an AR(p) model of it on
+    the approach (after a burn-in of the forward model) prewhitens data and model alike.
+    ``columns``: the pass's :func:`model_columns`, if cached.
+    """
+    w = p.window
+    x = w.x
+    skeleton, model_white = columns or model_columns(p, basis, deck, band_hz)
+    rho = residual(p, ref, smooth_deck=(deck == "smooth"), leave_out=leave_out)
+    white = np.column_stack([skeleton.stage1(rho[:, None]), model_white])
+    step = skeleton.step
+    xd = x[::step]
+    idx = np.arange(w.n)[::step]
+    valid_idx = np.flatnonzero(p.valid)
+    first, last = valid_idx[0], valid_idx[-1]
+    noise = np.flatnonzero((xd < -LEAD_M) & (idx >= first + int(BURN_IN_M / w.spacing_m)) & p.valid[::step])
+    order = AR_ORDER if step == 1 else AR_ORDER_DECIMATED
+    if noise.size < 6 * order:
+        raise ValueError(f"pass {p.pass_id}: too little approach before the bridge to estimate its noise")
+    ar = ar_prewhitener(white[noise, 0], order)
+    pre = _fir(ar, white)
+    resid = pre[noise[order:], 0]
+    sigma = float(1.4826 * np.median(np.abs(resid - np.median(resid))))
+    rows = np.flatnonzero((xd >= -LEAD_M) & (idx <= last) & (xd <= w.span_m + TAIL_M))
+    n_step = step_basis(w, deck).shape[1]
+    wr = pre[rows] / sigma
+    raw, steps = (wr[:, :-n_step], wr[:, -n_step:]) if n_step else (wr, None)
+    whitener = dataclasses.replace(skeleton, ar=ar, rows=rows, sigma=sigma, steps=steps)
+    proj = whitener.project(raw)
+    nb = basis.n
+    return WhitenedPass(p.vehicle_id, p.pass_id, proj[:, 0], proj[:, 1 : 1 + nb], proj[:, 1 + nb :], whitener, raw)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sufficient statistics
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class VehicleStats:
+    """Sums over one vehicle's passes of the products of its whitened columns.
+
+    With ``h = Ψa + δ`` (δ: the dynamic correction column, zero when quasi-static)::
+
+        A = ΣΨᵀΨ, e = ΣΨᵀδ, f = Σδᵀδ, Pw = ΣΨᵀw, Pb = ΣΨᵀB, dw = Σδᵀw, db = ΣBᵀδ,
+        Bw = ΣBᵀw, BB = ΣBᵀB, ww = Σwᵀw, n = number of points, passes = number of passes.
+    """
+
+    vehicle_id: str
+    A: np.ndarray
+    e: np.ndarray
+    f: float
+    Pw: np.ndarray
+    Pb: np.ndarray
+    dw: float
+    db: np.ndarray
+    Bw: np.ndarray
+    BB: np.ndarray
+    ww: float
+    n: int
+    passes: int
+
+    @classmethod
+    def of_pass(cls, wp: WhitenedPass, delta: np.ndarray | None = None) -> "VehicleStats":
+        P, B, w = wp.Psi, wp.B, wp.w
+        d = np.zeros(w.size) if delta is None else np.asarray(delta, dtype=float)
+        return cls(wp.vehicle_id, P.T @ P, P.T @ d, float(d @ d), P.T @ w, P.T @ B, float(d @ w), B.T @ d,
+                   B.T @ w, B.T @ B, float(w @ w), int(w.size), 1)
+
+    def __add__(self, other: "VehicleStats") -> "VehicleStats":
+        if other.vehicle_id != self.vehicle_id:
+            raise ValueError("VehicleStats: adding statistics of different vehicles")
+        return VehicleStats(self.vehicle_id, self.A + other.A, self.e + other.e, self.f + other.f,
+                            self.Pw + other.Pw, self.Pb + other.Pb, self.dw + other.dw, self.db + other.db,
+                            self.Bw + other.Bw, self.BB + other.BB, self.ww + other.ww, self.n + other.n,
+                            self.passes + other.passes)
+
+
+def vehicle_stats(passes: Sequence[WhitenedPass], deltas: dict[str, np.ndarray] | None = None) -> list[VehicleStats]:
+    """Per-vehicle sums of :meth:`VehicleStats.of_pass` (``deltas``: pass_id → whitened δ column)."""
+    out: dict[str, VehicleStats] = {}
+    for wp in passes:
+        s = VehicleStats.of_pass(wp, None if deltas is None else deltas.get(wp.pass_id))
+        out[wp.vehicle_id] = out[wp.vehicle_id] + s if wp.vehicle_id in out else s
+    return list(out.values())
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Stacked:
+    """:class:`VehicleStats` of all vehicles stacked along a leading axis, with each one's weight prior."""
+
+    ids: tuple[str, ...]
+    A: np.ndarray
+    e: np.ndarray
+    f: np.ndarray
+    Pw: np.ndarray
+    Pb: np.ndarray
+    dw: np.ndarray
+    db: np.ndarray
+    Bw: np.ndarray
+    BB: np.ndarray
+    ww: np.ndarray
+    w_mean: np.ndarray  # prior mean wheel load per vehicle, N
+    w_sd: np.ndarray  # prior sd, N
+    n: int
+    passes: int
+
+    @classmethod
+    def of(cls, stats: Sequence[VehicleStats], prior: Callable[[str], tuple[float, float]]) -> "Stacked":
+        if not stats:
+            raise ValueError("no passes")
+        pri = np.array([prior(s.vehicle_id) for s in stats], dtype=float)
+        st = lambda name: np.array([getattr(s, name) for s in stats])  # noqa: E731
+        return cls(tuple(s.vehicle_id for s in stats), st("A"), st("e"), st("f"), st("Pw"), st("Pb"), st("dw"),
+                   st("db"), st("Bw"), st("BB"), st("ww"), pri[:, 0], pri[:, 1], int(sum(s.n for s in stats)),
+                   int(sum(s.passes for s in stats)))
+
+
+# ---------------------------------------------------------------------------------------------
+# The weight-marginalised log-likelihood in basis coefficients a and nuisance μ
+
+
+class Terms(dict):
+    """Value, gradients and Hessian blocks of the marginal log-likelihood (a dict for brevity)."""
+
+
+def marginal_loglik(S: Stacked, a: np.ndarray, mu: np.ndarray, derivatives: bool = True) -> Terms:
+    """log p(data | a, μ) with every vehicle's wheel load integrated over its prior.
+
+    Per vehicle, with λ = hᵀh + 1/s², g = hᵀρ, u = W̄/s² − g, m = u/λ (the weight's conditional
+    posterior mean, N) and 1/λ its variance::
+
+        ℓ = −½‖ρ‖² + ½u²/λ − ½W̄²/s² − ½ log(λ s²)
+
+    Returns ``value``, ``m``, ``var`` and, with ``derivatives``, ``ga``, ``gm`` (gradients) and
+    ``Haa``, ``Hmm``, ``Hma`` (Hessian blocks), all summed over vehicles.
+    """
+    inv_s2 = 1.0 / S.w_sd**2
+    r = S.A @ a + S.e  # (V, nb)
+    lam = r @ a + S.e @ a + S.f + inv_s2
+    q = S.Pw - S.Pb @ mu  # (V, nb)
+    t = np.einsum("vbm,b->vm", S.Pb, a) + S.db  # (V, nm)
+    g = q @ a + S.dw - S.db @ mu
+    u = S.w_mean * inv_s2 - g
+    m = u / lam
+    rr = S.ww - 2.0 * (S.Bw @ mu) + np.einsum("m,vmn,n->v", mu, S.BB, mu)
+    val = float(np.sum(-0.5 * rr + 0.5 * u * m - 0.5 * S.w_mean**2 * inv_s2 - 0.5 * np.log(lam / inv_s2)))
+    out = Terms(value=val, m=m, var=1.0 / lam)
+    if not derivatives:
+        return out
+    ew2 = m * m + 1.0 / lam  # E[W²]
+    out["ga"] = np.sum(-m[:, None] * q - ew2[:, None] * r, axis=0)
+    out["gm"] = np.sum(S.Bw - np.einsum("vmn,n->vm", S.BB, mu) + m[:, None] * t, axis=0)
+    k = q + 2.0 * m[:, None] * r  # (V, nb)
+    out["Haa"] = (np.einsum("vi,vj,v->ij", k, k, 1.0 / lam) + 2.0 * np.einsum("vi,vj,v->ij", r, r, 1.0 / lam**2)
+                  - np.einsum("v,vij->ij", ew2, S.A))
+    out["Hmm"] = -S.BB.sum(axis=0) + np.einsum("vi,vj,v->ij", t, t, 1.0 / lam)
+    out["Hma"] = -np.einsum("vm,vb,v->mb", t, k, 1.0 / lam) + np.einsum("v,vbm->mb", m, S.Pb)
+    # dm/da and dm/dμ, for the weights' uncertainty propagation.
+    out["dm_da"] = -k / lam[:, None]
+    out["dm_dmu"] = t / lam[:, None]
+    return out
+
+
+def marginal_loglik_batch(S: Stacked, a: np.ndarray, delta_scale: np.ndarray | None = None,
+                          chunk: int = 512) -> np.ndarray:
+    """log p(data | a) for a batch of coefficient vectors ``a`` (K, n_b): weights *and* μ integrated.
+
+    μ has the prior N(0, MU_PRIOR_SD_M² I) and enters the weight-marginal log-likelihood
+    quadratically, so its integral is exact. ``delta_scale`` (K,) multiplies the dynamic
+    correction column of every pass (ε scales with the compliance). Returns (K,).
+    """
+    a = np.atleast_2d(np.asarray(a, dtype=float))
+    K = a.shape[0]
+    ds = np.ones(K) if delta_scale is None else np.asarray(delta_scale, dtype=float)
+    nm = S.Bw.shape[1]
+    q_mu = 1.0 / MU_PRIOR_SD_M**2
+    inv_s2 = 1.0 / S.w_sd**2
+    out = np.empty(K)
+    for lo in range(0, K, chunk):
+        ak, dk = a[lo : lo + chunk], ds[lo : lo + chunk]
+        Aa = np.matmul(ak[None], S.A)  # (V, k, nb), batched BLAS
+        lam = (np.sum(Aa * ak[None], axis=2).T + 2 * dk[:, None] * (ak @ S.e.T) + dk[:, None] ** 2 * S.f[None, :]
+               + inv_s2[None, :])  # (k, V)
+        t = np.matmul(ak[None], S.Pb).transpose(1, 0, 2) + dk[:, None, None] * S.db[None, :, :]  # (k, V, nm)
+        u0 = S.w_mean * inv_s2 - (ak @ S.Pw.T) - dk[:, None] * S.dw[None, :]  # (k, V)
+        H = S.BB.sum(axis=0)[None] - np.matmul(t.transpose(0, 2, 1) / lam[:, None, :], t) + q_mu * np.eye(nm)[None]
+        b = S.Bw.sum(axis=0)[None] + np.matmul((u0 / lam)[:, None, :], t)[:, 0, :]
+        c0 = np.sum(-0.5 * S.ww[None] + 0.5 * u0**2 / lam - 0.5 * S.w_mean[None] ** 2 * inv_s2[None]
+                    - 0.5 * np.log(lam / inv_s2[None]), axis=1)
+        sol = np.linalg.solve(H, b[:, :, None])[:, :, 0]
+        _, logdet = np.linalg.slogdet(H)
+        out[lo : lo + chunk] = c0 + 0.5 * np.einsum("km,km->k", b, sol) - 0.5 * logdet + 0.5 * nm * math.log(q_mu)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Stiffness parametrisations
+
+
+@dataclasses.dataclass(frozen=True)
+class StiffnessPrior:
+    """Gaussian Markov random field on θ_z = log(EI_z / EI_design) (cf. thesis eq. 4.34).
+
+    ``level_sd``: prior sd of each θ about the design value (0 = design);
+    ``step_sd``: sd of the difference between neighbouring elements (smoothness).
+    """
+
+    level_sd: float = 0.3
+    step_sd: float = 0.05
+
+    def precision(self, n: int) -> np.ndarray:
+        D = np.diff(np.eye(n), axis=0)
+        return np.eye(n) / self.level_sd**2 + D.T @ D / self.step_sd**2
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ElementModel:
+    """Per-element flexural rigidity of a simply supported span: ``a(θ) = P·G·c``, c_z = e^{−θ_z}/EI_d.
+
+    ``kernel`` = basis coefficients (n_b, n_e) of the compliance kernel columns G_z (m³). The
+    parameters are θ (n_e); :meth:`a_jac` gives a, ∂a/∂θ and the diagonal second derivatives.
+    """
+
+    basis: SpanBasis
+    ei_design: float
+    kernel: np.ndarray
+    prior: StiffnessPrior = StiffnessPrior()
+
+    @classmethod
+    def of(cls, basis: SpanBasis, beam: Beam, prior: StiffnessPrior = StiffnessPrior()) -> "ElementModel":
+        if beam.supports != "simply_supported":
+            raise ValueError("ElementModel: simply supported spans only (see BearingElementModel)")
+        G = compliance_kernel(beam, basis.x)
+        return cls(basis, beam.E_pa * beam.I_m4, basis.coefficients(G.T).T, prior)
+
+    @property
+    def n_elements(self) -> int:
+        return self.kernel.shape[1]
+
+    @property
+    def n(self) -> int:
+        return self.n_elements
+
+    def prior_mean(self) -> np.ndarray:
+        return np.zeros(self.n)
+
+    def prior_precision(self) -> np.ndarray:
+        return self.prior.precision(self.n_elements)
+
+    def compliance(self, theta: np.ndarray) -> np.ndarray:
+        return np.exp(-np.asarray(theta)) / self.ei_design
+
+    def a(self, params: np.ndarray) -> np.ndarray:
+        return self.kernel @ self.compliance(params[: self.n_elements])
+
+    def a_jac(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        c = self.compliance(params)
+        Ja = -self.kernel * c[None, :]
+        return self.kernel @ c, Ja, -Ja  # ∂²a/∂θ_z² = K_z c_z
+
+    def influence(self, params: np.ndarray) -> np.ndarray:
+        """J(x) on the span points, m/N."""
+        return self.basis.design @ self.a(params)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BearingElementModel:
+    """Per-element EI and rotational-spring bearings (thesis §4.4): parameters θ (n_e) and
+    κ = log10 Krot (one shared value, or one per support). J comes from the FE beam with
+    ``supports="rotational_springs"``; ∂a/∂(θ, κ) by finite differences (Gauss–Newton).
+    """
+
+    basis: SpanBasis
+    bridge: Bridge
+    prior: StiffnessPrior = StiffnessPrior()
+    krot_prior: tuple[float, float] = (8.0, 2.5)  # mean and sd of log10 Krot (N·m/rad)
+    per_support: bool = True
+    fd_step: float = 1e-3
+
+    @property
+    def n_elements(self) -> int:
+        return self.bridge.n_elements
+
+    @property
+    def n_krot(self) -> int:
+        return 2 if self.per_support else 1
+
+    @property
+    def n(self) -> int:
+        return self.n_elements + self.n_krot
+
+    @property
+    def ei_design(self) -> float:
+        return self.bridge.EI
+
+    def prior_mean(self) -> np.ndarray:
+        return np.r_[np.zeros(self.n_elements), np.full(self.n_krot, self.krot_prior[0])]
+
+    def prior_precision(self) -> np.ndarray:
+        Q = np.zeros((self.n, self.n))
+        Q[: self.n_elements, : self.n_elements] = self.prior.precision(self.n_elements)
+        Q[self.n_elements :, self.n_elements :] = np.eye(self.n_krot) / self.krot_prior[1] ** 2
+        return Q
+
+    def influence(self, params: np.ndarray) -> np.ndarray:
+        from shared.fe.beam import influence_line
+
+        theta, kap = params[: self.n_elements], params[self.n_elements :]
+        k = 10.0 ** np.clip(kap, -3.0, 16.0)
+        krot = (float(k[0]), float(k[-1]))
+        beam = design_beam(self.bridge, ei_factor=np.exp(theta), krot=krot)
+        return influence_line(beam, self.basis.x)
+
+    def a(self, params: np.ndarray) -> np.ndarray:
+        return self.basis.coefficients(self.influence(params))
+
+    def a_jac(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a0 = self.a(params)
+        Ja = np.empty((a0.size, self.n))
+        for i in range(self.n):
+            p = params.copy()
+            p[i] += self.fd_step
+            Ja[:, i] = (self.a(p) - a0) / self.fd_step
+        return a0, Ja, np.zeros_like(Ja)
+
+
+# ---------------------------------------------------------------------------------------------
+# Posterior
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ElementPosterior:
+    """Laplace posterior of the element stiffnesses (and the vehicles' wheel loads).
+
+    ``theta``/``cov``: mode and covariance of log(EI/EI_design) per element; ``weights``: vehicle →
+    (mean, sd) of its static wheel load, N; ``log_evidence``: Laplace approximation of
+    log p(data) under the prior (nuisance μ integrated); ``chi2_per_point``: mean squared
+    whitened residual at the mode (≈ 1 when the noise model is right; the covariance is widened by
+    it when above 1). ``effective_ratio``: area under the design influence line over the area
+    under the estimated one — the well-determined global stiffness (the ends of a span barely
+    affect any deflection, so a plain mean over elements is dominated by prior-driven elements);
+    with bearings it includes their restraint (relative to the pinned design span).
+    ``krot``: bearings' log10 Krot (mean, lo95, hi95) per support, when modelled.
+    """
+
+    theta: np.ndarray
+    cov: np.ndarray
+    ei_design: float
+    element_bounds: np.ndarray
+    weights: dict[str, tuple[float, float]]
+    mu: np.ndarray
+    log_evidence: float
+    chi2_per_point: float
+    n_passes: int
+    n_vehicles: int
+    iterations: int
+    effective_ratio: float = float("nan")
+    effective_ratio_sd: float = float("nan")
+    krot: tuple[tuple[float, float, float], ...] | None = None  # per support: log10 Krot (mean, lo95, hi95)
+    params: np.ndarray | None = None
+
+    @property
+    def sd(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def ei_mean(self) -> np.ndarray:
+        """Posterior mean of EI per element (log-normal), N·m²."""
+        return self.ei_design * np.exp(self.theta + 0.5 * self.sd**2)
+
+    @property
+    def ei_lo95(self) -> np.ndarray:
+        return self.ei_design * np.exp(self.theta - 1.96 * self.sd)
+
+    @property
+    def ei_hi95(self) -> np.ndarray:
+        return self.ei_design * np.exp(self.theta + 1.96 * self.sd)
+
+    @property
+    def stiffness_ratio(self) -> np.ndarray:
+        """EI_mean / EI_design per element."""
+        return self.ei_mean / self.ei_design
+
+    def mean_ratio(self) -> tuple[float, float]:
+        """Span-mean stiffness ratio exp(mean θ) and the sd of mean θ (≈ relative sd)."""
+        n = self.theta.size
+        return float(np.exp(self.theta.mean())), float(math.sqrt(np.sum(self.cov) / n**2))
+
+    def rows(self, bridge_id: str) -> list[dict]:
+        """Rows of ``bridge_elements.parquet`` (interfaces.md §3)."""
+        return [dict(bridge_id=bridge_id, element=i + 1, x_start_m=float(b[0]), x_end_m=float(b[1]),
+                     EI_mean=float(m), EI_lo95=float(lo), EI_hi95=float(hi), stiffness_ratio=float(r))
+                for i, (b, m, lo, hi, r) in enumerate(zip(self.element_bounds, self.ei_mean, self.ei_lo95,
+                                                          self.ei_hi95, self.stiffness_ratio))]
+
+
+def _newton(fun: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]], x0: np.ndarray,
+            max_iter: int = 60, tol: float = 1e-9, max_step: float = 0.5,
+            max_step_dims: int = 0) -> tuple[np.ndarray, int]:
+    """Maximise ``fun`` (value, gradient, Hessian) by damped Newton steps with backtracking.
+
+    Steps are shortened so that none of the first ``max_step_dims`` coordinates moves by more
+    than ``max_step`` (log-stiffness: a factor e^0.5 per iteration at most).
+    """
+    x = x0.copy()
+    val, g, H = fun(x)
+    for it in range(1, max_iter + 1):
+        damp = 0.0
+        scale = np.maximum(np.abs(np.diag(H)), 1e-12)
+        while True:
+            Hd = -H + damp * np.diag(scale)
+            try:
+                L = np.linalg.cholesky(Hd)
+                break
+            except np.linalg.LinAlgError:
+                damp = max(2 * damp, 1e-6)
+        step = np.linalg.solve(L.T, np.linalg.solve(L, g))
+        big = np.max(np.abs(step[:max_step_dims])) if max_step_dims else 0.0
+        t = min(1.0, max_step / big) if big > 0 else 1.0
+        while True:
+            cand = x + t * step
+            with np.errstate(all="ignore"):
+                v2, g2, H2 = fun(cand)
+            if (np.isfinite(v2) and v2 >= val - 1e-10 * abs(val)) or t < 1e-8:
+                break
+            t *= 0.5
+        if not np.isfinite(v2):
+            return x, it
+        x, decrease = cand, v2 - val
+        val, g, H = v2, g2, H2
+        if abs(decrease) < tol * max(1.0, abs(val)) and float(g @ step) < 1e-6:
+            return x, it
+    return x, max_iter
+
+
+@dataclasses.dataclass(frozen=True)
+class WeightPrior:
+    """Prior of static wheel loads: ``(mean, sd)`` N per vehicle, by default the class's."""
+
+    mean_n: float
+    sd_n: float
+    per_vehicle: tuple[tuple[str, float, float], ...] = ()
+
+    def __call__(self, vehicle_id: str) -> tuple[float, float]:
+        for vid, m, s in self.per_vehicle:
+            if vid == vehicle_id:
+                return m, s
+        return self.mean_n, self.sd_n
+
+
+MU_PRIOR_SD_M = 0.05  # broad prior on the nuisance coefficients (m), so the evidence is proper
+
+
+def fit_elements(stats: Sequence[VehicleStats], model: "ElementModel | BearingElementModel",
+                 weight_prior: WeightPrior, theta0: np.ndarray | None = None) -> ElementPosterior:
+    """Laplace posterior of the model's parameters (θ = log EI/EI_design per element, and
+    log10 Krot for bearings) with μ and the vehicles' weights integrated out."""
+    S = Stacked.of(stats, weight_prior)
+    npar, nm = model.n, S.Bw.shape[1]
+    ne = model.n_elements
+    Q, m0 = model.prior_precision(), model.prior_mean()
+    q_mu = 1.0 / MU_PRIOR_SD_M**2
+
+    def fun(z):
+        par, mu = z[:npar], z[npar:]
+        a, Ja, d2 = model.a_jac(par)
+        T = marginal_loglik(S, a, mu)
+        gp = Ja.T @ T["ga"]
+        H_pp = Ja.T @ T["Haa"] @ Ja + np.diag(d2.T @ T["ga"]) - Q
+        H_mp = T["Hma"] @ Ja
+        g = np.r_[gp - Q @ (par - m0), T["gm"] - q_mu * mu]
+        H = np.block([[H_pp, H_mp.T], [H_mp, T["Hmm"] - q_mu * np.eye(nm)]])
+        val = T["value"] - 0.5 * (par - m0) @ Q @ (par - m0) - 0.5 * q_mu * mu @ mu
+        return val, g, H
+
+    z0 = np.r_[m0, np.zeros(nm)]
+    if theta0 is not None:
+        z0[: len(theta0)] = theta0
+    z, iters = _newton(fun, z0, max_step_dims=npar)
+    val, g, H = fun(z)
+    par, mu = z[:npar], z[npar:]
+    a, Ja, _ = model.a_jac(par)
+    T = marginal_loglik(S, a, mu)
+    chi2 = _chi2(S, a, mu, T["m"])
+    # Residuals a little larger than the noise model says (consensus noise, model error): widen.
+    cov_full = np.linalg.inv(-H) * max(1.0, chi2)
+    # Weights: conditional variance plus the propagated uncertainty of (θ, μ).
+    J_w = np.hstack([T["dm_da"] @ Ja, T["dm_dmu"]])  # (V, npar + nm)
+    var_w = T["var"] + np.einsum("vi,ij,vj->v", J_w, cov_full, J_w)
+    weights = {vid: (float(m), float(math.sqrt(v))) for vid, m, v in zip(S.ids, T["m"], var_w)}
+    # Laplace evidence with normalised Gaussian priors.
+    _, logdet_H = np.linalg.slogdet(-H)
+    _, logdet_Q = np.linalg.slogdet(Q)
+    log_ev = (val + 0.5 * (npar + nm) * math.log(2 * math.pi) - 0.5 * logdet_H
+              + 0.5 * logdet_Q - 0.5 * npar * math.log(2 * math.pi)
+              + 0.5 * nm * math.log(q_mu) - 0.5 * nm * math.log(2 * math.pi))
+    edges = np.linspace(0.0, model.basis.window.span_m, ne + 1)
+    bounds = np.column_stack([edges[:-1], edges[1:]])
+    # Effective stiffness: area under the design influence line over the area under J (D2-like).
+    wint = model.basis.integrals
+    a_design = model.basis.coefficients(design_influence(model))
+    area = float(wint @ a)
+    eff = float(wint @ a_design) / area
+    geff = -eff / area * (wint @ Ja)
+    eff_sd = float(math.sqrt(max(geff @ cov_full[:npar, :npar] @ geff, 0.0)))
+    krot = None
+    if npar > ne:
+        kap = par[ne:]
+        ksd = np.sqrt(np.diag(cov_full)[ne:npar])
+        krot = tuple((float(k), float(k - 1.96 * s_), float(k + 1.96 * s_)) for k, s_ in zip(kap, ksd))
+        if len(krot) == 1:
+            krot = krot * 2
+    return ElementPosterior(par[:ne], cov_full[:ne, :ne], model.ei_design, bounds, weights, mu, float(log_ev),
+                            chi2, S.passes, len(S.ids), iters, eff, eff_sd, krot, par)
+
+
+def design_influence(model) -> np.ndarray:
+    """The design bridge's J on the span points (pinned supports), m/N."""
+    from shared.fe.beam import influence_line
+
+    b = model.bridge if hasattr(model, "bridge") else None
+    if b is not None:
+        return influence_line(design_beam(b), model.basis.x)
+    return model.basis.design @ (model.kernel @ np.full(model.n_elements, 1.0 / model.ei_design))
+
+
+def _chi2(S: Stacked, a: np.ndarray, mu: np.ndarray, m: np.ndarray) -> float:
+    """Mean squared whitened residual with every weight at its conditional mean."""
+    # ‖ρ + W h‖² = ‖ρ‖² + 2W g + W² hᵀh
+    rr = S.ww - 2.0 * (S.Bw @ mu) + np.einsum("m,vmn,n->v", mu, S.BB, mu)
+    g = (S.Pw - S.Pb @ mu) @ a + S.dw - S.db @ mu
+    hh = np.einsum("b,vbc,c->v", a, S.A, a) + 2 * S.e @ a + S.f
+    return float(np.sum(rr + 2 * m * g + m * m * hh) / max(S.n, 1))
+
+
+# ---------------------------------------------------------------------------------------------
+# Convenience: from PassData to a posterior
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """Everything fixed about one bridge's estimation: window, basis, design beam, deck model."""
+
+    bridge: Bridge
+    window: Window
+    basis: SpanBasis
+    beam: Beam
+    deck: str = "smooth"
+
+    @classmethod
+    def of(cls, bridge: Bridge, deck: str = "smooth", spacing_m: float = 0.05, pre_m: float = 60.0,
+           post_m: float = 25.0) -> "Setup":
+        window = Window.of(bridge, spacing_m, pre_m, post_m)
+        basis = SpanBasis.of(window, bridge.n_elements)
+        return cls(bridge, window, basis, design_beam(bridge), deck)
+
+    def model(self, prior: StiffnessPrior = StiffnessPrior()) -> "ElementModel | BearingElementModel":
+        """The per-element model the registry calls for: bearings when ``supports`` says so."""
+        if self.bridge.supports == "rotational_springs":
+            k0 = 8.0 if self.bridge.krot_nm_per_rad is None else math.log10(max(self.bridge.krot_nm_per_rad, 1.0))
+            return BearingElementModel(self.basis, self.bridge, prior, (k0, 2.5))
+        return ElementModel.of(self.basis, self.beam, prior)
+
+
+def design_beam(bridge: Bridge, ei_factor: np.ndarray | None = None, krot: tuple[float, float] | None = None) -> Beam:
+    """The registry bridge as an FE :class:`Beam` (design stiffness unless ``ei_factor``)."""
+    supports = "simply_supported" if krot is None else "rotational_springs"
+    return Beam(span_m=bridge.span_m, n_elements=bridge.n_elements, E_pa=bridge.E_pa, I_m4=bridge.I_m4,
+                mass_per_m=bridge.mass_per_m, damping_ratio=bridge.damping_ratio, supports=supports,
+                krot_nm_per_rad=krot, ei_factor=ei_factor, depth_m=bridge.depth_m)
+
+
+def whiten_all(passes: Sequence[PassData], setup: Setup) -> list[WhitenedPass]:
+    """Whiten every pass against the leave-one-out consensus of the others."""
+    ref = Reference.of(passes)
+    return [whiten_pass(p, ref, setup.basis, setup.deck) for p in passes]
