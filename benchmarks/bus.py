@@ -3,12 +3,16 @@
 Measured in one run, each on the same daemons:
 
 * ``bus.segments_per_s.synthetic``: AP segments per second the cloud accepts when synthetic edges
-  (``PUBLISHERS`` processes publishing pre-made segments of a 50 m tile, 1000 points, and one
-  end-of-pass marker per four segments) push as fast as they can: the time from "go" until the
-  cloud has acknowledged every pass, i.e. until every segment has been decoded, validated and
-  applied to the estimate. The target is 5 000 segments/s.
+  (``PUBLISHERS`` processes publishing pre-made passes of four 50 m tiles of 1000 points, and an
+  end-of-pass marker per pass) push as fast as they can: the time from "go" until the cloud has
+  acknowledged every pass, i.e. until every segment has been decoded, validated and applied to
+  the estimate. They publish as the edge does: what one raw chunk releases goes in one
+  ``ap_batch`` message, and on the 200 m ``road-qc`` route the last chunk of a pass releases all
+  four tiles. The target is 5 000 segments/s.
+* ``bus.segments_per_s.synthetic_single``: the same with one ``ap_segment`` message per segment
+  (``driveby edge --ap-batch 1``, or a long route, where tiles are released one at a time).
 * ``bus.latency_p50|p99.segment_hop``: one AP segment from ``put`` to applied, unloaded (a
-  synthetic segment every 5 ms): the bus and the cloud's per-segment work without the edge.
+  synthetic ``ap_segment`` every 5 ms): the bus and the cloud's per-segment work without the edge.
 * For 1, 10 and 100 replayed vehicles (chunks of 0.1 s at 500 Hz from ``road-qc`` drive logs,
   renamed per vehicle), at full speed (as fast as back-pressure allows) and in real time (all
   vehicles' chunks interleaved, each published when its last sample is due):
@@ -26,6 +30,8 @@ validation and estimator update. It does not cover the data's own wait: the edge
 once the vehicle has driven the drift-control half-width (150 m) beyond it or the pass ends, so
 on the 200 m ``road-qc`` route nearly every tile is released by the pass's last chunks.
 At full speed the queues are full by design, so full-speed latency is mostly queueing.
+
+One edge daemon serves every vehicle; ``DRIVEBY_BENCH_EDGES=N`` runs N, each with ``--shard i/N``.
 """
 
 from __future__ import annotations
@@ -50,7 +56,7 @@ import zenoh
 from cloud.node import TRACE
 from shared import keys
 from shared.drivelog import DriveLog, list_drive_logs, read_drive_log
-from shared.schema import ApSegment, PassDone, decode_ack
+from shared.schema import ApBatch, ApSegment, PassDone, decode_ack
 from shared.transport import run_router, zenoh_config
 from simfleet.fleet import interleave
 from simfleet.replay import chunks_of
@@ -59,6 +65,7 @@ from simfleet.sim import generate
 
 NET = "bench"
 CLOUD_ID, EDGE_ID = "bc", "be"
+EDGE_SHARDS = int(os.environ.get("DRIVEBY_BENCH_EDGES", "1"))  # edge daemons sharing the fleet (--shard i/n)
 ROUTE = "R1"
 TILE_POINTS = 1000  # a 50 m tile on the 0.05 m grid
 TARGET_SEGMENTS_PER_S = 5000.0
@@ -85,15 +92,19 @@ class BenchError(RuntimeError):
 class Deployment:
     """Cloud and edge daemons on a router, and this process's session: acks, stats, latency records."""
 
-    def __init__(self, endpoint: str, site: Path, workdir: Path):
+    def __init__(self, endpoint: str, site: Path, workdir: Path, edges: int = EDGE_SHARDS):
         self.workdir = workdir
         self.session = zenoh.open(zenoh_config("client", connect=[endpoint]))
         common = ["--connect", endpoint, "--net", NET, "--site", str(site)]
         # The cloud trusts the edges' calibration: fleet self-calibration would re-publish passes mid-run
         # and measure itself, not the bus. The edge cold-starts every vehicle from the class mean.
         self.procs = {"cloud": _spawn([sys.executable, "-m", "cloud", *common, "--id", CLOUD_ID,
-                                       "--calibration", "nominal"], workdir / "cloud.log"),
-                      "edge": _spawn([sys.executable, "-m", "edge", *common, "--id", EDGE_ID], workdir / "edge.log")}
+                                       "--calibration", "nominal"], workdir / "cloud.log")}
+        self.edge_ids = [EDGE_ID if edges == 1 else f"{EDGE_ID}{i}" for i in range(edges)]
+        for i, edge_id in enumerate(self.edge_ids):
+            shard = ["--shard", f"{i}/{edges}"]
+            self.procs[edge_id] = _spawn([sys.executable, "-m", "edge", *common, "--id", edge_id, *shard],
+                                         workdir / f"{edge_id}.log")
         self._lock = threading.Lock()
         self._acks: dict[tuple[str, str], tuple[float, int]] = {}  # (vehicle, pass) → (monotonic s, segments)
         self._wanted: set[tuple[str, str]] = set()
@@ -105,7 +116,7 @@ class Deployment:
     def wait_up(self) -> None:
         seen: set[str] = set()
         up = threading.Event()
-        wanted = {keys.alive_key(NET, "cloud", CLOUD_ID), keys.alive_key(NET, "edge", EDGE_ID)}
+        wanted = {keys.alive_key(NET, "cloud", CLOUD_ID), *(keys.alive_key(NET, "edge", e) for e in self.edge_ids)}
 
         def on_alive(sample):
             if sample.kind == zenoh.SampleKind.PUT:
@@ -211,19 +222,24 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 # -- synthetic edges --------------------------------------------------------------------------------
 
 
-def synthetic_messages(worker: int, passes: int, tiles: int) -> Iterator[tuple[str, bytes]]:
-    """Pre-made AP segments (``tiles`` per pass) and end-of-pass markers of ``passes`` passes."""
+def synthetic_messages(worker: int, passes: int, tiles: int, batch: bool = False) -> Iterator[tuple[str, bytes]]:
+    """Pre-made AP segments (``tiles`` per pass; in one ``ap_batch`` if ``batch``) and end-of-pass
+    markers of ``passes`` passes."""
     rng = np.random.default_rng(worker)
     sigma = np.full(TILE_POINTS, 2e-4)
     for k in range(passes):
         vehicle = f"syn{worker}-{k % SYNTHETIC_VEHICLES:03d}"
         pass_id = f"syn{worker}-p{k:05d}"
-        for tile in range(tiles):
-            seg = ApSegment.make(rng.normal(0.0, 2e-3, TILE_POINTS), sigma, vehicle_id=vehicle, pass_id=pass_id,
-                                 route_id=ROUTE, tile=tile, axle=1, start_index=tile * TILE_POINTS,
-                                 spacing_m=0.05, calib_version=0, speed_mps=18.0, t_first=2.5 * tile,
-                                 t_last=2.5 * tile + 2.5, seq=tile, n_segments_in_pass=tiles)
-            yield keys.ap_key(NET, ROUTE, tile, vehicle), seg.encode()
+        segments = [ApSegment.make(rng.normal(0.0, 2e-3, TILE_POINTS), sigma, vehicle_id=vehicle, pass_id=pass_id,
+                                   route_id=ROUTE, tile=tile, axle=1, start_index=tile * TILE_POINTS,
+                                   spacing_m=0.05, calib_version=0, speed_mps=18.0, t_first=2.5 * tile,
+                                   t_last=2.5 * tile + 2.5, seq=tile, n_segments_in_pass=tiles)
+                    for tile in range(tiles)]
+        if batch:
+            yield keys.ap_key(NET, ROUTE, 0, vehicle), ApBatch(tuple(segments)).encode()
+        else:
+            for seg in segments:
+                yield keys.ap_key(NET, ROUTE, seg.tile, vehicle), seg.encode()
         done = PassDone(vehicle_id=vehicle, pass_id=pass_id, route_id=ROUTE, calib_version=0, n_segments=tiles)
         yield keys.done_key(NET, vehicle), done.encode()
 
@@ -239,8 +255,9 @@ def _publisher_main(argv: list[str]) -> int:
     p.add_argument("--worker", type=int, required=True)
     p.add_argument("--passes", type=int, required=True)
     p.add_argument("--tiles", type=int, required=True)
+    p.add_argument("--batch", action="store_true", help="one ap_batch per pass instead of one message per segment")
     args = p.parse_args(argv)
-    messages = list(synthetic_messages(args.worker, args.passes, args.tiles))
+    messages = list(synthetic_messages(args.worker, args.passes, args.tiles, args.batch))
     with zenoh.open(zenoh_config("client", connect=[args.connect])) as session:
         print("ready", flush=True)
         if sys.stdin.readline().strip() != "go":
@@ -288,17 +305,19 @@ class _Worker:
         _stop([self.proc])
 
 
-def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path) -> Iterator[dict]:
+def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, batch: bool = True) -> Iterator[dict]:
     passes = SYNTHETIC_SEGMENTS // (tiles * PUBLISHERS)
     n = passes * tiles * PUBLISHERS
+    first = 0 if batch else PUBLISHERS + 1  # worker numbers: distinct passes in each run (and the hop's)
+    ids = range(first, first + PUBLISHERS)
     before = dep.query("stats")["stats"]
     workers = [_Worker([sys.executable, "-m", "benchmarks.bus", "publisher", "--connect", endpoint,
-                        "--worker", str(w), "--passes", str(passes), "--tiles", str(tiles)],
-                       workdir / f"publisher{w}.log") for w in range(PUBLISHERS)]
+                        "--worker", str(w), "--passes", str(passes), "--tiles", str(tiles), *(["--batch"] * batch)],
+                       workdir / f"publisher{w}.log") for w in ids]
     try:
         for w in workers:
             w.expect("ready", STARTUP_TIMEOUT_S)
-        dep.expect(set().union(*(synthetic_passes(w, passes) for w in range(PUBLISHERS))))
+        dep.expect(set().union(*(synthetic_passes(w, passes) for w in ids)))
         t0 = time.monotonic()
         for w in workers:
             w.say("go")
@@ -312,9 +331,9 @@ def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path) -
     if accepted != n or after["accepted"] - before["accepted"] != n or rejected:
         raise BenchError(f"synthetic: {n} segments sent, {accepted} acknowledged, {rejected} rejected")
     rate = n / (t_end - t0)
-    yield {"name": "bus.segments_per_s.synthetic", "value": rate, "unit": "segments/s",
+    yield {"name": "bus.segments_per_s.synthetic" + ("" if batch else "_single"), "value": rate, "unit": "segments/s",
            "ratio_to": {"target_5000": rate / TARGET_SEGMENTS_PER_S}, "segments": n, "publishers": PUBLISHERS,
-           "publish_segments_per_s": n / max(sent)}
+           "segments_per_message": tiles if batch else 1, "publish_segments_per_s": n / max(sent)}
 
 
 def bench_segment_hop(dep: Deployment, tiles: int) -> Iterator[dict]:
@@ -402,6 +421,7 @@ def run() -> Iterator[dict]:
             try:
                 dep.wait_up()
                 yield from bench_synthetic(dep, endpoint, tiles, work)
+                yield from bench_synthetic(dep, endpoint, tiles, work, batch=False)
                 yield from bench_segment_hop(dep, tiles)
                 yield from bench_pipeline(dep, logs, realtime=False, n_vehicles=2, report=False)  # warm-up
                 for realtime in (False, True):

@@ -13,7 +13,7 @@ import logging
 import math
 
 from shared.registry import Site
-from shared.schema import Ack, ApSegment, DecodeError, PassDone, decode_ap_segment, decode_pass_done
+from shared.schema import Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
 
 from .estimators.base import Estimator
 
@@ -31,6 +31,7 @@ class PassState:
     expected: int | None = None
     acked: bool = False
     model: str = ""
+    slots: set = dataclasses.field(default_factory=set)  # the pass's keys in Aggregator.segments
 
 
 class Aggregator:
@@ -42,16 +43,27 @@ class Aggregator:
         self.routes = {r.id: r.length_m for r in site.routes}
         self.segments: dict[tuple, ApSegment] = {}  # (vehicle, pass, route, tile, axle) → segment
         self.passes: dict[tuple[str, str], PassState] = {}
+        # Acknowledged passes per (vehicle, calibration version), kept as passes change state, so a
+        # status ("how many passes are current") costs O(vehicles), not O(passes), per acknowledgement.
+        self.acked: collections.Counter[tuple[str, int]] = collections.Counter()
         self.rejected: collections.Counter[str] = collections.Counter()
         self.accepted = 0
         self.updates = 0  # estimator updates applied (for views: "something changed")
 
     # -- input ---------------------------------------------------------------------------------
     def on_segment(self, payload: bytes, key_vehicle: str | None = None) -> list[Ack]:
+        """An AP payload: one segment or a batch of them (``ap_batch``), each applied on its own."""
         try:
-            seg = decode_ap_segment(payload)
+            segments = decode_ap(payload)
         except DecodeError as e:
             return self._reject(e.reason, str(e))
+        acks = []
+        for seg in segments:
+            acks.extend(self.apply(seg, key_vehicle))
+        return acks
+
+    def apply(self, seg: ApSegment, key_vehicle: str | None = None) -> list[Ack]:
+        """Check a decoded segment and fuse it (or count why not); returns the acks it completes."""
         reason = self._check(seg, key_vehicle)
         if reason:
             return self._reject(reason, f"{seg.vehicle_id}/{seg.pass_id} tile {seg.tile}")
@@ -71,8 +83,10 @@ class Aggregator:
         self.accepted += 1
         self.updates += 1
         ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
+        ps.slots.add(slot)
         if seg.calib_version > ps.calib_version:
-            ps.calib_version, ps.seqs, ps.expected, ps.acked = seg.calib_version, set(), None, False
+            self._unack(ps)
+            ps.calib_version, ps.seqs, ps.expected = seg.calib_version, set(), None
         if seg.calib_version == ps.calib_version:
             ps.seqs.add(seg.seq)
         return self._maybe_ack(seg.vehicle_id, seg.pass_id)
@@ -88,7 +102,8 @@ class Aggregator:
         if done.calib_version < ps.calib_version:
             return self._reject("stale_calibration", f"done {done.pass_id} v{done.calib_version}")
         if done.calib_version > ps.calib_version:
-            ps.calib_version, ps.seqs, ps.acked = done.calib_version, set(), False
+            self._unack(ps)
+            ps.calib_version, ps.seqs = done.calib_version, set()
         ps.expected = done.n_segments
         ps.model = done.vehicle_model or ps.model
         return self._maybe_ack(done.vehicle_id, done.pass_id)
@@ -106,8 +121,8 @@ class Aggregator:
             return "impossible_speed"
         if not all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators):
             return "grid_mismatch"
-        values = seg.values
-        if not (math.isfinite(float(values.max())) and float(abs(values).max()) < 1.0):
+        lo, hi = seg.value_range
+        if not (math.isfinite(hi) and max(-lo, hi) < 1.0):
             return "implausible_ap"
         return None
 
@@ -121,8 +136,24 @@ class Aggregator:
         if ps is None or ps.acked or ps.expected is None or len(ps.seqs) < ps.expected:
             return []
         ps.acked = True
+        self.acked[(vehicle_id, ps.calib_version)] += 1
+        # The pass is complete under its newest calibration: any of its segments still held from an
+        # older one (a tile the recomputation no longer produces) is superseded too.
+        for slot in [sl for sl in ps.slots if self.segments[sl].calib_version < ps.calib_version]:
+            for est in self.estimators:
+                est.retract(self.segments[slot])
+            del self.segments[slot]
+            ps.slots.discard(slot)
         return [Ack(vehicle_id=vehicle_id, pass_id=pass_id, n_segments_accepted=len(ps.seqs),
                     calib_version=ps.calib_version)]
+
+    def _unack(self, ps: PassState) -> None:
+        if ps.acked:
+            ps.acked = False
+            key = (ps.vehicle_id, ps.calib_version)
+            self.acked[key] -= 1
+            if not self.acked[key]:
+                del self.acked[key]
 
     def stats(self) -> dict:
         return {
@@ -130,5 +161,5 @@ class Aggregator:
             "rejected": dict(self.rejected),
             "segments_held": len(self.segments),
             "passes": len(self.passes),
-            "passes_complete": sum(p.acked for p in self.passes.values()),
+            "passes_complete": self.acked.total(),
         }

@@ -25,6 +25,8 @@ from .calibration import (REFERENCE, PassAp, VehicleFit, calibration_names, clas
 
 log = logging.getLogger(__name__)
 
+MAX_STEP = 0.15  # largest change of any log-quantity in one round (≈ 16 %)
+
 
 @dataclasses.dataclass
 class VehicleState:
@@ -98,7 +100,9 @@ class FleetCalibrator:
         for vid, (delta, fit) in steps.items():
             st = self.vehicles[vid]
             relax = self.relax if self.rounds > 1 else 1.0  # the first round has no trend to extrapolate
-            step = delta + (relax - 1.0) * common[st.model]
+            # A trust region: no quantity moves by more than MAX_STEP (in log) per round, so one
+            # bad fit (a misaligned pass, a wild start) cannot throw a vehicle far off.
+            step = np.clip(delta + (relax - 1.0) * common[st.model], -MAX_STEP, MAX_STEP)
             biggest = max(biggest, float(np.max(np.abs(step))))
             st.fit = fit
             if np.max(np.abs(step)) < self.tol:

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import collections
+import gc
 import json
 import logging
-import queue
+import math
 import signal
 import struct
 import sys
@@ -38,6 +39,8 @@ TILE_M = 50.0
 #: cloud records (sent, applied) for each such segment it accepts and answers ``control/<id>/latency``.
 TRACE = struct.Struct("<d")
 TRACE_RECORDS = 100_000
+STATUS_INTERVAL_S = 0.1  # status is published at most this often (and this late) while acks stream in
+QUIET_S = 0.2  # calibration rounds run once no input has arrived for this long
 
 
 class Cloud:
@@ -57,6 +60,8 @@ class Cloud:
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
         self.completed: set[tuple[str, str]] = set()
+        self.status_due = False  # acks were published since the last status
+        self._status_at = -math.inf  # monotonic s of the last status publication
 
     def on_segment(self, key: str, payload: bytes) -> None:
         try:
@@ -90,7 +95,8 @@ class Cloud:
                 if self.view is not None:
                     self._log_view()
         if acks:
-            self.publish_status()
+            self.status_due = True
+            self.flush_status()
 
     def current_version(self, vehicle_id: str) -> int:
         st = self.calibrator.vehicles.get(vehicle_id) if self.calibrator is not None else None
@@ -98,7 +104,7 @@ class Cloud:
 
     def status(self) -> dict:
         passes = self.aggregator.passes
-        current = sum(1 for (vid, _), ps in passes.items() if ps.acked and ps.calib_version == self.current_version(vid))
+        current = sum(n for (vid, version), n in self.aggregator.acked.items() if version == self.current_version(vid))
         busy = False
         if self.calibrator is not None:
             c = self.calibrator
@@ -107,7 +113,19 @@ class Cloud:
                 "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0}
 
     def publish_status(self) -> None:
+        self.status_due = False
+        self._status_at = time.monotonic()
         self.publish(keys.status_key(self.net, self.node_id), json.dumps(self.status()).encode())
+
+    def flush_status(self, force: bool = False) -> None:
+        """Publish the status if acks changed it, at most every ``STATUS_INTERVAL_S`` unless ``force``.
+
+        Computing it costs O(vehicles); after every acknowledged pass of a busy fleet that was most
+        of the cloud's time. A status held back is published by the next call after the interval
+        (the daemon calls with ``force`` whenever the bus goes quiet).
+        """
+        if self.status_due and (force or time.monotonic() - self._status_at >= STATUS_INTERVAL_S):
+            self.publish_status()
 
     def maybe_calibrate(self) -> bool:
         """Run one calibration round if one is due; publish what changed. True if a round ran."""
@@ -170,18 +188,37 @@ class Cloud:
 
 def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop: threading.Event,
           default_export: Path | None = None) -> None:
-    """Subscriptions feed one worker thread; queries are answered from the worker's state under a lock."""
-    inbox: queue.Queue = queue.Queue(maxsize=65536)
+    """Apply each message on the zenoh thread that delivers it, one at a time under a lock.
+
+    No queue between the subscription and the aggregator: a hand-off per message cost as much as
+    decoding it. While a message is being applied zenoh holds back the next one, so a busy cloud
+    slows its publishers (they publish with ``CongestionControl.BLOCK``) instead of buffering
+    without bound. Queries are answered under the same lock, from state that has applied every
+    message delivered so far. The calling thread publishes a held-back status and runs calibration
+    rounds once the bus has been quiet for ``QUIET_S``.
+    """
     lock = threading.Lock()
     traced: collections.deque = collections.deque(maxlen=TRACE_RECORDS)  # (sent, applied), Unix s
+    last_input = time.monotonic()
 
-    def on_ap(sample):
+    def apply(on_message, sample) -> None:
+        nonlocal last_input
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
         trace = sample.attachment
-        inbox.put(("ap", str(sample.key_expr), sample.payload.to_bytes(),
-                   None if trace is None else trace.to_bytes()))
-
-    def on_done(sample):
-        inbox.put(("done", str(sample.key_expr), sample.payload.to_bytes(), None))
+        with lock:
+            try:
+                before = cloud.aggregator.accepted
+                on_message(key, payload)
+                accepted = cloud.aggregator.accepted - before  # segments: a batch holds several
+                if trace is not None and accepted:
+                    trace = trace.to_bytes()
+                    if len(trace) == TRACE.size:
+                        traced.extend([(TRACE.unpack(trace)[0], time.time())] * accepted)
+            except Exception:  # a daemon never dies of one message; it is counted and logged
+                cloud.aggregator.rejected["internal_error"] += 1
+                log.exception("failed to process %s", key)
+            last_input = time.monotonic()
 
     def on_state(query):
         with query:
@@ -207,8 +244,6 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
             if not target:
                 query.reply_err(b"no export directory: pass ?dir=PATH or start the daemon with --export")
                 return
-            # Everything already received must be applied before exporting.
-            inbox.join()
             with lock:
                 try:
                     written = cloud.export(Path(target))
@@ -238,8 +273,8 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
             query.reply(keys.control_key(cloud.net, node_id, "latency"), json.dumps(body).encode())
 
     decl = [
-        session.declare_subscriber(keyexpr, on_ap),
-        session.declare_subscriber(keys.done_keyexpr(cloud.net), on_done),
+        session.declare_subscriber(keyexpr, lambda sample: apply(cloud.on_segment, sample)),
+        session.declare_subscriber(keys.done_keyexpr(cloud.net), lambda sample: apply(cloud.on_done, sample)),
         session.declare_queryable(keys.state_profile_keyexpr(cloud.net), on_state),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "export"), on_export),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "stats"), on_stats),
@@ -247,27 +282,15 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
     ]
     token = session.liveliness().declare_token(keys.alive_key(cloud.net, "cloud", node_id))
     try:
-        while not stop.is_set():
-            try:
-                kind, key, payload, trace = inbox.get(timeout=0.2)
-            except queue.Empty:
-                try:
-                    with lock:
-                        cloud.maybe_calibrate()  # calibrate when the bus is quiet
-                except Exception:
-                    log.exception("calibration round failed")
-                continue
+        while not stop.wait(STATUS_INTERVAL_S):
             try:
                 with lock:
-                    accepted = cloud.aggregator.accepted
-                    (cloud.on_segment if kind == "ap" else cloud.on_done)(key, payload)
-                    if trace is not None and len(trace) == TRACE.size and cloud.aggregator.accepted > accepted:
-                        traced.append((TRACE.unpack(trace)[0], time.time()))
-            except Exception:  # a daemon never dies of one message; it is counted and logged
-                cloud.aggregator.rejected["internal_error"] += 1
-                log.exception("failed to process %s", key)
-            finally:
-                inbox.task_done()
+                    quiet = time.monotonic() - last_input >= QUIET_S
+                    cloud.flush_status(force=quiet)
+                    if quiet:
+                        cloud.maybe_calibrate()  # calibrate when the bus is quiet
+            except Exception:
+                log.exception("calibration round failed")
     finally:
         token.undeclare()
         for d in decl:
@@ -312,6 +335,11 @@ def main(argv: list[str] | None = None) -> int:
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
             cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id)
+            # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
+            # process: keep it out of full garbage collections, whose pause scans every tracked object
+            # (~0.1 s of them) and would land in the middle of the stream.
+            gc.collect()
+            gc.freeze()
             serve(session, cloud, args.id, args.keyexpr or keys.ap_keyexpr(args.net), stop, args.export)
             if args.export:
                 cloud.export(args.export)

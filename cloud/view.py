@@ -43,6 +43,7 @@ DEFAULT_VIEWER_PORT = 9876
 MEAN_COLOUR = (70, 160, 255)
 BAND_COLOUR = (150, 150, 170)
 TILE_COLOUR = (110, 190, 130)
+IRI_COLOUR = (230, 140, 90)
 MEAN_RADIUS = rr.Radius.ui_points(1.5)
 BAND_RADIUS = rr.Radius.ui_points(0.75)
 STATS_COLOURS = {
@@ -72,13 +73,19 @@ def bridge_path(bridge_id: str) -> str:
     return f"bridge/{_part(bridge_id)}"
 
 
+def calibration_path(param: str) -> str:
+    """Entity of one calibrated quantity (e.g. ``K/M``) across the fleet."""
+    return f"fleet/calibration/{_part(param.replace('/', '_over_'))}"
+
+
 def _bridge_id(bridge: Any) -> str:
     """A bridge given as an id or as a registry `Bridge` (anything with ``.id``)."""
     return str(getattr(bridge, "id", bridge))
 
 
 def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
-              profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM) -> rrb.Blueprint:
+              profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM,
+              calibration_params: Sequence[str] = ()) -> rrb.Blueprint:
     """The one default layout: profiles per route, aggregator counters and fleet, bridges.
 
     Parameters
@@ -95,15 +102,22 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
         route_tabs.append(rrb.Vertical(
             rrb.Spatial2DView(origin=root, contents=["$origin/mean", "$origin/band"],
                               name=f"{rid}: profile (mm, up) vs chainage (m)", visual_bounds=bounds),
-            rrb.BarChartView(origin=f"{root}/passes_per_tile", name=f"{rid}: passes per tile"),
+            rrb.Horizontal(
+                rrb.BarChartView(origin=f"{root}/passes_per_tile", name=f"{rid}: passes per tile"),
+                rrb.BarChartView(origin=f"{root}/iri_100m", name=f"{rid}: IRI per 100 m (m/km)"),
+                rrb.BarChartView(origin=f"{root}/iri_10m", name=f"{rid}: IRI per 10 m (m/km)")),
             row_shares=[3, 1], name=str(rid)))
     rows: list = []
     if route_tabs:
         rows.append(rrb.Tabs(*route_tabs, name="profiles"))
-    rows.append(rrb.Horizontal(
+    fleet_tabs = [rrb.Horizontal(
         rrb.TimeSeriesView(origin="stats", name="aggregator counters"),
         rrb.TextDocumentView(origin="fleet/status", name="fleet"),
-        column_shares=[3, 2]))
+        column_shares=[3, 2], name="fleet")]
+    if calibration_params:
+        fleet_tabs.append(rrb.Grid(*[rrb.TimeSeriesView(origin=calibration_path(p), name=f"{p} per vehicle (95 %)")
+                                     for p in calibration_params], name="calibration"))
+    rows.append(rrb.Tabs(*fleet_tabs, name="fleet"))
     bridge_tabs = []
     for b in bridges:
         bid = _bridge_id(b)
@@ -200,7 +214,7 @@ class View:
                  connect_url: str | None = None, routes: Mapping[str, float] | None = None,
                  bridges: Sequence[Any] = (), *, recording_id: str | None = None,
                  clock: Callable[[], float] = time.time, viewer_port: int = DEFAULT_VIEWER_PORT,
-                 profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM):
+                 profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM, calibration_params: Sequence[str] = ()):
         sinks: list = []
         if rrd_path is not None:
             Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
@@ -225,7 +239,7 @@ class View:
         self._rec.set_log_time_enabled(False)
         self._rec.set_log_tick_enabled(False)
         self._rec.set_sinks(*sinks, default_blueprint=blueprint(dict(routes or {}), list(bridges),
-                                                                profile_range_mm))
+                                                                profile_range_mm, calibration_params))
 
     # -- time ------------------------------------------------------------------------------------------
     @property
@@ -294,6 +308,52 @@ class View:
                 return
             self._stamp()
             self._rec.log(f"{profile_path(route_id)}/passes_per_tile", chart)
+
+    def log_roughness(self, route_id: str, length_m: float, start_m: np.ndarray, iri: np.ndarray) -> None:
+        """Log IRI (m/km) per ``length_m`` segment (10 or 100 m) as bars along the route."""
+        start = np.asarray(start_m, dtype=float)
+        iri = np.asarray(iri, dtype=float)
+        if start.shape != iri.shape or start.ndim != 1:
+            raise ValueError("log_roughness: start_m and iri must be 1-D of one length")
+        chart = rr.BarChart(np.nan_to_num(iri), abscissa=start + 0.5 * length_m,
+                            widths=np.full(start.size, 0.9 * length_m, dtype=np.float32), color=IRI_COLOUR)
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(f"{profile_path(route_id)}/iri_{int(round(length_m))}m", chart)
+
+    def log_calibration(self, rows: Sequence[Mapping[str, Any]]) -> None:
+        """Log every vehicle's calibrated quantities with 95 % intervals at the current pass.
+
+        ``rows`` as in ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95. One entity per
+        quantity, three series (mean, lo95, hi95) per vehicle.
+        """
+        by_param: dict[str, list[Mapping[str, Any]]] = {}
+        for r in rows:
+            by_param.setdefault(str(r["param"]), []).append(r)
+        with self._lock:
+            if self._closed:
+                return
+            for param, rs in by_param.items():
+                rs = sorted(rs, key=lambda r: str(r["vehicle_id"]))
+                path = calibration_path(param)
+                ids = tuple(str(r["vehicle_id"]) for r in rs)
+
+                def style(ids=ids):
+                    names, colours, widths = [], [], []
+                    for k, vid in enumerate(ids):
+                        hue = _element_colour(k, len(ids))
+                        for label, w in (("", 1.5), (" lo95", 0.5), (" hi95", 0.5)):
+                            names.append(f"{vid}{label}")
+                            colours.append(hue)
+                            widths.append(w)
+                    return rr.SeriesLines(names=names, colors=colours, widths=widths)
+
+                self._style_once(path, ids, style)
+                self._stamp()
+                values = np.array([[float(r["mean"]), float(r["lo95"]), float(r["hi95"])] for r in rs]).ravel()
+                self._rec.log(path, rr.Scalars(values))
 
     # -- fleet and aggregator --------------------------------------------------------------------------
     def log_vehicle_status(self, status: Mapping[str, Mapping[str, Any]]) -> None:

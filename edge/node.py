@@ -1,19 +1,24 @@
 """The edge daemon: vehicle tasks turning raw sensor streams into AP segments over Zenoh.
 
-One process can host the tasks of many vehicles (``driveby run`` starts one for the fleet) or of
-one (``--vehicle``, as on board). Each vehicle's task is isolated: a bad stream or a failure in
-one vehicle's processing is counted and logged, and the others carry on.
+One process can host the tasks of many vehicles (``driveby run`` starts one for the fleet), of
+one (``--vehicle``, as on board), or of a hash shard of the fleet (``--shard i/n``: several
+processes share a fleet too large for one). Each vehicle's task is isolated: a bad stream or a
+failure in one vehicle's processing is counted and logged, and the others carry on.
+
+What one raw chunk releases (every tile and axle the pass has completed) is published as one
+``ap_batch`` message, or as single ``ap_segment`` messages with ``--ap-batch 1``.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import gc
 import logging
-import queue
 import signal
 import sys
 import threading
+import zlib
 from dataclasses import dataclass, field
 
 import zenoh
@@ -21,7 +26,16 @@ import zenoh
 from shared import keys
 from shared.dynamics.inverse import InverseModel, build_inverse
 from shared.registry import RegistryError, Site, load_site
-from shared.schema import Calibration, DecodeError, SensorChunk, decode_calibration, decode_sensor_chunk
+from shared.schema import (
+    MAX_BATCH_SEGMENTS,
+    ApBatch,
+    ApSegment,
+    Calibration,
+    DecodeError,
+    SensorChunk,
+    decode_calibration,
+    decode_sensor_chunk,
+)
 from shared.transport import add_zenoh_arguments, config_from_args
 from shared.vehicles import MODELS, vehicle_from_params
 
@@ -30,18 +44,42 @@ from .pipeline import EdgeConfig, PassProcessor
 log = logging.getLogger("driveby.edge")
 
 SPOOL_PASSES = 64  # raw passes kept per vehicle for recomputation when calibration changes
+AP_BATCH = 64  # segments per AP message (1: one message per segment)
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"i/n"`` → ``(i, n)`` with ``0 <= i < n``; raises ``ValueError``."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise ValueError(f"shard: expected i/n (e.g. 0/2), got {text!r}") from None
+    if not 0 <= i < n:
+        raise ValueError(f"shard: expected 0 <= i < n, got {text!r}")
+    return i, n
+
+
+def in_shard(vehicle_id: str, shard: tuple[int, int]) -> bool:
+    """Whether a vehicle belongs to shard ``(i, n)``: CRC-32 of its id modulo n (stable across
+    processes and machines, unlike ``hash``)."""
+    i, n = shard
+    return zlib.crc32(vehicle_id.encode()) % n == i
 
 
 @dataclass
 class VehicleTask:
-    """One vehicle: its calibration, the pass in progress and a bounded spool of raw passes."""
+    """One vehicle: its calibration, the pass in progress and a bounded spool of raw passes.
+
+    Passes are spooled as their raw chunk payloads (``bytes``), decoded again only to recompute:
+    decoded chunks are several objects each, which the garbage collector would scan on every
+    full collection (a pause growing with the fleet's spool, in the middle of the stream).
+    """
 
     vehicle_id: str
     calibration: Calibration | None = None
     current: PassProcessor | None = None
-    current_chunks: list = field(default_factory=list)
+    current_raw: list[bytes] = field(default_factory=list)
     expected_seq: int = 0
-    spool: collections.OrderedDict = field(default_factory=collections.OrderedDict)
+    spool: collections.OrderedDict[str, list[bytes]] = field(default_factory=collections.OrderedDict)
     errors: int = 0
 
 
@@ -49,11 +87,16 @@ class Edge:
     """Transport-free core of the edge: ``on_chunk``/``on_calibration`` call ``publish(key, bytes)``."""
 
     def __init__(self, net: str, publish, site: Site | None = None, calibration: str = "fleet",
-                 config: EdgeConfig = EdgeConfig(), vehicles: set[str] | None = None):
+                 config: EdgeConfig = EdgeConfig(), vehicles: set[str] | None = None,
+                 shard: tuple[int, int] = (0, 1), ap_batch: int = AP_BATCH):
         if calibration not in ("fleet", "nominal"):
             raise ValueError(f"calibration: expected 'fleet' or 'nominal', got {calibration!r}")
+        if not 1 <= ap_batch <= MAX_BATCH_SEGMENTS:
+            raise ValueError(f"ap_batch: expected 1 to {MAX_BATCH_SEGMENTS}, got {ap_batch}")
         self.net, self.publish, self.site, self.mode, self.config = net, publish, site, calibration, config
         self.only = vehicles
+        self.shard = shard
+        self.ap_batch = ap_batch
         self.tasks: dict[str, VehicleTask] = {}
         self.rejected: collections.Counter[str] = collections.Counter()
         self.segments_published = 0
@@ -97,21 +140,22 @@ class Edge:
         if key_vehicle is not None and key_vehicle != chunk.vehicle_id:
             self.rejected["key_mismatch"] += 1
             return
-        if self.only is not None and chunk.vehicle_id not in self.only:
+        if (self.only is not None and chunk.vehicle_id not in self.only) or not in_shard(chunk.vehicle_id, self.shard):
             return
         if chunk.vehicle_model not in MODELS:
             self.rejected["unsupported_model"] += 1
             return
         task = self.tasks.setdefault(chunk.vehicle_id, VehicleTask(chunk.vehicle_id))
+        raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload)  # zenoh.ZBytes, or bytes
         try:
-            self._feed(task, chunk)
+            self._feed(task, chunk, raw)
         except Exception:  # isolation: one vehicle's failure must not stop the others
             task.errors += 1
             self.rejected["processing_error"] += 1
             log.exception("vehicle %s: pass %s failed", chunk.vehicle_id, chunk.pass_id)
-            task.current, task.current_chunks = None, []
+            task.current, task.current_raw = None, []
 
-    def _feed(self, task: VehicleTask, chunk: SensorChunk) -> None:
+    def _feed(self, task: VehicleTask, chunk: SensorChunk, raw: bytes) -> None:
         if task.current is None or task.current.pass_id != chunk.pass_id:
             if chunk.seq != 0:
                 self.rejected["missing_pass_start"] += 1
@@ -124,27 +168,34 @@ class Edge:
             model = self._model(chunk.vehicle_model, params, 1.0 / chunk.sample_rate_hz)
             task.current = PassProcessor(model, chunk.vehicle_id, chunk.pass_id, chunk.route_id, version,
                                          self.config, chunk.vehicle_model)
-            task.current_chunks, task.expected_seq = [], 0
+            task.current_raw, task.expected_seq = [], 0
         if chunk.seq != task.expected_seq:
             self.rejected["sequence_gap"] += 1
-            task.current, task.current_chunks = None, []
+            task.current, task.current_raw = None, []
             return
         task.expected_seq += 1
-        task.current_chunks.append(chunk)
+        task.current_raw.append(raw)
         self._publish_segments(task.current.feed(chunk))
         if chunk.final:
             segments, done = task.current.finish()
             self._publish_segments(segments)
             self.publish(keys.done_key(self.net, chunk.vehicle_id), done.encode())
-            task.spool[chunk.pass_id] = task.current_chunks
+            task.spool[chunk.pass_id] = task.current_raw
             while len(task.spool) > SPOOL_PASSES:
                 task.spool.popitem(last=False)
-            task.current, task.current_chunks = None, []
+            task.current, task.current_raw = None, []
 
-    def _publish_segments(self, segments) -> None:
+    def _publish_segments(self, segments: list[ApSegment]) -> None:
+        """Publish what one chunk released, in batches of up to ``ap_batch`` per route (one vehicle)."""
+        by_route: dict[str, list[ApSegment]] = {}
         for seg in segments:
-            self.publish(keys.ap_key(self.net, seg.route_id, seg.tile, seg.vehicle_id), seg.encode())
-            self.segments_published += 1
+            by_route.setdefault(seg.route_id, []).append(seg)
+        for group in by_route.values():
+            for i in range(0, len(group), self.ap_batch):
+                part = group[i : i + self.ap_batch]
+                msg = part[0] if len(part) == 1 else ApBatch(tuple(part))
+                self.publish(keys.ap_key(self.net, part[0].route_id, part[0].tile, part[0].vehicle_id), msg.encode())
+                self.segments_published += len(part)
 
     def on_calibration(self, payload, key_vehicle: str | None = None) -> None:
         """A new calibration: recompute and republish every spooled pass under its version."""
@@ -165,7 +216,8 @@ class Edge:
             self.rejected["bad_calibration"] += 1
             return
         task.calibration = cal
-        for pass_id, chunks in list(task.spool.items()):
+        for pass_id, payloads in list(task.spool.items()):
+            chunks = [decode_sensor_chunk(p) for p in payloads]  # validated once already: cannot fail
             first = chunks[0]
             model = self._model(first.vehicle_model, dict(cal.params), 1.0 / first.sample_rate_hz)
             proc = PassProcessor(model, first.vehicle_id, pass_id, first.route_id, cal.version, self.config,
@@ -178,41 +230,38 @@ class Edge:
 
 
 def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Event) -> None:
-    """Wire ``edge`` to a session: subscriptions feed one worker thread, in arrival order."""
-    inbox: queue.Queue = queue.Queue(maxsize=4096)  # full → zenoh's thread waits: back-pressure
+    """Wire ``edge`` to a session: each message is processed on the zenoh thread that delivers it,
+    one at a time under a lock, in arrival order.
 
-    def on_imu(sample):
+    No queue in between: the hand-off cost about as much as decoding a chunk. While a chunk is
+    processed zenoh holds back the next, so a busy edge slows its publishers (back-pressure)
+    instead of buffering without bound.
+    """
+    lock = threading.Lock()
+
+    def on_sample(topic: str, handle, sample) -> None:
+        key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
         trace = sample.attachment
-        inbox.put(("imu", str(sample.key_expr), sample.payload.to_bytes(),
-                   None if trace is None else trace.to_bytes()))
+        with lock:
+            try:
+                _, vehicle = keys.parse_vehicle_key(key, topic)
+            except ValueError:
+                edge.rejected["bad_key"] += 1
+                return
+            edge.trace = None if trace is None else trace.to_bytes()
+            try:
+                handle(payload, vehicle)
+            except Exception:  # a daemon never dies of one message; it is counted and logged
+                edge.rejected["internal_error"] += 1
+                log.exception("failed to process %s", key)
 
-    def on_calib(sample):
-        inbox.put(("calib", str(sample.key_expr), sample.payload.to_bytes(), None))
-
-    subs = [session.declare_subscriber(keys.imu_keyexpr(edge.net), on_imu),
-            session.declare_subscriber(keys.calib_keyexpr(edge.net), on_calib)]
+    subs = [session.declare_subscriber(keys.imu_keyexpr(edge.net), lambda s: on_sample("imu", edge.on_chunk, s)),
+            session.declare_subscriber(keys.calib_keyexpr(edge.net),
+                                       lambda s: on_sample("calib", edge.on_calibration, s))]
     token = session.liveliness().declare_token(keys.alive_key(edge.net, "edge", node_id))
     try:
-        while not stop.is_set():
-            try:
-                kind, key, payload, trace = inbox.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            edge.trace = trace
-            if kind == "imu":
-                try:
-                    _, vehicle = keys.parse_vehicle_key(key, "imu")
-                except ValueError:
-                    edge.rejected["bad_key"] += 1
-                    continue
-                edge.on_chunk(payload, vehicle)
-            else:
-                try:
-                    _, vehicle = keys.parse_vehicle_key(key, "calib")
-                except ValueError:
-                    edge.rejected["bad_key"] += 1
-                    continue
-                edge.on_calibration(payload, vehicle)
+        stop.wait()
     finally:
         token.undeclare()
         for s in subs:
@@ -227,12 +276,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--site", help="site registry TOML (vehicle-class priors for cold start)")
     p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet")
     p.add_argument("--vehicle", action="append", help="only process these vehicles (repeatable)")
+    p.add_argument("--shard", default="0/1", metavar="I/N",
+                   help="only process the vehicles of hash shard I of N (run N edges to share a fleet)")
+    p.add_argument("--ap-batch", type=int, default=AP_BATCH, metavar="N",
+                   help=f"AP segments per message, 1 to {MAX_BATCH_SEGMENTS} (1: one ap_segment each)")
     p.add_argument("--log-level", default="WARNING")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s edge %(levelname)s %(message)s")
     try:
         site = load_site(args.site) if args.site else None
         keys.check_id(args.net, "net")
+        shard = parse_shard(args.shard)
+        if not 1 <= args.ap_batch <= MAX_BATCH_SEGMENTS:
+            raise ValueError(f"--ap-batch: expected 1 to {MAX_BATCH_SEGMENTS}, got {args.ap_batch}")
         conf = config_from_args(args)
     except (RegistryError, ValueError) as e:
         print(f"driveby edge: {e}", file=sys.stderr)
@@ -246,7 +302,12 @@ def main(argv: list[str] | None = None) -> int:
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, attachment=edge.trace)
 
             edge = Edge(args.net, publish, site, args.calibration,
-                        vehicles=set(args.vehicle) if args.vehicle else None)
+                        vehicles=set(args.vehicle) if args.vehicle else None, shard=shard, ap_batch=args.ap_batch)
+            # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
+            # process: keep it out of full garbage collections, whose pause scans every tracked object
+            # (~0.1 s of them) and would land in the middle of the stream.
+            gc.collect()
+            gc.freeze()
             serve(session, edge, args.id, stop)
     except zenoh.ZError as e:
         print(f"driveby edge: zenoh: {e}", file=sys.stderr)

@@ -10,6 +10,7 @@ import dataclasses
 import math
 
 import numpy as np
+from numba import njit
 
 from shared.dynamics.inverse import InverseModel, InverseStream
 from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
@@ -43,19 +44,78 @@ class EdgeConfig:
         return int(round(self.drift_half_width_m / self.spacing_m))
 
 
+@njit(cache=True)
+def _interp_between(x, y, j, xg):
+    """``np.interp``'s value at ``xg`` strictly between samples ``j`` and ``j + 1``."""
+    slope = (y[j + 1] - y[j]) / (x[j + 1] - x[j])
+    v = slope * (xg - x[j]) + y[j]
+    if np.isnan(v):  # as np.interp: try from the other end, then the flat case
+        v = slope * (xg - x[j + 1]) + y[j + 1]
+        if np.isnan(v) and y[j] == y[j + 1]:
+            v = y[j]
+    return v
+
+
+@njit(cache=True)
+def _to_grid(x, ap, t, reliable, first, spacing, values, times, valid):
+    """Samples (chainage ``x`` non-decreasing) onto grid points ``first, first + 1, …`` (``values.size`` of
+    them), in place: ``np.interp`` of ``ap`` and ``t`` (its arithmetic and its choice of neighbours,
+    so the result is bit-identical), and a point is valid only if both neighbouring samples are reliable.
+    One pass with two pointers, since grid points and samples both increase."""
+    n = x.size
+    le = 0  # samples <= the grid point
+    lt = 0  # samples < the grid point
+    for k in range(values.size):
+        xg = (first + k) * spacing
+        while le < n and x[le] <= xg:
+            le += 1
+        while lt < n and x[lt] < xg:
+            lt += 1
+        j = le - 1
+        if j < 0:
+            values[k], times[k] = ap[0], t[0]
+        elif j == n - 1:  # at or beyond the last sample
+            values[k], times[k] = ap[n - 1], t[n - 1]
+        elif x[j] == xg:
+            values[k], times[k] = ap[j], t[j]
+        else:
+            values[k] = _interp_between(x, ap, j, xg)
+            times[k] = _interp_between(x, t, j, xg)
+        pos = min(max(lt, 1), n - 1)
+        valid[k] = reliable[pos] and reliable[pos - 1]
+
+
 class _AxleGrid:
-    """The AP of one axle on the global grid, growing as the pass advances."""
+    """The AP of one axle on the global grid, growing as the pass advances.
+
+    The grid lives in arrays of doubling capacity, so appending a chunk's points costs amortised
+    O(points) (appending by concatenation copied the whole pass every chunk: O(n²) over a long
+    pass). ``values``, ``valid`` and ``t`` are views of the filled part.
+    """
 
     def __init__(self) -> None:
         self.base: int | None = None  # grid index of values[0]
-        self.values = np.zeros(0)
-        self.valid = np.zeros(0, dtype=bool)
-        self.t = np.zeros(0)
+        self.size = 0
+        self._values = np.zeros(0)
+        self._valid = np.zeros(0, dtype=bool)
+        self._t = np.zeros(0)
         self._last: tuple[float, float, float, bool] | None = None  # (chainage, ap, t, reliable)
 
     @property
+    def values(self) -> np.ndarray:
+        return self._values[: self.size]
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self._valid[: self.size]
+
+    @property
+    def t(self) -> np.ndarray:
+        return self._t[: self.size]
+
+    @property
     def end(self) -> int:
-        return (self.base or 0) + self.values.size
+        return (self.base or 0) + self.size
 
     def add(self, x: np.ndarray, ap: np.ndarray, t: np.ndarray, reliable: np.ndarray, spacing: float) -> None:
         """Interpolate samples (chainage ``x`` increasing) onto the grid points they pass."""
@@ -76,23 +136,24 @@ class _AxleGrid:
         last = int(math.floor(x[-1] / spacing))
         if last < first:
             return
-        idx = np.arange(first, last + 1)
-        xg = idx * spacing
-        vals = np.interp(xg, x, ap)
-        tg = np.interp(xg, x, t)
-        # A grid point is reliable only if both neighbouring samples are.
-        pos = np.clip(np.searchsorted(x, xg, side="left"), 1, x.size - 1)
-        ok = reliable[pos] & reliable[pos - 1]
         if self.base is None:
             self.base = first
-        gap = first - self.end
-        if gap > 0:  # skipped grid points (e.g. a stop) stay invalid
-            self.values = np.concatenate([self.values, np.zeros(gap)])
-            self.valid = np.concatenate([self.valid, np.zeros(gap, bool)])
-            self.t = np.concatenate([self.t, np.zeros(gap)])
-        self.values = np.concatenate([self.values, vals])
-        self.valid = np.concatenate([self.valid, ok])
-        self.t = np.concatenate([self.t, tg])
+        gap = first - self.end  # skipped grid points (e.g. a stop) stay invalid
+        a = self.size + gap
+        b = self._reserve(a + last + 1 - first)
+        _to_grid(x, ap, t, reliable, first, spacing, self._values[a:b], self._t[a:b], self._valid[a:b])
+
+    def _reserve(self, size: int) -> int:
+        """Grow the capacity to at least ``size`` points (new points are 0, invalid); set the size."""
+        if size > self._values.size:
+            cap = max(size, 2 * self._values.size, 1024)
+            for name in ("_values", "_valid", "_t"):
+                old = getattr(self, name)
+                new = np.zeros(cap, dtype=old.dtype)
+                new[: self.size] = old[: self.size]
+                setattr(self, name, new)
+        self.size = size
+        return size
 
 
 def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
@@ -118,6 +179,7 @@ class PassProcessor:
         self.inverse = InverseStream(model)
         self.tracker = ChainageTracker(model.constants.dt)
         self.grids = [_AxleGrid() for _ in range(self.system.n_contacts)]
+        self.channel_names = [ch.name for ch in self.system.channels]
         self.next_tile: int | None = None
         self.seq = 0
         self.n_samples = 0
@@ -125,18 +187,21 @@ class PassProcessor:
         self.finished = False
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
-        names = [ch.name for ch in self.system.channels]
+        names = self.channel_names
         missing = [n for n in names if n not in chunk.channels]
         if missing:
             raise ValueError(f"chunk lacks channel(s) {', '.join(missing)} for model {chunk.vehicle_model}")
         if chunk.n:
-            z = np.stack([chunk.channels[n].astype(np.float64) for n in names], axis=1)
+            z = np.empty((chunk.n, len(names)))
+            for j, name in enumerate(names):
+                z[:, j] = chunk.channels[name]
             ap = self.inverse.update(z)
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
             t = chunk.t
-            k = self.n_samples + np.arange(chunk.n)
-            moving = chunk.speed >= self.config.min_speed_mps
-            reliable = (k >= self.inverse.reliable_from) & moving
+            reliable = chunk.speed >= self.config.min_speed_mps  # moving
+            warmup = self.inverse.reliable_from - self.n_samples  # samples of this chunk still warming up
+            if warmup > 0:
+                reliable[:warmup] = False
             for i, grid in enumerate(self.grids):
                 grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m)
             self.n_samples += chunk.n

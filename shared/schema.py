@@ -3,8 +3,8 @@
 Wire form
 ---------
 Every payload is an Arrow IPC *stream* holding exactly one record batch of exactly
-one row.  Scalars are typed columns; arrays are ``list<...>`` columns (one list in
-the single row).  The schema metadata key ``driveby`` holds
+one row (an ``ap_batch``: one row per segment, see :class:`ApBatch`).  Scalars are typed
+columns; arrays are ``list<...>`` columns (one list per row).  The schema metadata key ``driveby`` holds
 ``{"kind": <kind>, "version": SCHEMA_VERSION}``.  Decoders ignore columns they do not
 know, so a message may grow optional columns without a version bump.
 
@@ -31,6 +31,7 @@ AP values on the wire (:class:`ApSegment`)
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import re
@@ -60,6 +61,7 @@ MAX_ABS_AP_M = 1.0e3
 MAX_ABS_CHAINAGE_M = 1.0e7
 MAX_INDEX = 1 << 40
 MAX_INT32 = (1 << 31) - 1
+MAX_BATCH_SEGMENTS = 256  # segments in one ap_batch (~1 MiB of 50 m tiles on a 0.05 m grid)
 
 VEHICLE_MODELS = frozenset({"sprung_mass", "quarter_car", "half_car", "bogie_half_car", "carriage"})
 
@@ -68,6 +70,10 @@ FLAG_UNRELIABLE = 1 << 0
 
 Q_MAX = 32767
 SIGMA_CODES_PER_OCTAVE = 2048
+# 2**(q / 2048) of every sigma code q in [-32768, 0], at index -q: decoding a sigma is a table look-up
+# (bit-identical to evaluating exp2), here and in the cloud's compiled kernels.
+SIGMA_SCALE = np.exp2(-np.arange(Q_MAX + 2) / SIGMA_CODES_PER_OCTAVE)
+SIGMA_SCALE.setflags(write=False)
 
 REASONS = (
     "not_arrow",  # not bytes, empty, not an Arrow IPC stream, corrupt buffers
@@ -125,9 +131,10 @@ def _text(name: str, v: object, max_len: int = MAX_TEXT, *, printable: bool = Tr
 
 
 def _int(name: str, v: object, lo: int, hi: int) -> int:
-    if isinstance(v, bool | np.bool_) or not isinstance(v, int | np.integer):
-        _fail("bad_type", f"{name} must be int")
-    v = int(v)  # type: ignore[arg-type]
+    if type(v) is not int:  # the exact type first: the decoders' common case, and bool is not int here
+        if isinstance(v, bool | np.bool_) or not isinstance(v, int | np.integer):
+            _fail("bad_type", f"{name} must be int")
+        v = int(v)  # type: ignore[arg-type]
     if not lo <= v <= hi:
         _fail("bad_value", f"{name}={v} outside [{lo}, {hi}]")
     return v
@@ -136,12 +143,13 @@ def _int(name: str, v: object, lo: int, hi: int) -> int:
 def _float(
     name: str, v: object, lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False
 ) -> float:
-    if isinstance(v, bool | np.bool_) or not isinstance(v, int | float | np.integer | np.floating):
-        _fail("bad_type", f"{name} must be a real number")
-    try:
-        v = float(v)  # type: ignore[arg-type]
-    except OverflowError:
-        v = math.inf
+    if type(v) is not float:
+        if isinstance(v, bool | np.bool_) or not isinstance(v, int | float | np.integer | np.floating):
+            _fail("bad_type", f"{name} must be a real number")
+        try:
+            v = float(v)  # type: ignore[arg-type]
+        except OverflowError:
+            v = math.inf
     if not math.isfinite(v):
         _fail("non_finite", f"{name} is {v}")
     if v < lo or v > hi or (lo_open and v == lo):
@@ -157,6 +165,16 @@ def _bool(name: str, v: object) -> bool:
 
 def _array(name: str, v: object, dtype: type, *, finite: bool = True) -> np.ndarray:
     """A read-only 1-D copy of ``v`` as ``dtype``; integer targets are range-checked."""
+    target = np.dtype(dtype)
+    if type(v) is np.ndarray and v.dtype == target and v.ndim == 1:
+        # Already the target type (what the decoders hand over): no conversion, no range to check.
+        if v.size > MAX_SAMPLES:
+            _fail("oversize", f"{name} has {v.size} > {MAX_SAMPLES} points")
+        if finite and target.kind == "f" and not np.isfinite(v).all():
+            _fail("non_finite", f"{name} has NaN or inf")
+        out = v.copy()
+        out.setflags(write=False)
+        return out
     try:
         a = np.asarray(v)
     except (TypeError, ValueError):
@@ -167,7 +185,6 @@ def _array(name: str, v: object, dtype: type, *, finite: bool = True) -> np.ndar
         _fail("bad_shape", f"{name} must be 1-D, got shape {a.shape}")
     if a.size > MAX_SAMPLES:
         _fail("oversize", f"{name} has {a.size} > {MAX_SAMPLES} points")
-    target = np.dtype(dtype)
     if target.kind in "iu":
         if a.dtype.kind == "f":
             if not np.all(np.isfinite(a)):
@@ -262,18 +279,34 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
             if len(batches) > 1:
                 break
         for batch in batches:
-            # Validate before touching anything else: even `nbytes` follows the
-            # offsets, and corrupt offsets crash the process (found by fuzzing).
+            # Validate before touching anything else: `nbytes` follows the offsets, and
+            # corrupt offsets crash the process (found by fuzzing). The cap is checked on the
+            # sum of the buffers' sizes, which bounds what the batch holds (it may count a
+            # sliced buffer whole, never less) and, unlike `nbytes`, costs nothing.
             batch.validate(full=True)
-            if batch.nbytes > MAX_DECODED_BYTES:
-                raise DecodeError("oversize", f"decoded batch of {batch.nbytes} B")
+            size = batch.get_total_buffer_size()
+            if size > MAX_DECODED_BYTES:
+                raise DecodeError("oversize", f"decoded batch of {size} B")
         schema = reader.schema
         names = schema.names  # raises UnicodeDecodeError (a ValueError) on corrupt names
     except (pa.ArrowException, OSError, ValueError) as e:
         if isinstance(e, DecodeError):
             raise
         raise DecodeError("not_arrow", str(e)[:200]) from None
-    raw = (schema.metadata or {}).get(META_KEY)
+    kind, version = _header((schema.metadata or {}).get(META_KEY))
+    if len(set(names)) != len(names):
+        raise DecodeError("bad_shape", "duplicate column names")
+    max_rows = _MAX_ROWS.get(kind, 1)
+    if len(batches) != 1 or not 1 <= batches[0].num_rows <= max_rows:
+        n_rows = [b.num_rows for b in batches]
+        want = "one row" if max_rows == 1 else f"1 to {max_rows} rows"
+        raise DecodeError("bad_shape", f"expected one batch of {want}, got rows {n_rows}")
+    return kind, version, batches[0]
+
+
+@functools.lru_cache(maxsize=64)
+def _header(raw: bytes | None) -> tuple[str, int]:
+    """``(kind, version)`` from the ``driveby`` schema metadata (a handful of distinct values: cached)."""
     if raw is None:
         raise DecodeError("bad_header", "no 'driveby' schema metadata")
     try:
@@ -284,19 +317,34 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
     version = header.get("version") if isinstance(header, dict) else None
     if not isinstance(kind, str) or isinstance(version, bool) or not isinstance(version, int):
         raise DecodeError("bad_header", "'driveby' metadata needs a str kind and an int version")
-    if len(set(names)) != len(names):
-        raise DecodeError("bad_shape", "duplicate column names")
-    if len(batches) != 1 or batches[0].num_rows != 1:
-        n_rows = [b.num_rows for b in batches]
-        raise DecodeError("bad_shape", f"expected one batch of one row, got rows {n_rows}")
-    return kind, version, batches[0]
+    return kind, version
+
+
+def _type_ids(*types: pa.DataType) -> frozenset[int]:
+    return frozenset(t.id for t in types)
+
+
+# Accepted Arrow types per field kind, as type ids: a set lookup per column instead of predicate calls.
+_TEXT_IDS = _type_ids(pa.string(), pa.large_string())
+_INTEGER_IDS = _type_ids(pa.int8(), pa.int16(), pa.int32(), pa.int64(),
+                         pa.uint8(), pa.uint16(), pa.uint32(), pa.uint64())
+_FLOAT_IDS = _type_ids(pa.float16(), pa.float32(), pa.float64())
+_BOOL_IDS = _type_ids(pa.bool_())
+_LIST_IDS = _type_ids(pa.list_(pa.int8()), pa.large_list(pa.int8()))
+_MAP_IDS = _type_ids(_PARAMS_TYPE)
 
 
 class _Row:
-    """Typed access to the single row of a decoded batch (raises InvalidMessage)."""
+    """Typed access to the row of a decoded batch (or, column-wise, to its rows; raises InvalidMessage).
+
+    The batch has been fully validated (:func:`_read_batch`), so scalars are read with one
+    ``to_pylist()`` per column and lists as zero-copy numpy views of their values (read-only;
+    the message constructors copy them).
+    """
 
     def __init__(self, batch: pa.RecordBatch) -> None:
         self.batch = batch
+        self.n_rows = batch.num_rows
         # One pass over the columns: a name lookup per field was most of the decoding time.
         self.columns = dict(zip(batch.schema.names, batch.columns))
         self.names = self.columns.keys()
@@ -304,28 +352,52 @@ class _Row:
     def _col(self, name: str) -> pa.Array | None:
         return self.columns.get(name)
 
-    def _required(self, name: str, check, what: str) -> pa.Array:
-        col = self._col(name)
+    def _required(self, name: str, type_ids: frozenset[int], what: str) -> pa.Array:
+        col = self.columns.get(name)
         if col is None:
             _fail("missing_field", f"no column {name!r}")
-        if not check(col.type):
+        if col.type.id not in type_ids:
             _fail("bad_type", f"column {name!r} is {col.type}, expected {what}")
         if col.null_count:
             _fail("missing_field", f"column {name!r} is null")
         return col
 
+    def texts(self, name: str) -> list[str]:
+        return self._required(name, _TEXT_IDS, "string").to_pylist()
+
+    def integers(self, name: str) -> list[int]:
+        return self._required(name, _INTEGER_IDS, "integer").to_pylist()
+
+    def reals(self, name: str) -> list[float]:
+        return self._required(name, _FLOAT_IDS, "float").to_pylist()
+
+    def arrays(self, name: str, value_type: pa.DataType) -> list[np.ndarray]:
+        col = self._required(name, _LIST_IDS, f"list<{value_type}>")
+        if not col.type.value_type.equals(value_type):
+            _fail("bad_type", f"column {name!r} is {col.type}, expected list<{value_type}>")
+        if self.n_rows == 1:
+            values = col[0].values
+            bounds = [0, len(values)]
+        else:  # offsets index the child array `values`; read only the stretch the rows use
+            bounds = col.offsets.to_numpy().tolist()
+            values = col.values.slice(bounds[0], bounds[-1] - bounds[0])
+            bounds = [b - bounds[0] for b in bounds]
+        if values.null_count:
+            _fail("missing_field", f"column {name!r} has null items")
+        flat = values.to_numpy(zero_copy_only=False)
+        return [flat[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])]
+
     def text(self, name: str) -> str:
-        col = self._required(name, lambda t: pa.types.is_string(t) or pa.types.is_large_string(t), "string")
-        return col[0].as_py()
+        return self.texts(name)[0]
 
     def integer(self, name: str) -> int:
-        return self._required(name, pa.types.is_integer, "integer")[0].as_py()
+        return self.integers(name)[0]
 
     def real(self, name: str) -> float:
-        return self._required(name, pa.types.is_floating, "float")[0].as_py()
+        return self.reals(name)[0]
 
     def flag(self, name: str) -> bool:
-        return self._required(name, pa.types.is_boolean, "bool")[0].as_py()
+        return self._required(name, _BOOL_IDS, "bool").to_pylist()[0]
 
     def opt_real(self, name: str) -> float | None:
         col = self._col(name)
@@ -334,24 +406,16 @@ class _Row:
         return self.real(name)
 
     def array(self, name: str, value_type: pa.DataType) -> np.ndarray:
-        def check(t: pa.DataType) -> bool:
-            return (pa.types.is_list(t) or pa.types.is_large_list(t)) and t.value_type.equals(value_type)
-
-        values = self._required(name, check, f"list<{value_type}>")[0].values
-        if values.null_count:
-            _fail("missing_field", f"column {name!r} has null items")
-        return values.to_numpy(zero_copy_only=False)
+        return self.arrays(name, value_type)[0]
 
     def params(self, name: str, *, optional: bool) -> dict[str, float] | None:
         col = self._col(name)
         if optional and (col is None or col.null_count):
             return None
-
-        def check(t: pa.DataType) -> bool:
-            return pa.types.is_map(t) and pa.types.is_string(t.key_type) and pa.types.is_float64(t.item_type)
-
-        col = self._required(name, check, str(_PARAMS_TYPE))
-        items = col[0].as_py()
+        col = self._required(name, _MAP_IDS, str(_PARAMS_TYPE))
+        if not (pa.types.is_string(col.type.key_type) and pa.types.is_float64(col.type.item_type)):
+            _fail("bad_type", f"column {name!r} is {col.type}, expected {_PARAMS_TYPE}")
+        items = col.to_pylist()[0]
         keys = [k for k, _ in items]
         if len(set(keys)) != len(keys):
             _fail("bad_value", f"column {name!r} has duplicate keys")
@@ -509,7 +573,7 @@ class SensorChunk(_Message):
 
 def _build_sensor_chunk(r: _Row) -> SensorChunk:
     channels = {
-        name[3:]: r.array(name, pa.float32()) for name in r.batch.schema.names if name.startswith("ch.")
+        name[3:]: r.array(name, pa.float32()) for name in r.names if name.startswith("ch.")
     }
     return SensorChunk(
         vehicle_id=r.text("vehicle_id"),
@@ -611,7 +675,7 @@ class ApSegment(_Message):
             _fail("bad_shape", "a segment needs at least one point")
         if sigma_q.size != values_q.size:
             _fail("bad_shape", f"sigma has {sigma_q.size} points, values {values_q.size}")
-        if np.any(sigma_q > 0):
+        if sigma_q.max() > 0:  # not empty, checked above
             _fail("bad_value", "sigma codes must be <= 0")
         set_(self, "values_q", values_q)
         set_(self, "sigma_q", sigma_q)
@@ -704,15 +768,27 @@ class ApSegment(_Message):
         """Grid index one past the segment's last point."""
         return self.start_index + self.n
 
-    @property
+    # The decoded arrays are computed once per segment and read-only, like the segment itself: the
+    # cloud reads them in its checks and in every estimator's update and retract.
+    @functools.cached_property
     def values(self) -> np.ndarray:
-        """AP values (m), float64."""
-        return self.offset_m + self.scale_m * self.values_q.astype(np.float64)
+        """AP values (m), float64, read-only."""
+        v = self.offset_m + self.scale_m * self.values_q.astype(np.float64)
+        v.setflags(write=False)
+        return v
+
+    @functools.cached_property
+    def sigma(self) -> np.ndarray:
+        """Per-point error scale (m), float64, read-only, never below what was encoded."""
+        s = self.sigma_ref_m * SIGMA_SCALE[np.negative(self.sigma_q, dtype=np.intp)]
+        s.setflags(write=False)
+        return s
 
     @property
-    def sigma(self) -> np.ndarray:
-        """Per-point error scale (m), float64, never below what was encoded."""
-        return self.sigma_ref_m * np.exp2(self.sigma_q.astype(np.float64) / SIGMA_CODES_PER_OCTAVE)
+    def value_range(self) -> tuple[float, float]:
+        """``(min, max)`` of :attr:`values` (m), from the extreme codes (the decoding is monotone)."""
+        return (self.offset_m + self.scale_m * float(self.values_q.min()),
+                self.offset_m + self.scale_m * float(self.values_q.max()))
 
     @property
     def chainage_m(self) -> np.ndarray:
@@ -727,60 +803,133 @@ class ApSegment(_Message):
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this segment."""
-        return _encode(
-            self.KIND,
-            {
-                "vehicle_id": _scalar(self.vehicle_id, pa.string()),
-                "pass_id": _scalar(self.pass_id, pa.string()),
-                "route_id": _scalar(self.route_id, pa.string()),
-                "tile": _scalar(self.tile, pa.int64()),
-                "axle": _scalar(self.axle, pa.int64()),
-                "start_index": _scalar(self.start_index, pa.int64()),
-                "spacing_m": _scalar(self.spacing_m, pa.float64()),
-                "values_q": _list_column(self.values_q, pa.int16()),
-                "scale_m": _scalar(self.scale_m, pa.float64()),
-                "offset_m": _scalar(self.offset_m, pa.float64()),
-                "sigma_q": _list_column(self.sigma_q, pa.int16()),
-                "sigma_ref_m": _scalar(self.sigma_ref_m, pa.float64()),
-                "calib_version": _scalar(self.calib_version, pa.int64()),
-                "speed_mps": _scalar(self.speed_mps, pa.float64()),
-                "t_first": _scalar(self.t_first, pa.float64()),
-                "t_last": _scalar(self.t_last, pa.float64()),
-                "seq": _scalar(self.seq, pa.int64()),
-                "n_segments_in_pass": _scalar(self.n_segments_in_pass, pa.int64()),
-                "flags": _scalar(self.flags, pa.int64()),
-            },
-        )
+        return _encode(self.KIND, _ap_columns([self]))
+
+
+# The wire columns of an AP segment, in order (an ap_batch has the same columns, one row per segment).
+_AP_COLUMNS = (
+    ("vehicle_id", pa.string()),
+    ("pass_id", pa.string()),
+    ("route_id", pa.string()),
+    ("tile", pa.int64()),
+    ("axle", pa.int64()),
+    ("start_index", pa.int64()),
+    ("spacing_m", pa.float64()),
+    ("values_q", pa.list_(pa.int16())),
+    ("scale_m", pa.float64()),
+    ("offset_m", pa.float64()),
+    ("sigma_q", pa.list_(pa.int16())),
+    ("sigma_ref_m", pa.float64()),
+    ("calib_version", pa.int64()),
+    ("speed_mps", pa.float64()),
+    ("t_first", pa.float64()),
+    ("t_last", pa.float64()),
+    ("seq", pa.int64()),
+    ("n_segments_in_pass", pa.int64()),
+    ("flags", pa.int64()),
+)
+_AP_NAMES = tuple(name for name, _ in _AP_COLUMNS)
+_AP_READERS = tuple(  # the _Row method reading each column, and its list value type
+    ("arrays", t.value_type) if pa.types.is_list(t) else
+    ("texts", None) if pa.types.is_string(t) else
+    ("integers", None) if pa.types.is_integer(t) else ("reals", None)
+    for _, t in _AP_COLUMNS
+)
+
+
+def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, pa.Array]:
+    cols = {}
+    for name, t in _AP_COLUMNS:
+        items = [getattr(s, name) for s in segments]
+        if pa.types.is_list(t):
+            offsets = np.zeros(len(items) + 1, dtype=np.int32)
+            np.cumsum([a.size for a in items], out=offsets[1:])
+            values = pa.array(np.concatenate(items), type=t.value_type)
+            cols[name] = pa.ListArray.from_arrays(pa.array(offsets), values)
+        else:
+            cols[name] = pa.array(items, type=t)
+    return cols
+
+
+def _ap_segments(r: _Row) -> list[ApSegment]:
+    """Every row of an ``ap_segment`` or ``ap_batch`` batch as a validated :class:`ApSegment`."""
+    columns = [getattr(r, method)(name, value_type) if value_type is not None else getattr(r, method)(name)
+               for name, (method, value_type) in zip(_AP_NAMES, _AP_READERS)]
+    return [ApSegment(**dict(zip(_AP_NAMES, row))) for row in zip(*columns)]
 
 
 def _build_ap_segment(r: _Row) -> ApSegment:
-    return ApSegment(
-        vehicle_id=r.text("vehicle_id"),
-        pass_id=r.text("pass_id"),
-        route_id=r.text("route_id"),
-        tile=r.integer("tile"),
-        axle=r.integer("axle"),
-        start_index=r.integer("start_index"),
-        spacing_m=r.real("spacing_m"),
-        values_q=r.array("values_q", pa.int16()),
-        scale_m=r.real("scale_m"),
-        offset_m=r.real("offset_m"),
-        sigma_q=r.array("sigma_q", pa.int16()),
-        sigma_ref_m=r.real("sigma_ref_m"),
-        calib_version=r.integer("calib_version"),
-        speed_mps=r.real("speed_mps"),
-        t_first=r.real("t_first"),
-        t_last=r.real("t_last"),
-        seq=r.integer("seq"),
-        n_segments_in_pass=r.integer("n_segments_in_pass"),
-        flags=r.integer("flags"),
-    )
-
+    return _ap_segments(r)[0]
 
 
 def decode_ap_segment(payload: bytes) -> ApSegment:
     """Decode and validate an :class:`ApSegment` payload; raises :class:`DecodeError`."""
     return _decoding(ApSegment.KIND, payload, _build_ap_segment)
+
+
+@dataclass(frozen=True, eq=False)
+class ApBatch(_Message):
+    """Several AP segments of one vehicle on one route in one payload (edge -> cloud).
+
+    The edge publishes what one raw chunk releases (every tile and axle the pass has completed)
+    as one message: framing, decoding and the transport are paid once per batch instead of once
+    per segment. On the wire it is an ``ap_segment`` batch with one row per segment, under the key
+    of its first segment (``ap/<route>/<tile>/<vehicle>``), so shards by route or vehicle see
+    every batch they own. Receivers read AP keys with :func:`decode_ap`, which takes both kinds;
+    each segment keeps its own identity, so fusion is the same as for single segments.
+    """
+
+    KIND: ClassVar[str] = "ap_batch"
+
+    segments: tuple[ApSegment, ...]
+
+    def __post_init__(self) -> None:
+        segments = self.segments
+        if not isinstance(segments, tuple | list) or not all(isinstance(s, ApSegment) for s in segments):
+            _fail("bad_type", "segments must be a sequence of ApSegment")
+        if not 1 <= len(segments) <= MAX_BATCH_SEGMENTS:
+            _fail("bad_shape", f"a batch holds 1 to {MAX_BATCH_SEGMENTS} segments, got {len(segments)}")
+        first = segments[0]
+        if any(s.vehicle_id != first.vehicle_id or s.route_id != first.route_id for s in segments):
+            _fail("bad_value", "a batch holds the segments of one vehicle on one route")
+        object.__setattr__(self, "segments", tuple(segments))
+
+    @property
+    def vehicle_id(self) -> str:
+        return self.segments[0].vehicle_id
+
+    @property
+    def route_id(self) -> str:
+        return self.segments[0].route_id
+
+    @property
+    def tile(self) -> int:
+        """The first segment's tile: the batch's key is that segment's key."""
+        return self.segments[0].tile
+
+    def encode(self) -> bytes:
+        """Arrow IPC payload of this batch."""
+        return _encode(self.KIND, _ap_columns(self.segments))
+
+
+def _build_ap_batch(r: _Row) -> ApBatch:
+    return ApBatch(tuple(_ap_segments(r)))
+
+
+def decode_ap_batch(payload: bytes) -> ApBatch:
+    """Decode and validate an :class:`ApBatch` payload; raises :class:`DecodeError`."""
+    return _decoding(ApBatch.KIND, payload, _build_ap_batch)
+
+
+def decode_ap(payload: bytes) -> list[ApSegment]:
+    """The segments of an AP payload of either kind (``ap_segment`` or ``ap_batch``); what a
+    subscriber to AP keys calls. Raises :class:`DecodeError` (``wrong_kind`` for other kinds)."""
+    kind, version, batch = _read_batch(payload)
+    if kind == ApSegment.KIND:
+        return [_build(kind, version, batch, _build_ap_segment)]
+    if kind == ApBatch.KIND:
+        return list(_build(kind, version, batch, _build_ap_batch).segments)
+    raise DecodeError("wrong_kind", f"expected {ApSegment.KIND} or {ApBatch.KIND}, got {kind}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -1008,17 +1157,19 @@ def decode_ack(payload: bytes) -> Ack:
     return _decoding(Ack.KIND, payload, _build_ack)
 
 
-Message = SensorChunk | ApSegment | PassDone | Calibration | Alarm | Ack
+Message = SensorChunk | ApSegment | ApBatch | PassDone | Calibration | Alarm | Ack
 
 _BUILDERS = {
     SensorChunk.KIND: _build_sensor_chunk,
     ApSegment.KIND: _build_ap_segment,
+    ApBatch.KIND: _build_ap_batch,
     PassDone.KIND: _build_pass_done,
     Calibration.KIND: _build_calibration,
     Alarm.KIND: _build_alarm,
     Ack.KIND: _build_ack,
 }
 KINDS = tuple(_BUILDERS)
+_MAX_ROWS = {ApBatch.KIND: MAX_BATCH_SEGMENTS}  # rows a payload may hold, per kind (others: one)
 
 
 def decode(payload: bytes) -> Message:

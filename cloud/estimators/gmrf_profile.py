@@ -40,7 +40,7 @@ import numpy as np
 from numba import njit
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
-from shared.schema import ApSegment
+from shared.schema import SIGMA_SCALE, ApSegment
 
 from .mean_profile import ProfileSnapshot
 
@@ -146,6 +146,56 @@ def segment_information(values: np.ndarray, sigma: np.ndarray, rho: float
     rhs[:-1] += off * values[1:]
     rhs[1:] += off * values[:-1]
     return diag, off, rhs
+
+
+@njit(**_FLAGS)
+def _accumulate(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, rho, sign,
+                is_pass):
+    """Add ``sign`` times a segment's :func:`segment_information` to the route's sums from index ``lo``.
+
+    The segment comes as its wire codes, decoded point by point as :attr:`ApSegment.values` and
+    :attr:`ApSegment.sigma` decode them (``offset + scale·q``; ``sigma_ref · sigma_scale[−q]``),
+    and the arithmetic is :func:`segment_information`'s, in the same order: the result is
+    bit-identical, without the temporaries (this is the cloud's per-segment cost). ``cover`` (and
+    ``passes`` if ``is_pass``) move by ``sign``.
+    """
+    m = values_q.size
+    step = int(sign)
+    if rho == 0.0 or m == 1:
+        for i in range(m):
+            inv = 1.0 / (sigma_ref * sigma_scale[-np.int64(sigma_q[i])])
+            d = inv * inv
+            q[0, lo + i] += sign * d
+            b[lo + i] += sign * (d * (offset + scale * np.float64(values_q[i])))
+    else:
+        g = 1.0 / (1.0 - rho * rho)
+        c_mid = (1.0 + rho * rho) * g
+        c_off = -rho * g
+        off_prev = 0.0
+        v_prev = 0.0
+        v = offset + scale * np.float64(values_q[0])
+        inv_next = 1.0 / (sigma_ref * sigma_scale[-np.int64(sigma_q[0])])
+        for i in range(m):
+            inv = inv_next
+            d = (g if i == 0 or i == m - 1 else c_mid) * inv * inv
+            r = d * v
+            off = 0.0  # Q[i + 1, i]
+            v_next = 0.0
+            if i + 1 < m:
+                v_next = offset + scale * np.float64(values_q[i + 1])
+                inv_next = 1.0 / (sigma_ref * sigma_scale[-np.int64(sigma_q[i + 1])])
+                off = c_off * inv * inv_next
+                r += off * v_next
+                q[1, lo + i] += sign * off
+            if i > 0:
+                r += off_prev * v_prev
+            q[0, lo + i] += sign * d
+            b[lo + i] += sign * r
+            off_prev, v_prev, v = off, v, v_next
+    for i in range(lo, lo + m):
+        cover[i] += step
+        if is_pass:
+            passes[i] += step
 
 
 # -- state ---------------------------------------------------------------------------------------
@@ -268,13 +318,8 @@ class GmrfProfile:
         if hi <= lo:
             return False
         m = hi - lo
-        diag, off, rhs = segment_information(seg.values[:m], seg.sigma[:m], self.rho)
-        route.q[0, lo:hi] += sign * diag
-        route.q[1, lo : hi - 1] += sign * off
-        route.b[lo:hi] += sign * rhs
-        route.cover[lo:hi] += int(sign)
-        if seg.axle == 1:
-            route.passes[lo:hi] += int(sign)
+        _accumulate(route.q, route.b, route.cover, route.passes, lo, seg.values_q[:m], seg.scale_m, seg.offset_m,
+                    seg.sigma_q[:m], seg.sigma_ref_m, SIGMA_SCALE, self.rho, sign, seg.axle == 1)
         route.posterior = None
         return True
 

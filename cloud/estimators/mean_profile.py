@@ -10,8 +10,9 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from numba import njit
 
-from shared.schema import ApSegment
+from shared.schema import SIGMA_SCALE, ApSegment
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,6 +23,24 @@ class ProfileSnapshot:
     lo95_m: np.ndarray
     hi95_m: np.ndarray
     n_passes: np.ndarray  # int
+
+
+@njit(cache=True)
+def _accumulate(sw, swy, swyy, count, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, sign, is_pass):
+    """Add ``sign`` times a segment's ``w = 1/sigma²``, ``w·y`` and ``w·y²`` from index ``lo`` (and move
+    ``count`` by ``sign`` if ``is_pass``) in one pass, the segment given by its wire codes and decoded
+    point by point as :attr:`ApSegment.values` and :attr:`ApSegment.sigma` decode them."""
+    step = int(sign)
+    for i in range(values_q.size):
+        y = offset + scale * np.float64(values_q[i])
+        s = sigma_ref * sigma_scale[-np.int64(sigma_q[i])]
+        w = sign * (1.0 / (s * s))
+        wy = w * y
+        sw[lo + i] += w
+        swy[lo + i] += wy
+        swyy[lo + i] += wy * y
+        if is_pass:
+            count[lo + i] += step
 
 
 class _RouteSums:
@@ -49,13 +68,8 @@ class MeanProfile:
         if hi <= lo:
             return
         n = hi - lo
-        y = seg.values[:n]
-        w = 1.0 / seg.sigma[:n] ** 2
-        sums.sw[lo:hi] += sign * w
-        sums.swy[lo:hi] += sign * w * y
-        sums.swyy[lo:hi] += sign * w * y * y
-        if seg.axle == 1:
-            sums.count[lo:hi] += int(sign)
+        _accumulate(sums.sw, sums.swy, sums.swyy, sums.count, lo, seg.values_q[:n], seg.scale_m, seg.offset_m,
+                    seg.sigma_q[:n], seg.sigma_ref_m, SIGMA_SCALE, sign, seg.axle == 1)
 
     def accepts(self, seg: ApSegment) -> bool:
         return seg.route_id in self.routes and abs(seg.spacing_m - self.spacing_m) < 1e-12
