@@ -42,6 +42,8 @@ class Aggregator:
         self.estimators = estimators
         self.routes = {r.id: r.length_m for r in site.routes}
         self.segments: dict[tuple, ApSegment] = {}  # (vehicle, pass, route, tile, axle) → segment
+        # What the estimators hold for each slot: the segment itself, or its chainage-aligned version.
+        self.held: dict[tuple, ApSegment] = {}
         self.passes: dict[tuple[str, str], PassState] = {}
         # Acknowledged passes per (vehicle, calibration version), kept as passes change state, so a
         # status ("how many passes are current") costs O(vehicles), not O(passes), per acknowledgement.
@@ -75,9 +77,9 @@ class Aggregator:
             if old.calib_version == seg.calib_version:
                 self.rejected["duplicate"] += 1  # idempotent: a redelivery changes nothing
                 return self._maybe_ack(seg.vehicle_id, seg.pass_id)
-            for est in self.estimators:
-                est.retract(old)
+            self._release(slot)
         self.segments[slot] = seg
+        self.held[slot] = seg
         for est in self.estimators:
             est.update(seg)
         self.accepted += 1
@@ -131,6 +133,22 @@ class Aggregator:
         log.warning("rejected segment (%s): %s", reason, detail)
         return []
 
+    def _release(self, slot: tuple) -> None:
+        held = self.held.pop(slot, None)
+        if held is not None:
+            for est in self.estimators:
+                est.retract(held)
+
+    def replace_held(self, slot: tuple, seg: ApSegment) -> None:
+        """Give the estimators ``seg`` (e.g. the chainage-aligned version) in place of what they hold."""
+        if not all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators) or \
+                seg.start_index * seg.spacing_m > self.routes.get(seg.route_id, 0.0):
+            return  # moved off the route: keep what the estimators hold
+        self._release(slot)
+        self.held[slot] = seg
+        for est in self.estimators:
+            est.update(seg)
+
     def _maybe_ack(self, vehicle_id: str, pass_id: str) -> list[Ack]:
         ps = self.passes.get((vehicle_id, pass_id))
         if ps is None or ps.acked or ps.expected is None or len(ps.seqs) < ps.expected:
@@ -140,8 +158,7 @@ class Aggregator:
         # The pass is complete under its newest calibration: any of its segments still held from an
         # older one (a tile the recomputation no longer produces) is superseded too.
         for slot in [sl for sl in ps.slots if self.segments[sl].calib_version < ps.calib_version]:
-            for est in self.estimators:
-                est.retract(self.segments[slot])
+            self._release(slot)
             del self.segments[slot]
             ps.slots.discard(slot)
         return [Ack(vehicle_id=vehicle_id, pass_id=pass_id, n_segments_accepted=len(ps.seqs),

@@ -24,6 +24,7 @@ from shared.registry import RegistryError, Site, load_site
 from shared.transport import add_zenoh_arguments, config_from_args
 
 from .aggregator import Aggregator
+from .alignment import Alignment, estimate_alignment, realign
 from .estimators.gmrf_profile import GmrfProfile
 from .estimators.long_wave import with_long_wave_band
 from .estimators.mean_profile import MeanProfile
@@ -33,6 +34,10 @@ from .fleet_calibration import FleetCalibrator
 log = logging.getLogger("driveby.cloud")
 
 TILE_M = 50.0
+ALIGN_MIN_SCORE = 0.5  # correlation below this: the pass and the consensus do not overlap well enough
+ALIGN_MIN_PASSES = 3  # fewer passes do not define a frame worth centring on
+ALIGN_ITERATIONS = 6
+ALIGN_TOL_M = 0.02
 
 #: Latency tracing (benchmarks): a raw chunk published with this zenoh attachment (its publication
 #: time, Unix s, little-endian float64) passes it, via the edge, to the segments it releases; the
@@ -56,6 +61,8 @@ class Cloud:
         self.consensus = MeanProfile(routes, spacing_m)
         self.aggregator = Aggregator(site, [self.profile, self.consensus])
         self.calibrator = FleetCalibrator(site, self.consensus) if calibration == "fleet" else None
+        self.align_due = False  # passes completed since the last alignment
+        self.alignments: dict[tuple[str, str], Alignment] = {}
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
@@ -75,6 +82,8 @@ class Cloud:
         self._acks(self.aggregator.on_pass_done(payload))
 
     def _acks(self, acks) -> None:
+        if acks:
+            self.align_due = True
         for ack in acks:
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
             if self.calibrator is not None and ps is not None and ps.model:
@@ -109,6 +118,7 @@ class Cloud:
         if self.calibrator is not None:
             c = self.calibrator
             busy = c.dirty and c.rounds < c.max_rounds and len(passes) >= c.min_passes
+        busy = busy or self.align_due
         return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
                 "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0}
 
@@ -127,12 +137,81 @@ class Cloud:
         if self.status_due and (force or time.monotonic() - self._status_at >= STATUS_INTERVAL_S):
             self.publish_status()
 
+    def maybe_align(self) -> bool:
+        """Align every complete pass in chainage against the consensus of the others (GNSS bias and
+        odometry stretch), centre the fleet's shifts, and give the estimators the aligned segments.
+        Runs when passes completed since the last time; True if it ran."""
+        if not self.align_due:
+            return False
+        self.align_due = False
+        for it in range(ALIGN_ITERATIONS):  # each pass against the others' improving consensus
+            # Shifts first: against a consensus smeared by unknown shifts a stretch is poorly defined.
+            moved = self._align_once(max_stretch=0.0 if it < 2 else 0.06)
+            if moved is None:
+                self.publish_status()
+                return False
+            if moved < ALIGN_TOL_M and it >= 2:
+                break
+        if self.calibrator is not None:
+            self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
+        self.publish_status()
+        return True
+
+    def _align_once(self, max_stretch: float) -> float | None:
+        """One alignment sweep; the largest change of any pass's implied position (m), or None."""
+        agg = self.aggregator
+        found: dict[tuple, tuple[Alignment, list]] = {}
+        for key, ps in agg.passes.items():
+            if not ps.acked or not ps.slots:
+                continue
+            slots = sorted(ps.slots)
+            held = [agg.held[sl] for sl in slots if sl in agg.held]
+            for h in held:
+                self.consensus.retract(h)
+            try:
+                snap = self.consensus.snapshot(ps.route_id).get(ps.route_id)
+            finally:
+                for h in held:
+                    self.consensus.update(h)
+            raw = [agg.segments[sl] for sl in slots]
+            lead = [r for r in raw if r.axle == 1]
+            if snap is None or not lead:
+                continue
+            lo, hi = min(r.start_index for r in lead), max(r.end_index for r in lead)
+            ap = np.full(hi - lo, np.nan)
+            for r in lead:
+                ap[r.start_index - lo : r.end_index - lo] = r.values
+            al = estimate_alignment(np.arange(lo, hi) * lead[0].spacing_m, ap, snap.chainage_m, snap.elevation_m,
+                                    max_stretch=max_stretch)
+            if al is not None and al.score >= ALIGN_MIN_SCORE:
+                found[key] = (al, slots)
+        if len(found) < ALIGN_MIN_PASSES:
+            return None
+        # The fleet's GNSS errors average out: the consensus frame is the mean of the passes' frames.
+        mean_shift = float(np.mean([a.shift_m for a, _ in found.values()]))
+        mean_stretch = float(np.mean([a.stretch for a, _ in found.values()]))
+        moved = 0.0
+        for key, (al, slots) in found.items():
+            al = Alignment(al.shift_m - mean_shift, al.stretch - mean_stretch, al.x_ref_m, al.score)
+            old = self.alignments.get(key)
+            x_probe = np.array([al.x_ref_m, al.x_ref_m + 100.0])
+            moved = max(moved, float(np.max(np.abs(al.true_to_reported(x_probe) - (
+                old.true_to_reported(x_probe) if old is not None else x_probe)))))
+            self.alignments[key] = al
+            raw = [agg.segments[sl] for sl in slots]
+            aligned = {(s.vehicle_id, s.pass_id, s.route_id, s.tile, s.axle): s for s in realign(raw, al)}
+            for sl in slots:
+                new = aligned.get(sl)
+                if new is not None:
+                    agg.replace_held(sl, new)
+        return moved
+
     def maybe_calibrate(self) -> bool:
         """Run one calibration round if one is due; publish what changed. True if a round ran."""
         c = self.calibrator
         if c is None or not c.ready(self.aggregator.segments):
             return False
-        for cal in c.round(self.aggregator.segments):
+        for cal in c.round(self.aggregator.held):  # the (chainage-aligned) segments the estimators hold
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
         if self.view is not None:
             self._log_view()  # the profile as the round left it, at the current pass count
@@ -287,8 +366,9 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
                 with lock:
                     quiet = time.monotonic() - last_input >= QUIET_S
                     cloud.flush_status(force=quiet)
-                    if quiet:
-                        cloud.maybe_calibrate()  # calibrate when the bus is quiet
+                    if quiet:  # align and calibrate when the bus is quiet
+                        if not cloud.maybe_align():
+                            cloud.maybe_calibrate()
             except Exception:
                 log.exception("calibration round failed")
     finally:

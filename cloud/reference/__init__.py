@@ -1,0 +1,27 @@
+"""The thesis's own inference methods, kept as references to reproduce and to measure against.
+
+* :mod:`.cross_entropy` — fleet calibration by Cross-Entropy optimisation with injections (§2.4);
+* :mod:`.mcmc` — the Bayesian profile and vehicle properties by Metropolis-within-Gibbs (§4.3),
+  plus the exact Gaussian posterior of the same model for fixed vehicles.
+
+They are deliberately faithful rather than fast; the production estimators live in
+``cloud/estimators`` and ``cloud/calibration.py``. Nothing in the daemons imports this package.
+"""
+
+from .cross_entropy import cross_entropy_fleet, fleet_aps, objective, population_aps
+from .mcmc import (THESIS_PROPOSAL_SD, McmcResult, ProfilePosterior, exact_profile_posterior, forward_channels,
+                   mcmc_profile_and_vehicles, response_matrix)
+
+__all__ = [
+    "McmcResult",
+    "ProfilePosterior",
+    "THESIS_PROPOSAL_SD",
+    "cross_entropy_fleet",
+    "exact_profile_posterior",
+    "fleet_aps",
+    "forward_channels",
+    "mcmc_profile_and_vehicles",
+    "objective",
+    "population_aps",
+    "response_matrix",
+]
