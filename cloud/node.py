@@ -38,6 +38,7 @@ ALIGN_MIN_SCORE = 0.5  # correlation below this: the pass and the consensus do n
 ALIGN_MIN_PASSES = 3  # fewer passes do not define a frame worth centring on
 ALIGN_ITERATIONS = 6
 ALIGN_TOL_M = 0.02
+ALIGN_APPLY_M = 0.10  # a pass is re-gridded only if alignment moves it by more than this somewhere
 
 #: Latency tracing (benchmarks): a raw chunk published with this zenoh attachment (its publication
 #: time, Unix s, little-endian float64) passes it, via the edge, to the segments it releases; the
@@ -144,13 +145,14 @@ class Cloud:
         if not self.align_due:
             return False
         self.align_due = False
-        for it in range(ALIGN_ITERATIONS):  # each pass against the others' improving consensus
+        new_passes = any(key not in self.alignments for key, ps in self.aggregator.passes.items() if ps.acked)
+        for it in range(ALIGN_ITERATIONS if new_passes else 1):  # against the others' improving consensus
             # Shifts first: against a consensus smeared by unknown shifts a stretch is poorly defined.
-            moved = self._align_once(max_stretch=0.0 if it < 2 else 0.06)
+            moved = self._align_once(max_stretch=0.0 if it < 2 and new_passes else 0.06)
             if moved is None:
                 self.publish_status()
                 return False
-            if moved < ALIGN_TOL_M and it >= 2:
+            if moved < ALIGN_TOL_M and (it >= 2 or not new_passes):
                 break
         if self.calibrator is not None:
             self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
@@ -199,6 +201,13 @@ class Cloud:
                 old.true_to_reported(x_probe) if old is not None else x_probe)))))
             self.alignments[key] = al
             raw = [agg.segments[sl] for sl in slots]
+            x_span = np.array([al.x_ref_m, max(r.end_index for r in raw) * raw[0].spacing_m])
+            if np.max(np.abs(al.true_to_reported(x_span) - x_span)) < ALIGN_APPLY_M:
+                # Within what alignment can resolve: re-gridding would only blur the pass.
+                for sl, r in zip(slots, raw):
+                    if agg.held.get(sl) is not r:
+                        agg.replace_held(sl, r)
+                continue
             aligned = {(s.vehicle_id, s.pass_id, s.route_id, s.tile, s.axle): s for s in realign(raw, al)}
             for sl in slots:
                 new = aligned.get(sl)

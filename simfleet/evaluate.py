@@ -25,8 +25,13 @@ def band_pass(x: np.ndarray, spacing_m: float, lo_m: float = 0.5, hi_m: float = 
     return sosfiltfilt(sos, x)
 
 
-def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0) -> ProfileScore:
-    """Profile error as the issues define it: both band-passed to 0.5–50 m, ends trimmed."""
+def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0, fit_frame: bool = False) -> ProfileScore:
+    """Profile error as the issues define it: both band-passed to 0.5–50 m, ends trimmed.
+
+    ``fit_frame``: first map the truth into the estimate's chainage frame by one global shift and
+    stretch. With per-pass GNSS bias and odometry scale errors and no surveyed reference, the fleet's
+    mean frame is all the data define (it is off by ~sd/√passes), just as the absolute level is.
+    """
     t = pq.read_table(Path(export_dir) / "profile.parquet").to_pydict()
     route = truth["route"]["id"]
     rows = [i for i, r in enumerate(t["route_id"]) if r == route]
@@ -39,6 +44,12 @@ def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0) -> Profil
     h = p["spacing_m"]
     tx = p["start_m"] + h * np.arange(len(p["elevation_m"]))
     true = np.interp(x, tx, p["elevation_m"])
+    if fit_frame:
+        from cloud.alignment import estimate_alignment
+
+        al = estimate_alignment(x, est, x, true, max_shift_m=3.0, max_stretch=0.02, stretch_step=0.0005)
+        if al is not None:
+            true = np.interp(al.x_ref_m + (x - al.x_ref_m - al.shift_m) / (1.0 + al.stretch), tx, p["elevation_m"])
     # Score the longest stretch on a regular grid (points without any pass are not exported).
     gaps = np.flatnonzero(np.diff(x) > 1.5 * h)
     bounds = np.split(np.arange(x.size), gaps + 1)
