@@ -82,10 +82,27 @@ class Cloud:
     def on_done(self, key: str, payload: bytes) -> None:
         self._acks(self.aggregator.on_pass_done(payload))
 
+    def _reapply_alignment(self, key: tuple[str, str]) -> None:
+        """A recomputed pass keeps the chainage alignment found for it (until the next sweep)."""
+        al = self.alignments.get(key)
+        ps = self.aggregator.passes.get(key)
+        if al is None or ps is None:
+            return
+        slots = sorted(ps.slots)
+        raw = [self.aggregator.segments[sl] for sl in slots]
+        x_span = np.array([al.x_ref_m, max(r.end_index for r in raw) * raw[0].spacing_m])
+        if np.max(np.abs(al.true_to_reported(x_span) - x_span)) < ALIGN_APPLY_M:
+            return
+        aligned = {(s.vehicle_id, s.pass_id, s.route_id, s.tile, s.axle): s for s in realign(raw, al)}
+        for sl in slots:
+            if sl in aligned:
+                self.aggregator.replace_held(sl, aligned[sl])
+
     def _acks(self, acks) -> None:
         if acks:
             self.align_due = True
         for ack in acks:
+            self._reapply_alignment((ack.vehicle_id, ack.pass_id))
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
             if self.calibrator is not None and ps is not None and ps.model:
                 try:
