@@ -17,6 +17,7 @@ import sys
 REGISTRY: dict[str, str] = {
     "inverse": "benchmarks.inverse",
     "bus": "benchmarks.bus",
+    "profile": "benchmarks.profile",
 }
 
 
