@@ -20,6 +20,8 @@ from .estimators.base import Estimator
 log = logging.getLogger(__name__)
 
 MAX_ROUTE_OVERHANG_M = 50.0  # a segment may start at most this far beyond the route's end
+#: Rejections of a well-formed segment from its own vehicle: they still complete the pass.
+PASS_ACCOUNTED = frozenset({"beyond_route", "impossible_speed", "grid_mismatch", "implausible_ap"})
 
 
 @dataclasses.dataclass
@@ -32,6 +34,7 @@ class PassState:
     acked: bool = False
     model: str = ""
     slots: set = dataclasses.field(default_factory=set)  # the pass's keys in Aggregator.segments
+    refused: set = dataclasses.field(default_factory=set)  # seqs rejected as implausible (still counted)
 
 
 class Aggregator:
@@ -68,7 +71,18 @@ class Aggregator:
         """Check a decoded segment and fuse it (or count why not); returns the acks it completes."""
         reason = self._check(seg, key_vehicle)
         if reason:
-            return self._reject(reason, f"{seg.vehicle_id}/{seg.pass_id} tile {seg.tile}")
+            self._reject(reason, f"{seg.vehicle_id}/{seg.pass_id} tile {seg.tile}")
+            if reason in PASS_ACCOUNTED and seg.route_id in self.routes:
+                # The vehicle did send it: the pass can complete without it (acknowledged with fewer
+                # accepted segments) instead of waiting forever for a segment that will not be fused.
+                ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
+                if seg.calib_version > ps.calib_version:
+                    self._unack(ps)
+                    ps.calib_version, ps.seqs, ps.refused, ps.expected = seg.calib_version, set(), set(), None
+                if seg.calib_version == ps.calib_version:
+                    ps.refused.add(seg.seq)
+                return self._maybe_ack(seg.vehicle_id, seg.pass_id)
+            return []
         slot = (seg.vehicle_id, seg.pass_id, seg.route_id, seg.tile, seg.axle)
         old = self.segments.get(slot)
         if old is not None:
@@ -88,7 +102,7 @@ class Aggregator:
         ps.slots.add(slot)
         if seg.calib_version > ps.calib_version:
             self._unack(ps)
-            ps.calib_version, ps.seqs, ps.expected = seg.calib_version, set(), None
+            ps.calib_version, ps.seqs, ps.refused, ps.expected = seg.calib_version, set(), set(), None
         if seg.calib_version == ps.calib_version:
             ps.seqs.add(seg.seq)
         return self._maybe_ack(seg.vehicle_id, seg.pass_id)
@@ -105,7 +119,7 @@ class Aggregator:
             return self._reject("stale_calibration", f"done {done.pass_id} v{done.calib_version}")
         if done.calib_version > ps.calib_version:
             self._unack(ps)
-            ps.calib_version, ps.seqs = done.calib_version, set()
+            ps.calib_version, ps.seqs, ps.refused = done.calib_version, set(), set()
         ps.expected = done.n_segments
         ps.model = done.vehicle_model or ps.model
         return self._maybe_ack(done.vehicle_id, done.pass_id)
@@ -151,7 +165,7 @@ class Aggregator:
 
     def _maybe_ack(self, vehicle_id: str, pass_id: str) -> list[Ack]:
         ps = self.passes.get((vehicle_id, pass_id))
-        if ps is None or ps.acked or ps.expected is None or len(ps.seqs) < ps.expected:
+        if ps is None or ps.acked or ps.expected is None or len(ps.seqs | ps.refused) < ps.expected:
             return []
         ps.acked = True
         self.acked[(vehicle_id, ps.calib_version)] += 1

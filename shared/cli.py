@@ -59,6 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             return 130
     from simfleet.cli import add_sim_arguments, run_sim
+    from simfleet.reproduce import add_reproduce_arguments, run_reproduce
 
     p = argparse.ArgumentParser(prog="driveby", description="fleet drive-by monitoring of roads, rail and bridges")
     sub = p.add_subparsers(dest="command", required=True)
@@ -68,12 +69,13 @@ def main(argv: list[str] | None = None) -> int:
     demo.add_argument("--passes", type=int, default=20)
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
     _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
+    add_reproduce_arguments(sub)
     for name, what in (("edge", "the edge daemon (see driveby edge --help)"),
                        ("cloud", "the cloud aggregator daemon (see driveby cloud --help)"),
                        ("fleet", "live simulated fleet publishers (see driveby fleet --help)")):
         sub.add_parser(name, help=what, add_help=False)
     args = p.parse_args(argv)
-    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo}
+    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": run_reproduce}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
