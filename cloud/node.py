@@ -53,7 +53,7 @@ class Cloud:
     """Transport-free core of the daemon: the aggregator, its estimators and the view."""
 
     def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05,
-                 calibration: str = "nominal", node_id: str = "cloud-1"):
+                 calibration: str = "nominal", node_id: str = "cloud-1", align: bool = False):
         self.net, self.site, self.publish, self.view, self.node_id = net, site, publish, view, node_id
         routes = {r.id: r.length_m for r in site.routes}
         self.profile = GmrfProfile(routes, spacing_m)
@@ -62,6 +62,7 @@ class Cloud:
         self.consensus = MeanProfile(routes, spacing_m)
         self.aggregator = Aggregator(site, [self.profile, self.consensus])
         self.calibrator = FleetCalibrator(site, self.consensus) if calibration == "fleet" else None
+        self.align = align  # chainage alignment of passes (GNSS error); costs ~30 ms per pass per sweep
         self.align_due = False  # passes completed since the last alignment
         self.alignments: dict[tuple[str, str], Alignment] = {}
         self.vehicles: dict[str, dict] = collections.defaultdict(
@@ -99,10 +100,11 @@ class Cloud:
                 self.aggregator.replace_held(sl, aligned[sl])
 
     def _acks(self, acks) -> None:
-        if acks:
+        if acks and self.align:
             self.align_due = True
         for ack in acks:
-            self._reapply_alignment((ack.vehicle_id, ack.pass_id))
+            if self.align:
+                self._reapply_alignment((ack.vehicle_id, ack.pass_id))
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
             if self.calibrator is not None and ps is not None and ps.model:
                 try:
@@ -412,6 +414,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--keyexpr", help="the shard of AP segments to own (default: all routes)")
     p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
                    help="fleet: calibrate every vehicle from the fleet's consensus; nominal: trust the edges")
+    p.add_argument("--align", action="store_true",
+                   help="align passes in chainage against the consensus (logs with GNSS bias / odometry error)")
     p.add_argument("--export", type=Path, help="default export directory")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
@@ -440,7 +444,8 @@ def main(argv: list[str] | None = None) -> int:
             def publish(key, payload):
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
-            cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id)
+            cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id,
+                          align=args.align)
             # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
             # process: keep it out of full garbage collections, whose pause scans every tracked object
             # (~0.1 s of them) and would land in the middle of the stream.

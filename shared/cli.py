@@ -21,6 +21,8 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--net", default="net", help="network name in the key space")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
     p.add_argument("--rate", type=float, help="replay at X× real time (default: as fast as possible)")
+    p.add_argument("--align", action="store_true",
+                   help="align passes in chainage against the consensus (GNSS bias, odometry stretch)")
 
 
 def _cmd_run(args) -> int:
@@ -30,7 +32,7 @@ def _cmd_run(args) -> int:
 
     try:
         res = run(Path(args.logs), Path(args.site), Path(args.export), Path(args.rrd) if args.rrd else None,
-                  args.calibration, args.connect, args.net, args.viewer, rate=args.rate)
+                  args.calibration, args.connect, args.net, args.viewer, rate=args.rate, align=args.align)
     except RunError as e:
         print(f"driveby run: {e}", file=sys.stderr)
         return 1

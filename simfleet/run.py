@@ -97,7 +97,7 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = None, calibration: str = "fleet",
         connect: str | None = None, net: str = "net", viewer: bool = False, progress: bool | None = None,
-        rate: float | None = None) -> RunResult:
+        rate: float | None = None, align: bool = False) -> RunResult:
     t0 = time.monotonic()
     site, logs = load_inputs(Path(logs_dir), Path(site_path))
     export_dir = Path(export_dir)
@@ -107,7 +107,7 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
     router = run_router() if connect is None else contextlib.nullcontext(connect)
     with router as endpoint:
         common = ["--connect", endpoint, "--net", net, "--site", str(Path(site_path).resolve())]
-        cloud_args = [*common, "--id", "cloud-1", "--calibration", calibration]
+        cloud_args = [*common, "--id", "cloud-1", "--calibration", calibration] + (["--align"] if align else [])
         if rrd is not None:
             cloud_args += ["--rrd", str(Path(rrd).resolve())]
         if viewer:
