@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-rr = pytest.importorskip("rerun")
+import rerun as rr  # noqa: E402 - a dependency of the project, never optional
 from rerun.chunk import RrdReader  # noqa: E402
 
 from cloud.estimators.mean_profile import ProfileSnapshot  # noqa: E402
@@ -274,8 +274,7 @@ def test_rrd_verify_accepts_the_file(rrd, tmp_path):
             view.log_bridge_stiffness("B1", [2.5, 7.5], [1.0, 1.0], [0.9, 0.9], [1.1, 1.1])
         view.log_alarm("B1", "test", "INFO")
     cli = Path(sys.executable).with_name("rerun")
-    if not cli.exists():
-        pytest.skip("rerun CLI not installed beside the interpreter")
+    assert cli.exists(), "the rerun CLI ships with rerun-sdk and must be installed beside the interpreter"
     # The CLI's first run writes an analytics config and prints a notice on stderr: keep the
     # config inside tmp_path and ignore the notice.
     env = dict(os.environ, HOME=str(tmp_path), XDG_CONFIG_HOME=str(tmp_path / "config"))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import math
 from typing import ClassVar, NamedTuple
@@ -56,7 +57,7 @@ class VehicleSystem(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class Vehicle:
+class Vehicle(abc.ABC):
     """Base of the vehicle parameter sets: every field is a positive finite number (SI units)."""
 
     model: ClassVar[str]
@@ -101,5 +102,6 @@ class Vehicle:
     def replace(self, **changes: float) -> "Vehicle":
         return dataclasses.replace(self, **changes)
 
-    def system(self) -> VehicleSystem:  # pragma: no cover - every model overrides
-        raise NotImplementedError
+    @abc.abstractmethod
+    def system(self) -> VehicleSystem:
+        """The model's linear system (every model defines it)."""
