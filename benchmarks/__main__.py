@@ -18,6 +18,7 @@ REGISTRY: dict[str, str] = {
     "inverse": "benchmarks.inverse",
     "bus": "benchmarks.bus",
     "profile": "benchmarks.profile",
+    "bridge": "benchmarks.bridge",
 }
 
 

@@ -35,15 +35,19 @@ class PassState:
     model: str = ""
     slots: set = dataclasses.field(default_factory=set)  # the pass's keys in Aggregator.segments
     refused: set = dataclasses.field(default_factory=set)  # seqs rejected as implausible (still counted)
+    params: dict | None = None  # the vehicle parameters the edge computed the pass with (its pass-done says)
+    done_payload: bytes | None = None  # the accepted pass-done, as received (the journal's compaction keeps it)
 
 
 class Aggregator:
     """Keeps the accepted segments (latest calibration version of each) and the estimators fed."""
 
-    def __init__(self, site: Site, estimators: list[Estimator]):
+    def __init__(self, site: Site, estimators: list[Estimator], foreign_routes: frozenset[str] = frozenset()):
         self.site = site
         self.estimators = estimators
         self.routes = {r.id: r.length_m for r in site.routes}
+        self.foreign_routes = foreign_routes  # other shards' routes: their pass-dones are ignored here
+        self.foreign = 0
         self.segments: dict[tuple, ApSegment] = {}  # (vehicle, pass, route, tile, axle) → segment
         # What the estimators hold for each slot: the segment itself, or its chainage-aligned version.
         self.held: dict[tuple, ApSegment] = {}
@@ -112,6 +116,9 @@ class Aggregator:
             done = decode_pass_done(payload)
         except DecodeError as e:
             return self._reject(e.reason, str(e))
+        if done.route_id in self.foreign_routes:
+            self.foreign += 1
+            return []
         if done.route_id not in self.routes:
             return self._reject("unknown_route", done.route_id)
         ps = self.passes.setdefault((done.vehicle_id, done.pass_id), PassState(done.vehicle_id, done.route_id))
@@ -122,6 +129,8 @@ class Aggregator:
             ps.calib_version, ps.seqs, ps.refused = done.calib_version, set(), set()
         ps.expected = done.n_segments
         ps.model = done.vehicle_model or ps.model
+        ps.done_payload = bytes(payload)
+        ps.params = dict(done.params) if done.params is not None else None
         return self._maybe_ack(done.vehicle_id, done.pass_id)
 
     # -- rules ---------------------------------------------------------------------------------
@@ -193,4 +202,5 @@ class Aggregator:
             "segments_held": len(self.segments),
             "passes": len(self.passes),
             "passes_complete": self.acked.total(),
+            "foreign_passes": self.foreign,
         }

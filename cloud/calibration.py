@@ -1,34 +1,57 @@
-"""Fleet self-calibration, the vehicle step: a vehicle's identifiable ratios given the consensus.
+"""Fleet self-calibration, the vehicle step: every vehicle's identifiable ratios, jointly.
 
 Only ratios are identifiable (divide the equations of motion by the body mass): the AP depends on
 ``K/M, k/M, c/M, m/M`` of a quarter-car, not on ``M``. So each model is parametrised by its
 reference mass, held at the class mean, and the ratios of every other mass, stiffness and damping
-to it; lengths (axle positions) stay absolute.
+to it; lengths (axle positions) stay absolute. The solver works on their logarithms (scale-free
+steps, positivity for free, and the class prior is log-normal).
 
 The step runs in the cloud but needs no raw data: a segment's AP under a known calibration is a
 lossless encoding of the vehicle's measured channels (the inverse is exactly invertible), so the
-AP the vehicle *would* have produced under candidate parameters θ is
+cloud reconstructs the channels by running the forward model over the AP (:class:`PassChannels`)
+and gets the AP the vehicle *would* have produced under candidate parameters θ as
 
-    AP_θ = inverse_θ( forward_θ0( AP_θ0 ) )
+    AP_θ = inverse_θ( forward_θ0( AP_θ0 ) ).
 
-computed in the time domain at the pass's speed. Fitting θ to the consensus (leave-this-vehicle-
-out) in a band of wavelengths the vehicle resolves, under the class prior, is a small nonlinear
-least-squares problem; its Laplace approximation gives 95 % intervals.
+The fleet objective (:func:`fit_fleet`) is the agreement of all vehicles' APs in a band of
+wavelengths every pass resolves, with the road profile *profiled out*: for given θ the best
+profile is the weighted mean of the APs (exact, closed form), so
+
+    J(θ) = Σ_passes w_p ‖B AP_p(θ_v(p)) − mean_w(B AP(θ))‖² + ‖(θ − μ)/σ‖²
+
+is minimised over all vehicles' log-ratios at once by Levenberg–Marquardt (variable projection).
+Solving for the whole fleet removes the slow mode of alternating "profile given vehicles" with
+"vehicles given profile" (all vehicles drifting together); the class prior (μ, σ) pins the
+directions the data do not see (the fleet's common scale is only weakly identifiable, some
+half-car ratios hardly at all). In AP space the misfit is smooth in the ratios — for a sprung mass
+the AP is *linear* in m/k — where the acceleration-space misfit of a lightly damped vehicle has a
+local minimum at every resonance match. Per-pass noise weights are re-estimated from the residual
+(empirical Bayes), and the Gauss–Newton Hessian at the optimum gives the Laplace 95 % intervals.
+Each pass's unknown start state is a nuisance of the fit (see :class:`PassChannels`).
+
+The AP-space misfit weighs every wavelength in the band alike, which is right where the AP's
+error is small against the road (noise-free, or a sprung mass) but not where the inverse amplifies
+sensor noise beyond the road's signal (a half-car at 1 % noise). :func:`fit_vehicle` is the
+per-vehicle alternative in acceleration space, where sensor noise is white (used for quarter-cars,
+see :mod:`cloud.fleet_calibration`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
-from shared.dynamics.forward import measured_channels
+from shared.dynamics.forward import measured_channels, trapezoid_rate
 from shared.dynamics.inverse import InverseStream, build_inverse
-from shared.dynamics.newmark import integrate, newmark_constants
+from shared.dynamics.newmark import DEFAULT_GAMMA, integrate, newmark_constants
 from shared.vehicles import MODELS, vehicle_from_params
+
+log = logging.getLogger(__name__)
 
 #: model → (reference mass, absolute length parameters)
 REFERENCE = {
@@ -39,7 +62,15 @@ REFERENCE = {
 }
 
 REMAP_DT = 0.002  # s: the time grid of the remap (the logger rate; the filter barely depends on it)
+#: Newmark γ of the remap's inverse under candidate parameters. The channels are reconstructed
+#: with the edge's γ = 0.8 (exactly what the edge inverted), but γ = 0.8's numerical damping
+#: at a half-car's wheel hop (~10 Hz) biases what the fleet agrees on by ~10 % in the axle
+#: ratios; γ = 0.6 (spurious roots still decaying, at −2/3) removes most of it.
+REMAP_GAMMA = 0.6
 BAND_M = (1.0, 30.0)  # wavelengths compared: resolved by every pass, free of drift-control effects
+TRIM_M = 3.0  # m cut at each end of a pass after band-passing (filter edge effects)
+GAP_MARGIN_M = 5.0  # m masked around a hole in a pass (the inverse's and the filter's memory)
+FD_STEP = 1e-4  # log-step of the finite-difference Jacobian
 
 
 def calibration_names(model: str) -> list[str]:
@@ -100,7 +131,7 @@ class VehicleFit:
     lo95: np.ndarray
     hi95: np.ndarray
     params: dict[str, float]  # full parameter set (reference mass at the class mean)
-    residual_m: float  # rms band-passed misfit to the consensus
+    residual_m: float  # rms band-passed misfit of the vehicle's APs to the consensus
     n_points: int
 
 
@@ -109,7 +140,329 @@ def _band(spacing_m: float):
     return butter(2, [1.0 / hi, 1.0 / lo], btype="band", fs=1.0 / spacing_m, output="sos")
 
 
-def _forward_channels(model: str, params: dict, ap_t: np.ndarray) -> np.ndarray:
+def _forward_channels(system, ap_t: np.ndarray, dt: float, u0=None, v0=None) -> np.ndarray:
+    """The logger's channels of ``system`` driven by ``ap_t`` (n, n_contacts) from the state (u0, v0)
+    (default: static equilibrium on the first input), integrated with the Newmark constants the
+    inverse uses (so the round trip is exact)."""
+    c = newmark_constants(dt, DEFAULT_GAMMA)
+    force = (ap_t * system.kc) @ system.G.T
+    if np.any(system.cc):
+        force += (trapezoid_rate(ap_t, np.zeros(ap_t.shape[1]), dt) * system.cc) @ system.G.T
+    if u0 is None:
+        u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
+    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0, v0=v0))
+
+
+class PassChannels:
+    """One pass prepared for the vehicle step: its measured channels, reconstructed from its AP.
+
+    ``values`` of the :class:`PassAp` are the AP of each contact on the route grid under
+    ``params0``; contact i sits ``offsets_m[i]`` ahead of the centre of gravity, which moves at the
+    pass's speed. :meth:`aps` returns band-passed APs under other parameters on the same grid.
+
+    The vehicle's state when the pass starts is unknown (the forward model starts it in static
+    equilibrium), so the reconstructed channels hold a free response of the ``params0`` vehicle
+    that the true channels do not. Under ``params0`` it maps back to nothing, under other
+    parameters to a spurious AP over the first tens of metres — for an undamped sprung mass over
+    the whole pass. It is therefore a nuisance of the fit: ``free`` holds the free responses from
+    a unit initial displacement and velocity of each degree of freedom (scaled to a typical state,
+    so a coefficient of 1 is a typical start), which the solver adds with unknown coefficients.
+    """
+
+    def __init__(self, model: str, params0: dict, ap: PassAp, dt: float = REMAP_DT):
+        self.model, self.dt = model, dt
+        self.start_index, self.spacing_m = ap.start_index, ap.spacing_m
+        values = np.asarray(ap.values, float)
+        self.n_points, self.n_contacts = values.shape
+        h = ap.spacing_m
+        x = (ap.start_index + np.arange(self.n_points)) * h
+        system0 = vehicle_from_params(model, params0).system()
+        off0 = system0.offsets_m
+        ok = np.isfinite(values)
+        if (ok.sum(axis=0) < 2).any():
+            raise ValueError("pass: a contact has no AP")
+        first = [x[ok[:, i]][0] - off0[i] for i in range(self.n_contacts)]
+        last = [x[ok[:, i]][-1] - off0[i] for i in range(self.n_contacts)]
+        xc0, xc1 = max(first), min(last)  # centre-of-gravity span over which every contact has data
+        if xc1 - xc0 < 20 * h:
+            raise ValueError("pass: too short")
+        self.x_cg = xc0 + ap.speed_mps * np.arange(0.0, (xc1 - xc0) / ap.speed_mps, dt)
+        ap_t = np.stack([np.interp(self.x_cg + off0[i], x[ok[:, i]], values[ok[:, i], i])
+                         for i in range(self.n_contacts)], axis=1)
+        self.z = _forward_channels(system0, ap_t, dt)
+        # Free responses: displacement scale twice the AP's spread (lengths over the contacts'
+        # lever arm for rotations), velocity scale that times the DOF's own natural frequency.
+        amp = 2.0 * float(np.std(ap_t)) + 1e-6
+        lever = float(np.max(np.abs(off0))) if np.any(off0) else 1.0
+        n_dof = system0.n_dof
+        zero = np.zeros_like(ap_t)
+        self.free = []
+        for d in range(n_dof):
+            u_scale = amp if system0.translational[d] else amp / lever
+            omega = math.sqrt(system0.K[d, d] / system0.M[d, d])
+            for kind in ("u", "v"):
+                e = np.zeros(n_dof)
+                e[d] = u_scale if kind == "u" else u_scale * omega
+                free = _forward_channels(system0, zero, dt, u0=e if kind == "u" else np.zeros(n_dof),
+                                         v0=e if kind == "v" else None)
+                self.free.append(free)
+        # Holes inside the pass (refused segments): their neighbourhood is never compared.
+        hole = np.zeros(self.n_points, bool)
+        for i in range(self.n_contacts):
+            idx = np.flatnonzero(ok[:, i])
+            inner = np.zeros(self.n_points, bool)
+            inner[idx[0] : idx[-1] + 1] = True
+            hole |= inner & ~ok[:, i]
+        if hole.any():
+            m = int(round(GAP_MARGIN_M / h))
+            hole = np.convolve(hole, np.ones(2 * m + 1), mode="same") > 0
+        self.hole = hole
+        self.sos = _band(h)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+    def aps(self, inverse, inputs: list[np.ndarray]) -> list[np.ndarray]:
+        """Band-passed APs (each (n_points, n_contacts)) of the channel series ``inputs`` under the
+        compiled ``inverse`` on this pass's grid; NaN where not compared (outside the span, the
+        inverse's warm-up, trimmed ends, holes)."""
+        skip = min(inverse.n_warmup, self.z.shape[0] - 2)
+        offsets = inverse.system.offsets_m
+        h = self.spacing_m
+        trim = self._trim()
+        ys = [InverseStream(inverse).update(z)[skip:] for z in inputs]
+        out = [np.full((self.n_points, self.n_contacts), np.nan) for _ in inputs]
+        for i in range(self.n_contacts):
+            pos = self.x_cg[skip:] + offsets[i]
+            k0 = max(int(math.ceil(pos[0] / h)) - self.start_index, 0)
+            k1 = min(int(math.floor(pos[-1] / h)) - self.start_index + 1, self.n_points)
+            if k1 - k0 < 2 * trim + 20:
+                continue
+            xs = (self.start_index + np.arange(k0, k1)) * h
+            cols = np.stack([np.interp(xs, pos, y[:, i]) for y in ys], axis=1)
+            band = self._band(cols)
+            for j, o in enumerate(out):
+                o[k0 + trim : k1 - trim, i] = band[trim : band.shape[0] - trim, j]
+        for o in out:
+            o[self.hole] = np.nan
+        return out
+
+    def _band(self, cols: np.ndarray) -> np.ndarray:
+        """Each column less its straight line (the inverse's free drift; the filter's padding likes no
+        ramp), band-passed zero-phase."""
+        u = np.arange(cols.shape[0]) - 0.5 * (cols.shape[0] - 1)
+        cols = cols - cols.mean(axis=0) - np.outer(u, (u @ cols) / (u @ u))
+        cols = sosfiltfilt(self.sos, cols, axis=0, padtype="odd", padlen=min(cols.shape[0] - 1, int(round(10.0 / self.spacing_m))))
+        return cols
+
+    def _trim(self) -> int:
+        """Points cut at each end of a band-passed series (the filters' edge effects)."""
+        return int(round(TRIM_M / self.spacing_m))
+
+    def band_like(self, values: np.ndarray, inverse) -> np.ndarray:
+        """A profile given on this pass's grid (n_points, n_contacts), band-passed over the spans
+        :meth:`aps` uses under ``inverse``, as the APs are (so that the two are comparable)."""
+        skip = min(inverse.n_warmup, self.z.shape[0] - 2)
+        h = self.spacing_m
+        trim = self._trim()
+        out = np.full((self.n_points, self.n_contacts), np.nan)
+        for i in range(self.n_contacts):
+            pos = self.x_cg[skip:] + inverse.system.offsets_m[i]
+            k0 = max(int(math.ceil(pos[0] / h)) - self.start_index, 0)
+            k1 = min(int(math.floor(pos[-1] / h)) - self.start_index + 1, self.n_points)
+            v = values[k0:k1, i]
+            ok = np.isfinite(v)
+            if k1 - k0 < 2 * trim + 20 or ok.sum() < 20:
+                continue
+            v = np.interp(np.arange(v.size), np.flatnonzero(ok), v[ok])
+            out[k0 + trim : k1 - trim, i] = self._band(v[:, None])[trim : v.size - trim, 0]
+        out[self.hole] = np.nan
+        return out
+
+
+def _lm(evaluate, x0: np.ndarray, max_iter: int = 30, tol: float = 1e-4):
+    """Levenberg–Marquardt on a Gauss–Newton model: ``evaluate(x, jac)`` → (cost, grad, H or None).
+
+    Returns (x, cost, H at x, iterations)."""
+    x = x0.copy()
+    cost, grad, H = evaluate(x, True)
+    lam = 1e-3
+    it = 0
+    for it in range(1, max_iter + 1):
+        d = np.sqrt(np.maximum(np.diag(H), 1e-12))
+        accepted = False
+        while lam < 1e8:
+            try:
+                step = -np.linalg.solve(H + lam * np.diag(d * d), grad)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            step = np.clip(step, -0.5, 0.5)  # no log-quantity moves by more than ×1.6 per iteration
+            new_cost = evaluate(x + step, False)[0]
+            if np.isfinite(new_cost) and new_cost <= cost:
+                x = x + step
+                lam = max(lam / 5.0, 1e-7)
+                accepted = True
+                break
+            lam *= 10.0
+        if not accepted:
+            break
+        cost, grad, H = evaluate(x, True)
+        if np.max(np.abs(step)) < tol:
+            break
+    return x, cost, H, it
+
+
+def fit_fleet(model: str, vehicles: list[tuple[dict, list[PassAp]]],
+              prior: tuple[np.ndarray, np.ndarray]) -> list[VehicleFit]:
+    """The joint vehicle step for vehicles of one model.
+
+    ``vehicles``: per vehicle, (the parameters its APs were computed with, its passes). The profile
+    is profiled out (the weighted mean of all APs). Returns one fit per vehicle, in order.
+    """
+    names = calibration_names(model)
+    ref_name = REFERENCE[model][0]
+    P = len(names)
+    mu, sd = prior
+    V = len(vehicles)
+    passes: list[PassChannels] = []
+    owner: list[int] = []  # vehicle of each pass
+    for v, (params0, aps) in enumerate(vehicles):
+        for ap in aps:
+            passes.append(PassChannels(model, params0, ap))
+            owner.append(v)
+    if not passes:
+        raise ValueError("fit_fleet: no passes")
+    h = passes[0].spacing_m
+    dof = min(1.0, 2.0 * h / BAND_M[0])  # band-passed grid points per independent sample
+    g0 = min(pc.start_index for pc in passes)
+    N = max(pc.start_index + pc.n_points for pc in passes) - g0
+    C = passes[0].n_contacts
+    # Unknowns: every vehicle's log-quantities, then every pass's initial-state coefficients.
+    free_at = np.cumsum([V * P] + [pc.n_free for pc in passes])
+    n_x = int(free_at[-1])
+    theta0 = np.concatenate([np.log([to_calibration(model, p0)[n] for n in names]) for p0, _ in vehicles])
+    x0 = np.concatenate([theta0, np.zeros(n_x - V * P)])
+    prior_mu = np.concatenate([np.tile(mu, V), np.zeros(n_x - V * P)])
+    prior_sd = np.concatenate([np.tile(sd, V), np.ones(n_x - V * P)])
+    state: dict = {}
+
+    cache: dict = {}
+
+    def inverse_of(v, theta_v):
+        key = (v, theta_v.tobytes())
+        if key not in cache:
+            if len(cache) > 4 * V * (P + 1):
+                cache.clear()
+            params = from_calibration(model, dict(zip(names, np.exp(theta_v))), vehicles[v][0][ref_name])
+            cache[key] = build_inverse(vehicle_from_params(model, params).system(), passes[0].dt, gamma=REMAP_GAMMA)
+        return cache[key]
+
+    def evaluate(x, with_jac):
+        # Series rows: (pass, contact); values and, optionally, derivatives along (columns, indices).
+        vals = np.full((len(passes), C, N), np.nan)
+        jac: list = []
+        for v in range(V):
+            tv = x[v * P : (v + 1) * P]
+            inv = inverse_of(v, tv)
+            pert = [inverse_of(v, tv + FD_STEP * np.eye(P)[j]) for j in range(P)] if with_jac else []
+            for p in (p for p in range(len(passes)) if owner[p] == v):
+                pc = passes[p]
+                s = x[free_at[p] : free_at[p + 1]]
+                z = pc.z + sum(sj * f for sj, f in zip(s, pc.free))
+                a = pc.start_index - g0
+                base = pc.aps(inv, [z] + (pc.free if with_jac else []))
+                vals[p, :, a : a + pc.n_points] = base[0].T
+                if with_jac:  # on the pass's own stretch of the grid
+                    G = np.zeros((C, pc.n_points, P + pc.n_free))
+                    for j in range(P):
+                        G[:, :, j] = np.nan_to_num((pc.aps(pert[j], [z])[0] - base[0]).T / FD_STEP)
+                    for j in range(pc.n_free):
+                        G[:, :, P + j] = np.nan_to_num(base[1 + j].T)
+                    idx = np.concatenate([np.arange(v * P, (v + 1) * P), np.arange(free_at[p], free_at[p + 1])])
+                    jac.append((idx, a, G))
+        vals = vals.reshape(len(passes) * C, N)
+        w = 1.0 / state["sigma2"] if "sigma2" in state else np.ones(len(passes) * C)
+        finite = np.isfinite(vals)
+        mask = finite & (finite.sum(axis=0) >= 2)  # a point only one series sees says nothing
+        W = (w[:, None] * mask).sum(axis=0)
+        cons = (w[:, None] * np.where(mask, vals, 0.0)).sum(axis=0) / np.maximum(W, 1e-300)
+        resid = np.where(mask, vals - cons, 0.0)
+        prior_r = (x - prior_mu) / prior_sd
+        cost = 0.5 * (dof * float(np.sum(w[:, None] * resid**2)) + float(prior_r @ prior_r))
+        state.update(resid=resid, mask=mask)
+        if not with_jac:
+            return cost, None, None
+        H = np.zeros((n_x, n_x))
+        grad = np.zeros(n_x)
+        S = np.zeros((N, n_x))
+        for p, (idx, a, G) in enumerate(jac):
+            span = slice(a, a + G.shape[1])
+            for i in range(C):
+                row = p * C + i
+                Gm = G[i] * mask[row, span][:, None]
+                H[np.ix_(idx, idx)] += dof * w[row] * (Gm.T @ Gm)
+                grad[idx] += dof * w[row] * (Gm.T @ resid[row, span])
+                S[span, idx] += w[row] * Gm
+        H -= dof * (S.T @ (S / np.maximum(W, 1e-300)[:, None]))  # the profile's response to x (variable projection)
+        H += np.diag(1.0 / prior_sd**2)
+        grad += prior_r / prior_sd
+        return cost, grad, H
+
+    def noise_levels():
+        """Each series' misfit variance, corrected for the consensus containing the series itself."""
+        resid, mask = state["resid"], state["mask"]
+        n = np.maximum(mask.sum(axis=1), 1)
+        cover = mask.sum(axis=0)
+        shrink = np.array([np.mean(1.0 - 1.0 / np.maximum(cover[m], 2)) if m.any() else 1.0 for m in mask])
+        out = np.maximum((resid**2).sum(axis=1) / (n * shrink), 1e-24)
+        return np.where(mask.any(axis=1), out, np.median(out))
+
+    def reweight(x):
+        """Empirical Bayes: each series' misfit level at x."""
+        state.pop("sigma2", None)
+        evaluate(x, False)
+        state["sigma2"] = noise_levels()
+        evaluate(x, False)
+
+    x = x0
+    iterations = 0
+    for _ in range(3):  # re-estimate the weights near the optimum, then refine
+        reweight(x)
+        x, cost, H, it = _lm(evaluate, x, max_iter=8, tol=1e-3)
+        iterations += it
+        if it <= 1:  # already there (a confirming round): the weights will not change either
+            break
+    reweight(x)
+    x, cost, H, it = _lm(evaluate, x)
+    iterations += it
+    log.debug("fit_fleet %s: %d vehicles, %d passes, %d unknowns, %d LM iterations",
+              model, V, len(passes), n_x, iterations)
+    try:
+        se_all = np.sqrt(np.clip(np.diag(np.linalg.inv(H)), 0.0, None))
+    except np.linalg.LinAlgError:
+        se_all = prior_sd.copy()
+    resid, mask = state["resid"], state["mask"]
+    fits = []
+    for v in range(V):
+        b = slice(v * P, (v + 1) * P)
+        t, se = x[b], se_all[b]
+        mean = np.exp(t)
+        rows = [p * C + i for p in range(len(passes)) if owner[p] == v for i in range(C)]
+        m = mask[rows]
+        rms = float(np.sqrt(np.sum(resid[rows] ** 2) / max(m.sum(), 1)))
+        fits.append(VehicleFit(names, mean, np.exp(t - 1.96 * se), np.exp(t + 1.96 * se),
+                               from_calibration(model, dict(zip(names, mean)), vehicles[v][0][ref_name]), rms,
+                               int(m.sum())))
+    return fits
+
+
+# ---------------------------------------------------------------------------------------------
+# The refinement step for quarter-cars: one vehicle against the others' consensus, in acceleration space
+
+
+def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray) -> np.ndarray:
     system = vehicle_from_params(model, params).system()
     c = newmark_constants(REMAP_DT)
     force = (ap_t * system.kc) @ system.G.T
@@ -140,20 +493,22 @@ class PassRemap:
         cons = np.where(np.isfinite(consensus), consensus, 0.0)
         ap_t = np.stack([np.interp(xt, x, vals[:, i]) for i in range(n_contacts)], axis=1)
         self.profile_t = np.stack([np.interp(xt, x, cons[:, i]) for i in range(n_contacts)], axis=1)
-        self.z = _forward_channels(model, params0, ap_t)
+        self.z = _forward_channels_at(model, params0, ap_t)
         self.skip = int(self.WARMUP_S / REMAP_DT)
         self.n = max(self.z.shape[0] - self.skip, 0)
         self.scale = np.std(self.z[self.skip:], axis=0) + 1e-12  # channels in comparable units
 
     def residual(self, params: dict) -> np.ndarray:
-        pred = _forward_channels(self.model, params, self.profile_t)
+        pred = _forward_channels_at(self.model, params, self.profile_t)
         return ((pred - self.z)[self.skip:] / self.scale).ravel()
 
 
 def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray]],
                 prior: tuple[np.ndarray, np.ndarray], ref_value: float) -> VehicleFit:
-    """The vehicle step. ``passes``: (AP under ``params0``, leave-one-out consensus on the same
-    grid slice, shape (n_points, n_contacts)). Returns ratios with 95 % intervals."""
+    """The per-vehicle refinement step, in acceleration space (sensor noise white there).
+    ``passes``: (AP under ``params0``, leave-one-out consensus on the same grid slice, shape
+    (n_points, n_contacts)). A local method: start it near the answer (:func:`fit_fleet`).
+    Returns ratios with 95 % intervals."""
     names = calibration_names(model)
     offsets = vehicle_from_params(model, params0).system().offsets_m
     remaps = [PassRemap(model, params0, ap, cons, offsets) for ap, cons in passes]

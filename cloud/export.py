@@ -75,9 +75,72 @@ def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, 
 
 def vehicles_table(rows: list[dict]) -> pa.Table:
     """``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95 (one row per identified quantity)."""
-    schema = pa.schema([("vehicle_id", pa.string()), ("param", pa.string()), ("mean", pa.float64()),
-                        ("lo95", pa.float64()), ("hi95", pa.float64())])
+    fields = [("vehicle_id", pa.string()), ("param", pa.string()), ("mean", pa.float64()),
+              ("lo95", pa.float64()), ("hi95", pa.float64())]
+    if any("pass_id" in r for r in rows):  # run properties (a train run's mv, Iv, v): keyed by pass
+        fields.append(("pass_id", pa.string()))
+    return pa.Table.from_pylist(rows, schema=pa.schema(fields))
+
+
+TRACK_QUALITY_SCHEMA = pa.schema([("route_id", pa.string()), ("start_m", pa.float64()), ("end_m", pa.float64()),
+                                  ("sd_d1_mm", pa.float64()), ("max_abs_d1_mm", pa.float64())])
+
+
+def track_quality_table(snapshots: dict[str, ProfileSnapshot]) -> pa.Table:
+    """``track_quality.parquet`` (rail routes): route_id, start_m, end_m, sd_d1_mm, max_abs_d1_mm —
+    the EN 13848 D1 longitudinal level (3–25 m) of the fused AP per 200 m (:mod:`shared.track_quality`)."""
+    from shared.track_quality import d1_longitudinal_level, segment_quality
+
+    rows = []
+    for rid, s in snapshots.items():
+        if s.chainage_m.size < 2:
+            continue
+        spacing = float(s.chainage_m[1] - s.chainage_m[0])
+        d1 = d1_longitudinal_level(s.elevation_m, spacing)
+        for q in segment_quality(s.chainage_m, d1):
+            rows.append({"route_id": rid, "start_m": q.start_m, "end_m": q.end_m, "sd_d1_mm": q.sd_d1_mm,
+                         "max_abs_d1_mm": q.max_abs_d1_mm})
+    return pa.Table.from_pylist(rows, schema=TRACK_QUALITY_SCHEMA)
+
+
+BRIDGE_ELEMENTS_SCHEMA = pa.schema([
+    ("bridge_id", pa.string()), ("element", pa.int64()), ("x_start_m", pa.float64()), ("x_end_m", pa.float64()),
+    ("EI_mean", pa.float64()), ("EI_lo95", pa.float64()), ("EI_hi95", pa.float64()),
+    ("stiffness_ratio", pa.float64())])
+BRIDGE_BEARINGS_SCHEMA = pa.schema([
+    ("bridge_id", pa.string()), ("support", pa.int64()), ("log10_krot_mean", pa.float64()),
+    ("log10_krot_lo95", pa.float64()), ("log10_krot_hi95", pa.float64())])
+BRIDGE_SUMMARY_SCHEMA = pa.schema([
+    ("bridge_id", pa.string()), ("n_passes", pa.int64()), ("D1_pct", pa.float64()), ("D2_pct", pa.float64()),
+    ("midspan_mril", pa.float64()), ("damaged", pa.bool_())])
+
+
+def _rows_table(rows: list[dict], schema: pa.Schema, name: str) -> pa.Table:
+    """A table of exactly ``schema``'s columns from dict rows (extra keys are an error: the contract)."""
+    names = set(schema.names)
+    for r in rows:
+        if set(r) != names:
+            raise ValueError(f"{name}: row keys {sorted(r)} differ from the contract's {schema.names}")
     return pa.Table.from_pylist(rows, schema=schema)
+
+
+def bridge_elements_table(rows: list[dict]) -> pa.Table:
+    """``bridge_elements.parquet``: one row per bridge finite element — bridge_id, element (1-based),
+    x_start_m, x_end_m (from the first support), EI_mean, EI_lo95, EI_hi95 (N·m²), stiffness_ratio
+    (EI_mean / registry E·I)."""
+    return _rows_table(rows, BRIDGE_ELEMENTS_SCHEMA, "bridge_elements")
+
+
+def bridge_bearings_table(rows: list[dict]) -> pa.Table:
+    """``bridge_bearings.parquet``: bridge_id, support (1 = first), log10_krot_mean, _lo95, _hi95
+    (N·m/rad); rows only for bridges with ``supports = "rotational_springs"``."""
+    return _rows_table(rows, BRIDGE_BEARINGS_SCHEMA, "bridge_bearings")
+
+
+def bridge_summary_table(rows: list[dict]) -> pa.Table:
+    """``bridge_summary.parquet``: bridge_id, n_passes, D1_pct, D2_pct (thesis indicators against
+    the healthy baseline, %), midspan_mril (m/N), damaged (the alarm state)."""
+    return _rows_table(rows, BRIDGE_SUMMARY_SCHEMA, "bridge_summary")
 
 
 def write_export(out_dir: Path, tables: dict[str, pa.Table]) -> list[Path]:

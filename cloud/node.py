@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import gc
 import json
 import logging
@@ -25,10 +26,15 @@ from shared.transport import add_zenoh_arguments, config_from_args
 
 from .aggregator import Aggregator
 from .alignment import Alignment, estimate_alignment, realign
+from .bridge.estimator import BridgeSettings
+from .durable import AP, CALIB, DONE, Durability
+from .bridges import BridgeMonitor
 from .estimators.gmrf_profile import GmrfProfile
 from .estimators.long_wave import with_long_wave_band
 from .estimators.mean_profile import MeanProfile
-from .export import profile_table, roughness_table, vehicles_table, write_export
+from .journal import Journal, JournalError
+from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_table,
+                     roughness_table, track_quality_table, vehicles_table, write_export)
 from .fleet_calibration import FleetCalibrator
 
 log = logging.getLogger("driveby.cloud")
@@ -37,6 +43,7 @@ TILE_M = 50.0
 ALIGN_MIN_SCORE = 0.5  # correlation below this: the pass and the consensus do not overlap well enough
 ALIGN_MIN_PASSES = 3  # fewer passes do not define a frame worth centring on
 ALIGN_ITERATIONS = 6
+ALIGN_MAX_STRETCH = 0.06  # odometry scale errors beyond 6 % are a fault, not an error to align
 ALIGN_TOL_M = 0.02
 ALIGN_APPLY_M = 0.10  # a pass is re-gridded only if alignment moves it by more than this somewhere
 
@@ -47,20 +54,31 @@ TRACE = struct.Struct("<d")
 TRACE_RECORDS = 100_000
 STATUS_INTERVAL_S = 0.1  # status is published at most this often (and this late) while acks stream in
 QUIET_S = 0.2  # calibration rounds run once no input has arrived for this long
+#: While segments stream in, bridge estimates (0.2–1.5 s each) may take at most this share of the
+#: cloud's time, so the bridge view still updates pass by pass during a fast replay.
+BRIDGE_DUTY = 0.2
 
 
 class Cloud:
     """Transport-free core of the daemon: the aggregator, its estimators and the view."""
 
     def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05,
-                 calibration: str = "nominal", node_id: str = "cloud-1", align: bool = False):
+                 calibration: str = "nominal", node_id: str = "cloud-1", align: bool = False,
+                 bridge_settings: BridgeSettings = BridgeSettings(), shard: frozenset[str] | None = None):
+        # A shard (``shard``: the routes this aggregator owns) sees the site as its routes and their
+        # bridges only; pass-dones for the other shards' routes are not its business (counted apart).
+        foreign = frozenset()
+        if shard is not None:
+            foreign = frozenset(r.id for r in site.routes) - shard
+            site = dataclasses.replace(site, routes=tuple(r for r in site.routes if r.id in shard),
+                                       bridges=tuple(b for b in site.bridges if b.route in shard))
         self.net, self.site, self.publish, self.view, self.node_id = net, site, publish, view, node_id
         routes = {r.id: r.length_m for r in site.routes}
         self.profile = GmrfProfile(routes, spacing_m)
         # The vehicle step compares against the data alone (the flat-prior limit of the posterior):
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, spacing_m)
-        self.aggregator = Aggregator(site, [self.profile, self.consensus])
+        self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign)
         self.calibrator = FleetCalibrator(site, self.consensus) if calibration == "fleet" else None
         self.align = align  # chainage alignment of passes (GNSS error); costs ~30 ms per pass per sweep
         self.align_due = False  # passes completed since the last alignment
@@ -70,6 +88,11 @@ class Cloud:
         self.passes_complete = 0
         self.completed: set[tuple[str, str]] = set()
         self.status_due = False  # acks were published since the last status
+        # Bridges are fed and estimated when the bus is quiet (maybe_estimate_bridges), never per segment.
+        self.bridges = BridgeMonitor(site, bridge_settings)
+        self.bridge_sync_due = False  # passes were acknowledged (or re-aligned) since the last sync
+        self._bridge_cost_s = 0.0  # how long the last bridge update took
+        self._bridge_done_at = -math.inf  # monotonic s when it ended
         self._status_at = -math.inf  # monotonic s of the last status publication
 
     def on_segment(self, key: str, payload: bytes) -> None:
@@ -102,16 +125,18 @@ class Cloud:
     def _acks(self, acks) -> None:
         if acks and self.align:
             self.align_due = True
+        if acks:
+            self.bridge_sync_due = True
         for ack in acks:
             if self.align:
                 self._reapply_alignment((ack.vehicle_id, ack.pass_id))
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
+            first = (ack.vehicle_id, ack.pass_id) not in self.completed
             if self.calibrator is not None and ps is not None and ps.model:
                 try:
-                    self.calibrator.note_pass(ack.vehicle_id, ps.model)
+                    self.calibrator.note_pass(ack.vehicle_id, ps.model, new=first)
                 except KeyError:  # no vehicle class for this model in the registry: not calibrated
                     pass
-            first = (ack.vehicle_id, ack.pass_id) not in self.completed
             self.completed.add((ack.vehicle_id, ack.pass_id))
             v = self.vehicles[ack.vehicle_id]
             v["passes"] += first
@@ -137,7 +162,7 @@ class Cloud:
         busy = False
         if self.calibrator is not None:
             c = self.calibrator
-            busy = c.dirty and c.rounds < c.max_rounds and len(passes) >= c.min_passes
+            busy = c.dirty and not c.exhausted and len(passes) >= c.min_passes
         busy = busy or self.align_due
         return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
                 "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0}
@@ -165,13 +190,12 @@ class Cloud:
             return False
         self.align_due = False
         new_passes = any(key not in self.alignments for key, ps in self.aggregator.passes.items() if ps.acked)
-        for it in range(ALIGN_ITERATIONS if new_passes else 1):  # against the others' improving consensus
-            # Shifts first: against a consensus smeared by unknown shifts a stretch is poorly defined.
-            moved = self._align_once(max_stretch=0.0 if it < 2 and new_passes else 0.06)
+        for _ in range(ALIGN_ITERATIONS if new_passes else 2):  # against the others' improving consensus
+            moved = self._align_once(max_stretch=ALIGN_MAX_STRETCH)
             if moved is None:
                 self.publish_status()
                 return False
-            if moved < ALIGN_TOL_M and (it >= 2 or not new_passes):
+            if moved < ALIGN_TOL_M:
                 break
         if self.calibrator is not None:
             self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
@@ -239,12 +263,93 @@ class Cloud:
         c = self.calibrator
         if c is None or not c.ready(self.aggregator.segments):
             return False
-        for cal in c.round(self.aggregator.held):  # the (chainage-aligned) segments the estimators hold
+        held = self.aggregator.held  # the (chainage-aligned) segments the estimators hold
+        if self.align:  # a pass not (yet) placed in chainage would teach the vehicles a shifted road
+            # (Too few placed passes: the round fits nothing and waits for new data, never spins.)
+            held = {sl: s for sl, s in held.items() if (s.vehicle_id, s.pass_id) in self.alignments}
+        for cal in c.round(held):
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
         if self.view is not None:
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
+
+    def _bridge_params(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
+        """The parameters the edge computed a pass with: its calibration ``calib_version``.
+
+        Fleet calibration: the calibrator's current parameters when the pass is at the vehicle's
+        current version (None while a newer calibration is on its way: wait for the recomputed
+        pass); version 0 is the class mean, the edge's cold start. Only a fallback: edges say in each
+        pass-done which parameters they used (e.g. a log's nominal ones), and those come first.
+        """
+        st = self.calibrator.vehicles.get(vehicle_id) if self.calibrator is not None else None
+        if st is not None:
+            return dict(st.params) if st.version == calib_version and st.model == model else None
+        if calib_version != 0:
+            return None
+        try:
+            return dict(self.site.vehicle_class(model).mean)
+        except KeyError:
+            return None
+
+    def maybe_estimate_bridges(self, force: bool = False) -> bool:
+        """Feed the bridges the passes completed (or recomputed, re-aligned) since the last time,
+        estimate those with new data, publish alarms whose state changed and log the view.
+        True if any bridge was estimated."""
+        if not self.bridges.bridges or not (self.bridge_sync_due or force):
+            return False
+        t0 = time.monotonic()
+        self.bridge_sync_due = False
+        self.bridges.sync(self.aggregator.passes, self.aggregator.held, self._bridge_params)
+        if not self.bridges.due:
+            return False
+        alarms = self.bridges.estimate()
+        for alarm in alarms:
+            self.publish(keys.alarm_key(self.net, alarm.bridge_id), alarm.encode())
+            log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
+        if self.view is not None:
+            self._log_bridges(alarms)
+        self._bridge_done_at = time.monotonic()
+        self._bridge_cost_s = self._bridge_done_at - t0
+        return True
+
+    def bridges_may_run(self) -> bool:
+        """Whether a bridge update now keeps bridges within ``BRIDGE_DUTY`` of the cloud's time."""
+        wait = self._bridge_cost_s * (1.0 - BRIDGE_DUTY) / BRIDGE_DUTY
+        return self.bridge_sync_due and time.monotonic() - self._bridge_done_at >= wait
+
+    def _log_bridges(self, alarms) -> None:
+        try:
+            self.view.set_pass(self.passes_complete)
+            for st in self.bridges.bridges.values():
+                if st.latest is not None:
+                    baseline = getattr(getattr(st.estimator, "baseline", None), "mril", None)
+                    self.view.log_bridge_estimate(st.latest, baseline)
+            for alarm in alarms:
+                self.view.log_alarm(alarm.bridge_id, alarm.message,
+                                    "INFO" if alarm.kind == "cleared" else "ERROR")
+        except Exception:  # the view is a side subscriber: never let it take the daemon down
+            log.exception("rerun bridge view update failed")
+
+    def bridge_state(self, bridge_id: str) -> bytes:
+        """The answer to ``state/bridge/<bridge>``: JSON of the bridge's export rows
+        (``summary``, ``elements``, ``bearings``: interfaces.md §3) and its ``assessment`` (the
+        hypotheses' probabilities, the decision, location and severity; null when off). Not-a-number
+        is null. As of the last estimate (made when the bus was quiet)."""
+        summary = next(r for r in self.bridges.summary_rows() if r["bridge_id"] == bridge_id)
+        st = self.bridges.bridges[bridge_id]
+        est = st.latest
+        a = est.assessment if est is not None else None
+        body = {
+            "summary": summary,
+            "elements": est.element_rows() if est is not None else [],
+            "bearings": est.bearing_rows() if est is not None else [],
+            "assessment": None if a is None else {
+                "probabilities": a.probabilities, "best": a.best, "alarm": a.alarm,
+                "loss_probability": a.loss_probability, "kind": a.kind, "element": a.element,
+                "location_m": a.location_m, "severity": a.severity},
+        }
+        return json.dumps(_finite_or_null(body), allow_nan=False).encode()
 
     def _log_view(self) -> None:
         try:
@@ -274,8 +379,10 @@ class Cloud:
         return sink.getvalue().to_pybytes()
 
     def snapshot(self) -> dict:
-        """The profile posterior per route, its band widened by the passes' long-wave scatter."""
-        segs = list(self.aggregator.segments.values())
+        """The profile posterior per route; its band also holds the passes' non-white error (the
+        drift and calibration error each pass adds beyond the likelihood's white noise, measured band
+        by band from their disagreement: :mod:`cloud.estimators.long_wave`)."""
+        segs = list(self.aggregator.held.values())  # what the estimators hold (chainage-aligned)
         return {rid: with_long_wave_band(s, segs) for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:
@@ -287,14 +394,40 @@ class Cloud:
             tables["roughness"] = pa.concat_tables(rough)
         if self.calibrator is not None:
             tables["vehicles"] = vehicles_table(self.calibrator.table())
+        # --- rail (issue #6): track geometry quality of routes that carriages ran on ---------------
+        rail = {ps.route_id for ps in self.aggregator.passes.values() if ps.model in ("carriage", "bogie_half_car")}
+        if rail:
+            tables["track_quality"] = track_quality_table({r: s for r, s in snaps.items() if r in rail})
+        # --- end rail -----------------------------------------------------------------------------
+        if self.bridges.bridges:
+            self.maybe_estimate_bridges(force=True)  # every acknowledged pass is in the export
+            tables["bridge_elements"] = bridge_elements_table(self.bridges.element_rows())
+            tables["bridge_bearings"] = bridge_bearings_table(self.bridges.bearing_rows())
+            tables["bridge_summary"] = bridge_summary_table(self.bridges.summary_rows())
         written = write_export(out_dir, tables)
         if self.view is not None:
             self.view.flush()
         return written
 
 
-def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop: threading.Event,
-          default_export: Path | None = None) -> None:
+def _finite_or_null(v):
+    """JSON-safe: non-finite floats (and numpy scalars of them) become None."""
+    if isinstance(v, dict):
+        return {str(k): _finite_or_null(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite_or_null(x) for x in v]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    return v
+
+
+def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Event,
+          default_export: Path | None = None, durability: Durability | None = None,
+          shard: frozenset[str] | None = None) -> None:
     """Apply each message on the zenoh thread that delivers it, one at a time under a lock.
 
     No queue between the subscription and the aggregator: a hand-off per message cost as much as
@@ -308,13 +441,15 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
     traced: collections.deque = collections.deque(maxlen=TRACE_RECORDS)  # (sent, applied), Unix s
     last_input = time.monotonic()
 
-    def apply(on_message, sample) -> None:
+    def apply(on_message, sample, kind: str) -> None:
         nonlocal last_input
         key = str(sample.key_expr)
         payload = sample.payload.to_bytes()
         trace = sample.attachment
         with lock:
             try:
+                if durability is not None:  # journalled before it can affect any state
+                    durability.record(kind, key, payload)
                 before = cloud.aggregator.accepted
                 on_message(key, payload)
                 accepted = cloud.aggregator.accepted - before  # segments: a batch holds several
@@ -380,13 +515,27 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
             query.reply(keys.control_key(cloud.net, node_id, "latency"), json.dumps(body).encode())
 
     decl = [
-        session.declare_subscriber(keyexpr, lambda sample: apply(cloud.on_segment, sample)),
-        session.declare_subscriber(keys.done_keyexpr(cloud.net), lambda sample: apply(cloud.on_done, sample)),
-        session.declare_queryable(keys.state_profile_keyexpr(cloud.net), on_state),
+        session.declare_subscriber(keys.done_keyexpr(cloud.net), lambda sample: apply(cloud.on_done, sample, DONE)),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "export"), on_export),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "stats"), on_stats),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "latency"), on_latency),
     ]
+    # A shard subscribes to, and answers state queries for, its own routes only: Zenoh routes each
+    # segment and each query to its owner, so scaling out needs no routing code of ours.
+    for route in sorted(shard) if shard is not None else ["*"]:
+        decl.append(session.declare_subscriber(keys.ap_keyexpr(cloud.net, route),
+                                               lambda sample: apply(cloud.on_segment, sample, AP)))
+        decl.append(session.declare_queryable(keys.state_profile_keyexpr(cloud.net, route), on_state))
+
+    def on_bridge_state(query, bridge_id: str):
+        with query:
+            with lock:
+                body = cloud.bridge_state(bridge_id)
+            query.reply(keys.state_bridge_key(cloud.net, bridge_id), body)
+
+    for bid in cloud.bridges.bridges:  # this aggregator's bridges (a shard's: those on its routes)
+        decl.append(session.declare_queryable(keys.state_bridge_key(cloud.net, bid),
+                                              lambda query, bid=bid: on_bridge_state(query, bid)))
     token = session.liveliness().declare_token(keys.alive_key(cloud.net, "cloud", node_id))
     try:
         while not stop.wait(STATUS_INTERVAL_S):
@@ -394,9 +543,19 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, keyexpr: str, stop
                 with lock:
                     quiet = time.monotonic() - last_input >= QUIET_S
                     cloud.flush_status(force=quiet)
-                    if quiet:  # align and calibrate when the bus is quiet
-                        if not cloud.maybe_align():
-                            cloud.maybe_calibrate()
+                    if quiet:  # align, calibrate and estimate bridges when the bus is quiet
+                        if cloud.maybe_align():
+                            cloud.bridge_sync_due = True  # the passes' held segments may have moved
+                        else:
+                            if cloud.maybe_calibrate() and durability is not None:
+                                durability.record_calibrator()
+                            # Bridges take passes at their vehicle's current calibration only, so a
+                            # round just published leaves them as they are until recomputed.
+                            cloud.maybe_estimate_bridges()
+                        if durability is not None:
+                            durability.maybe_snapshot()
+                    elif cloud.bridges_may_run():  # streaming: bridges within their share of the time
+                        cloud.maybe_estimate_bridges()
             except Exception:
                 log.exception("calibration round failed")
     finally:
@@ -411,12 +570,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--net", default="net")
     p.add_argument("--id", default="cloud-1", help="this daemon's id (liveliness, control keys)")
     p.add_argument("--site", required=True, help="site registry TOML")
-    p.add_argument("--keyexpr", help="the shard of AP segments to own (default: all routes)")
+    p.add_argument("--routes", metavar="R1,R2,…",
+                   help="own only these routes (a shard: segments, state queries, bridges; default: every route)")
     p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
                    help="fleet: calibrate every vehicle from the fleet's consensus; nominal: trust the edges")
     p.add_argument("--align", action="store_true",
                    help="align passes in chainage against the consensus (logs with GNSS bias / odometry error)")
     p.add_argument("--export", type=Path, help="default export directory")
+    p.add_argument("--state", type=Path, metavar="DIR",
+                   help="durable state (journal + snapshots): a restarted cloud resumes from it")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
     p.add_argument("--log-level", default="WARNING")
@@ -427,7 +589,14 @@ def main(argv: list[str] | None = None) -> int:
         keys.check_id(args.net, "net")
         keys.check_id(args.id, "id")
         conf = config_from_args(args)
-    except (RegistryError, ValueError) as e:
+        journal = Journal(args.state) if args.state else None
+        shard = None
+        if args.routes:
+            shard = frozenset(r.strip() for r in args.routes.split(",") if r.strip())
+            unknown = sorted(shard - {r.id for r in site.routes})
+            if unknown or not shard:
+                raise ValueError(f"--routes: {', '.join(unknown) or 'empty'}: not a route of {args.site}")
+    except (RegistryError, ValueError, JournalError) as e:
         print(f"driveby cloud: {e}", file=sys.stderr)
         return 2
     view = None
@@ -439,25 +608,43 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
+    durability = None
     try:
         with zenoh.open(conf) as session:
+            calib_prefix = keys.calib_key(args.net, "x")[:-1]
+
             def publish(key, payload):
+                if durability is not None:
+                    if durability.live and key.startswith(calib_prefix):
+                        durability.record(CALIB, key, payload)  # the cloud's own decisions are state too
+                    durability.before_publish()  # nothing leaves that promises more than is on disk
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
             cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id,
-                          align=args.align)
+                          align=args.align, shard=shard)
+            if journal is not None:
+                durability = Durability(journal, cloud)
+                durability.recover()
+                durability.live = True
             # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
             # process: keep it out of full garbage collections, whose pause scans every tracked object
             # (~0.1 s of them) and would land in the middle of the stream.
             gc.collect()
             gc.freeze()
-            serve(session, cloud, args.id, args.keyexpr or keys.ap_keyexpr(args.net), stop, args.export)
+            serve(session, cloud, args.id, stop, args.export, durability, shard)
+            if durability is not None:
+                durability.maybe_snapshot(force=True)  # a clean stop leaves a compact state: a fast restart
             if args.export:
                 cloud.export(args.export)
     except zenoh.ZError as e:
         print(f"driveby cloud: zenoh: {e}", file=sys.stderr)
         return 1
+    except JournalError as e:  # the state directory became unusable while running (or at recovery)
+        print(f"driveby cloud: --state: {e}", file=sys.stderr)
+        return 2
     finally:
+        if durability is not None:
+            durability.close()
         if view is not None:
             view.close()
     return 0

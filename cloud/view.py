@@ -9,6 +9,10 @@ passes so far, set with `View.set_pass`) and ``wall_time`` timelines. Entity pat
     stats/<key>, stats/<key>/<sub>    Scalars, aggregator counters (``rejected/<reason>``, ``rejected/total``)
     fleet/status                      TextDocument, a markdown table of per-vehicle status
     bridge/<bridge>/stiffness         Scalars, element stiffness ratio: mean, lo95, hi95 per element
+    bridge/<bridge>/mril/current      LineStrips2D, the fleet's MR-IL (x m, J mm/MN, drawn downwards)
+    bridge/<bridge>/mril/baseline     LineStrips2D, the healthy baseline MR-IL it is compared with
+    bridge/<bridge>/indicators        Scalars, D1 and D2 (%, eq. 3.24) and P(damage) (%)
+    bridge/<bridge>/summary           TextDocument, the hypotheses' probabilities and the decision
     bridge/<bridge>/alarms            TextLog, alarms with a severity level
 
 Rerun's 2D view draws +y downwards and ignores view coordinates in 2D (rerun-io/rerun#1387), so the
@@ -44,6 +48,10 @@ MEAN_COLOUR = (70, 160, 255)
 BAND_COLOUR = (150, 150, 170)
 TILE_COLOUR = (110, 190, 130)
 IRI_COLOUR = (230, 140, 90)
+MRIL_COLOUR = (70, 160, 255)
+BASELINE_COLOUR = (150, 150, 170)
+INDICATOR_SERIES = (("D1 %", (70, 160, 255)), ("D2 %", (160, 120, 255)), ("P(damage) %", (235, 80, 70)))
+MRIL_MM_PER_MN = 1e9  # J (m/N) → mm/MN
 MEAN_RADIUS = rr.Radius.ui_points(1.5)
 BAND_RADIUS = rr.Radius.ui_points(0.75)
 STATS_COLOURS = {
@@ -92,8 +100,9 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     ----------
     routes : mapping route id → route length (m); each gets a profile panel bounded to
         [0, length] m by ±``profile_range_mm`` and a passes-per-tile bar chart.
-    bridges : bridge ids or registry `Bridge` objects; each gets a stiffness time series and an
-        alarm log. No bridge, no bridge row.
+    bridges : bridge ids or registry `Bridge` objects; each gets a stiffness time series, its
+        MR-IL (bounded to the span when a `Bridge` is given), D1/D2 and P(damage) on the pass
+        timeline, the hypotheses' summary and an alarm log. No bridge, no bridge row.
     """
     route_tabs = []
     for rid, length in routes.items():
@@ -122,14 +131,32 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     for b in bridges:
         bid = _bridge_id(b)
         root = bridge_path(bid)
-        bridge_tabs.append(rrb.Horizontal(
-            rrb.TimeSeriesView(origin=f"{root}/stiffness", name=f"{bid}: stiffness / design"),
-            rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: alarms"),
-            column_shares=[3, 2], name=bid))
+        bridge_tabs.append(rrb.Vertical(
+            rrb.Horizontal(
+                rrb.TimeSeriesView(origin=f"{root}/stiffness", name=f"{bid}: element stiffness / design (95 %)"),
+                rrb.Spatial2DView(origin=f"{root}/mril", contents=["$origin/**"], visual_bounds=_mril_bounds(b),
+                                  name=f"{bid}: MR-IL (mm/MN, down) vs x (m)"),
+                column_shares=[1, 1]),
+            rrb.Horizontal(
+                rrb.TimeSeriesView(origin=f"{root}/indicators", name=f"{bid}: D1, D2, P(damage) (%)"),
+                rrb.TextDocumentView(origin=f"{root}/summary", name=f"{bid}: assessment"),
+                rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: alarms"),
+                column_shares=[2, 2, 2]),
+            row_shares=[3, 2], name=bid))
     if bridge_tabs:
         rows.append(rrb.Tabs(*bridge_tabs, name="bridges"))
     shares = [3] * bool(route_tabs) + [2] + [2] * bool(bridge_tabs)
     return rrb.Blueprint(rrb.Vertical(*rows, row_shares=shares), auto_views=False)
+
+
+def _mril_bounds(bridge: Any) -> rrb.VisualBounds2D | None:
+    """The span and 1.6× the design mid-span ordinate L³/48EI, for a registry `Bridge`."""
+    try:
+        span, ei = float(bridge.span_m), float(bridge.E_pa) * float(bridge.I_m4)
+    except (AttributeError, TypeError, ValueError):
+        return None
+    j_mid = span**3 / (48.0 * ei) * MRIL_MM_PER_MN
+    return rrb.VisualBounds2D(x_range=[-0.05 * span, 1.05 * span], y_range=[-0.3 * j_mid, 1.6 * j_mid])
 
 
 # -- array helpers (pure) -----------------------------------------------------------------------------
@@ -448,6 +475,73 @@ class View:
             self._stamp()
             self._rec.log(path, rr.Scalars(values))
 
+    def log_bridge_mril(self, bridge_id: str, x_m: np.ndarray, J_m_per_n: np.ndarray,
+                        baseline_J_m_per_n: np.ndarray | None = None) -> None:
+        """Log the fleet's MR-IL (deflection per unit load, m/N, on ``x_m`` from the first support)
+        and, when given, the baseline it is compared with; drawn in mm/MN, deflection downwards."""
+        x = np.asarray(x_m, dtype=float)
+        curves = {"current": (J_m_per_n, MRIL_COLOUR, MEAN_RADIUS), "baseline": (baseline_J_m_per_n, BASELINE_COLOUR,
+                                                                               BAND_RADIUS)}
+        strips = {}
+        for name, (J, colour, radius) in curves.items():
+            if J is None:
+                continue
+            J = np.asarray(J, dtype=float)
+            if J.shape != x.shape or x.ndim != 1:
+                raise ValueError("log_bridge_mril: x_m and the MR-ILs must be 1-D of one length")
+            # Up on the screen is up: deflection (J > 0, downwards) is stored as SCREEN_Y · (−J) = +J.
+            strips[name] = rr.LineStrips2D(finite_runs(x, -SCREEN_Y * J * MRIL_MM_PER_MN), radii=radius,
+                                           colors=colour)
+        root = bridge_path(bridge_id)
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            for name, strip in strips.items():
+                self._rec.log(f"{root}/mril/{name}", strip)
+
+    def log_bridge_indicators(self, bridge_id: str, d1_pct: float, d2_pct: float, damage_probability: float) -> None:
+        """Log D1 and D2 (% stiffness loss against the baseline, eq. 3.24) and the probability that
+        some element lost more than the alarm fraction (as %) at the current pass. NaN: not known yet."""
+        path = f"{bridge_path(bridge_id)}/indicators"
+        values = np.array([d1_pct, d2_pct, 100.0 * damage_probability], dtype=float)
+        with self._lock:
+            if self._closed:
+                return
+            self._style_once(path, "indicators", lambda: rr.SeriesLines(
+                names=[n for n, _ in INDICATOR_SERIES], colors=[c for _, c in INDICATOR_SERIES], widths=[2.0] * 3))
+            self._stamp()
+            self._rec.log(path, rr.Scalars(values))
+
+    def log_bridge_summary(self, bridge_id: str, markdown: str) -> None:
+        """Log the bridge's current assessment as a markdown document."""
+        doc = rr.TextDocument(str(markdown), media_type=rr.MediaType.MARKDOWN)
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(f"{bridge_path(bridge_id)}/summary", doc)
+
+    def log_bridge_estimate(self, estimate: Any, baseline: Any = None) -> None:
+        """Log one bridge estimate (a `cloud.bridge.estimator.BridgeEstimate`, duck-typed): element
+        stiffness with 95 % bands, the MR-IL (and ``baseline``, an MR-IL on the same grid), D1/D2 and
+        P(damage), and the hypotheses' summary."""
+        bid = _bridge_id(estimate.bridge)
+        post = estimate.posterior
+        bounds = np.asarray(post.element_bounds, dtype=float)
+        d = float(post.ei_design)
+        self.log_bridge_stiffness(bid, bounds.mean(axis=1), post.stiffness_ratio, post.ei_lo95 / d, post.ei_hi95 / d)
+        m = estimate.mril
+        base = None
+        if baseline is not None and np.shape(baseline.J) == np.shape(m.J):
+            base = baseline.J
+        self.log_bridge_mril(bid, m.x_m, m.J, base)
+        ind, a = estimate.indicators, estimate.assessment
+        nan = float("nan")
+        self.log_bridge_indicators(bid, nan if ind is None else ind.D1_pct, nan if ind is None else ind.D2_pct,
+                                   nan if a is None else a.loss_probability)
+        self.log_bridge_summary(bid, bridge_summary_markdown(estimate))
+
     def log_alarm(self, bridge_id: str, message: str, severity: str = "WARN") -> None:
         """Log an alarm for a bridge; ``severity`` is a text-log level (INFO, WARN, ERROR, CRITICAL...)."""
         level = str(severity).upper()
@@ -494,6 +588,25 @@ class View:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def bridge_summary_markdown(estimate: Any) -> str:
+    """A short markdown account of a bridge estimate: passes, global stiffness, the hypotheses."""
+    post, a, ind = estimate.posterior, estimate.assessment, estimate.indicators
+    ratio = np.asarray(post.stiffness_ratio, dtype=float)
+    lines = [f"**{_bridge_id(estimate.bridge)}** after {estimate.n_passes} passes", "",
+             f"* effective stiffness ratio {post.effective_ratio:.3f} ± {post.effective_ratio_sd:.3f}",
+             f"* weakest element {int(np.argmin(ratio)) + 1}: ratio {ratio.min():.3f}"]
+    if ind is not None:
+        lines.append(f"* D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} %")
+    if a is None:
+        lines.append("* damage hypotheses: off for this bridge's settings")
+    else:
+        state = "**ALARM**" if a.alarm else "no alarm"
+        lines += [f"* {state}: P(element loss > threshold) = {a.loss_probability:.3f}; most probable: {a.best}", "",
+                  "| hypothesis | probability |", "|---|---:|"]
+        lines += [f"| {k} | {v:.3f} |" for k, v in a.probabilities.items()]
+    return "\n".join(lines)
 
 
 def _element_colour(k: int, n: int) -> tuple[int, int, int]:

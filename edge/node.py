@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import gc
+import json
 import logging
 import signal
 import sys
@@ -33,12 +35,14 @@ from shared.schema import (
     Calibration,
     DecodeError,
     SensorChunk,
+    decode_ack,
     decode_calibration,
     decode_sensor_chunk,
 )
 from shared.transport import add_zenoh_arguments, config_from_args
 from shared.vehicles import MODELS, vehicle_from_params
 
+from .outbox import DEFAULT_MAX_BYTES, Outbox
 from .pipeline import EdgeConfig, PassProcessor
 
 log = logging.getLogger("driveby.edge")
@@ -78,17 +82,23 @@ class VehicleTask:
     calibration: Calibration | None = None
     current: PassProcessor | None = None
     current_raw: list[bytes] = field(default_factory=list)
+    current_params: dict = field(default_factory=dict)  # what the pass in progress is computed with
     expected_seq: int = 0
     spool: collections.OrderedDict[str, list[bytes]] = field(default_factory=collections.OrderedDict)
     errors: int = 0
 
 
 class Edge:
-    """Transport-free core of the edge: ``on_chunk``/``on_calibration`` call ``publish(key, bytes)``."""
+    """Transport-free core of the edge: ``on_chunk``/``on_calibration`` call ``publish(key, bytes)``.
+
+    With an ``outbox`` every pass's messages are kept until the cloud acknowledges the pass
+    (``on_ack``), published only while an aggregator is alive (``on_cloud_presence``) and sent
+    again whenever one (re)appears; without one they are published at once and forgotten.
+    """
 
     def __init__(self, net: str, publish, site: Site | None = None, calibration: str = "fleet",
                  config: EdgeConfig = EdgeConfig(), vehicles: set[str] | None = None,
-                 shard: tuple[int, int] = (0, 1), ap_batch: int = AP_BATCH):
+                 shard: tuple[int, int] = (0, 1), ap_batch: int = AP_BATCH, outbox: Outbox | None = None):
         if calibration not in ("fleet", "nominal"):
             raise ValueError(f"calibration: expected 'fleet' or 'nominal', got {calibration!r}")
         if not 1 <= ap_batch <= MAX_BATCH_SEGMENTS:
@@ -104,6 +114,9 @@ class Edge:
         # that chunk releases is published with it, so a benchmark can time a segment from its raw chunk.
         self.trace: bytes | None = None
         self._models: dict[tuple, InverseModel] = {}
+        self.outbox = outbox
+        self.cloud_present = outbox is None
+        self.resent = 0  # messages sent again because an aggregator (re)appeared
 
     # -- calibration -----------------------------------------------------------------------
     def _params_for(self, task: VehicleTask, chunk: SensorChunk) -> tuple[dict, int] | None:
@@ -168,7 +181,7 @@ class Edge:
             model = self._model(chunk.vehicle_model, params, 1.0 / chunk.sample_rate_hz)
             task.current = PassProcessor(model, chunk.vehicle_id, chunk.pass_id, chunk.route_id, version,
                                          self.config, chunk.vehicle_model)
-            task.current_raw, task.expected_seq = [], 0
+            task.current_raw, task.expected_seq, task.current_params = [], 0, params
         if chunk.seq != task.expected_seq:
             self.rejected["sequence_gap"] += 1
             task.current, task.current_raw = None, []
@@ -178,8 +191,10 @@ class Edge:
         self._publish_segments(task.current.feed(chunk))
         if chunk.final:
             segments, done = task.current.finish()
+            done = dataclasses.replace(done, params=task.current_params)  # the cloud models the pass alike
             self._publish_segments(segments)
-            self.publish(keys.done_key(self.net, chunk.vehicle_id), done.encode())
+            self._send(done.vehicle_id, done.pass_id, done.calib_version,
+                       keys.done_key(self.net, chunk.vehicle_id), done.encode())
             task.spool[chunk.pass_id] = task.current_raw
             while len(task.spool) > SPOOL_PASSES:
                 task.spool.popitem(last=False)
@@ -194,8 +209,48 @@ class Edge:
             for i in range(0, len(group), self.ap_batch):
                 part = group[i : i + self.ap_batch]
                 msg = part[0] if len(part) == 1 else ApBatch(tuple(part))
-                self.publish(keys.ap_key(self.net, part[0].route_id, part[0].tile, part[0].vehicle_id), msg.encode())
+                s0 = part[0]
+                self._send(s0.vehicle_id, s0.pass_id, s0.calib_version,
+                           keys.ap_key(self.net, s0.route_id, s0.tile, s0.vehicle_id), msg.encode())
                 self.segments_published += len(part)
+
+    def _send(self, vehicle: str, pass_id: str, calib_version: int, key: str, payload: bytes) -> None:
+        if self.outbox is not None:
+            self.outbox.add(vehicle, pass_id, calib_version, key, payload)
+        if self.cloud_present:
+            self.publish(key, payload)
+
+    def stats(self) -> dict:
+        """Counters for operators (``driveby/<net>/control/<id>/stats``)."""
+        return {"rejected": dict(self.rejected), "segments_published": self.segments_published,
+                "vehicles": len(self.tasks), "cloud_present": self.cloud_present, "resent": self.resent,
+                "outbox": self.outbox.stats() if self.outbox is not None else None}
+
+    # -- delivery ----------------------------------------------------------------------------
+    def on_ack(self, payload, key_vehicle: str | None = None) -> None:
+        """The cloud acknowledged a pass: it need not be kept any longer."""
+        if self.outbox is None:
+            return
+        try:
+            ack = decode_ack(payload)
+        except DecodeError as e:
+            self.rejected[f"ack_{e.reason}"] += 1
+            return
+        if key_vehicle is not None and key_vehicle != ack.vehicle_id:
+            self.rejected["key_mismatch"] += 1
+            return
+        self.outbox.ack(ack.vehicle_id, ack.pass_id, ack.calib_version)
+
+    def on_cloud_presence(self, present: bool) -> None:
+        """An aggregator appeared (send everything unacknowledged again) or the last one left."""
+        if self.outbox is None:
+            return
+        if present:
+            pending = self.outbox.messages()
+            for key, payload in pending:
+                self.publish(key, payload)
+            self.resent += len(pending)
+        self.cloud_present = present
 
     def on_calibration(self, payload, key_vehicle: str | None = None) -> None:
         """A new calibration: recompute and republish every spooled pass under its version."""
@@ -225,8 +280,10 @@ class Edge:
             for ch in chunks:
                 self._publish_segments(proc.feed(ch))
             segments, done = proc.finish()
+            done = dataclasses.replace(done, params=dict(cal.params))
             self._publish_segments(segments)
-            self.publish(keys.done_key(self.net, cal.vehicle_id), done.encode())
+            self._send(done.vehicle_id, done.pass_id, done.calib_version,
+                       keys.done_key(self.net, cal.vehicle_id), done.encode())
 
 
 def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Event) -> None:
@@ -256,9 +313,33 @@ def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Even
                 edge.rejected["internal_error"] += 1
                 log.exception("failed to process %s", key)
 
+    clouds: set[str] = set()
+
+    def on_cloud(sample) -> None:  # liveliness of the aggregators: is anyone there to deliver to?
+        with lock:
+            key = str(sample.key_expr)
+            if sample.kind == zenoh.SampleKind.PUT:
+                appeared = key not in clouds
+                clouds.add(key)
+                if appeared:
+                    edge.on_cloud_presence(True)
+            else:
+                clouds.discard(key)
+                if not clouds:
+                    edge.on_cloud_presence(False)
+
+    def on_stats(query):
+        with query:
+            with lock:
+                body = edge.stats()
+            query.reply(keys.control_key(edge.net, node_id, "stats"), json.dumps(body).encode())
+
     subs = [session.declare_subscriber(keys.imu_keyexpr(edge.net), lambda s: on_sample("imu", edge.on_chunk, s)),
+            session.declare_queryable(keys.control_key(edge.net, node_id, "stats"), on_stats),
             session.declare_subscriber(keys.calib_keyexpr(edge.net),
-                                       lambda s: on_sample("calib", edge.on_calibration, s))]
+                                       lambda s: on_sample("calib", edge.on_calibration, s)),
+            session.declare_subscriber(keys.ack_keyexpr(edge.net), lambda s: on_sample("ack", edge.on_ack, s)),
+            session.liveliness().declare_subscriber(keys.alive_keyexpr(edge.net, "cloud"), on_cloud, history=True)]
     token = session.liveliness().declare_token(keys.alive_key(edge.net, "edge", node_id))
     try:
         stop.wait()
@@ -280,6 +361,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="only process the vehicles of hash shard I of N (run N edges to share a fleet)")
     p.add_argument("--ap-batch", type=int, default=AP_BATCH, metavar="N",
                    help=f"AP segments per message, 1 to {MAX_BATCH_SEGMENTS} (1: one ap_segment each)")
+    p.add_argument("--spool", metavar="DIR",
+                   help="keep unacknowledged passes on disk here (survives an edge restart; default: memory)")
+    p.add_argument("--spool-max-mb", type=float, default=DEFAULT_MAX_BYTES / 2**20, metavar="MB",
+                   help="bound of the unacknowledged store; the oldest passes are dropped (counted) beyond it")
     p.add_argument("--log-level", default="WARNING")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s edge %(levelname)s %(message)s")
@@ -290,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
         if not 1 <= args.ap_batch <= MAX_BATCH_SEGMENTS:
             raise ValueError(f"--ap-batch: expected 1 to {MAX_BATCH_SEGMENTS}, got {args.ap_batch}")
         conf = config_from_args(args)
-    except (RegistryError, ValueError) as e:
+        outbox = Outbox(args.spool, int(args.spool_max_mb * 2**20))
+    except (RegistryError, ValueError, OSError) as e:
         print(f"driveby edge: {e}", file=sys.stderr)
         return 2
     stop = threading.Event()
@@ -302,7 +388,8 @@ def main(argv: list[str] | None = None) -> int:
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, attachment=edge.trace)
 
             edge = Edge(args.net, publish, site, args.calibration,
-                        vehicles=set(args.vehicle) if args.vehicle else None, shard=shard, ap_batch=args.ap_batch)
+                        vehicles=set(args.vehicle) if args.vehicle else None, shard=shard, ap_batch=args.ap_batch,
+                        outbox=outbox)
             # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
             # process: keep it out of full garbage collections, whose pause scans every tracked object
             # (~0.1 s of them) and would land in the middle of the stream.

@@ -27,6 +27,10 @@ class EdgeConfig:
     spacing_m: float = 0.05
     drift_half_width_m: float = 150.0  # 0 disables drift control
     min_speed_mps: float = 0.5  # slower samples are not gridded (a stopped vehicle maps nowhere)
+    # A vehicle whose inverse forgets a wrong initial state slowly (a rail carriage's lightly damped
+    # body: ~18 s) would have nothing reliable in a short log. Its warm-up past this time is sent
+    # flagged unreliable and down-weighted (σ × 100) instead of dropped; road vehicles settle sooner.
+    hard_warmup_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not (self.spacing_m > 0 and self.tile_m > 0):
@@ -185,6 +189,9 @@ class PassProcessor:
         self.n_samples = 0
         self.speeds: list[float] = []
         self.finished = False
+        # Time from which the inverse has forgotten its initial state; earlier points are sent
+        # down-weighted (see EdgeConfig.hard_warmup_s). -inf: no such points.
+        self.settled_t = math.inf if model.n_warmup * model.constants.dt > self.config.hard_warmup_s else -math.inf
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         names = self.channel_names
@@ -199,9 +206,13 @@ class PassProcessor:
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
             t = chunk.t
             reliable = chunk.speed >= self.config.min_speed_mps  # moving
-            warmup = self.inverse.reliable_from - self.n_samples  # samples of this chunk still warming up
+            hard = min(self.inverse.reliable_from, int(math.ceil(self.config.hard_warmup_s / self.model.constants.dt)))
+            warmup = hard - self.n_samples  # samples of this chunk still warming up
             if warmup > 0:
                 reliable[:warmup] = False
+            soft_end = self.inverse.reliable_from - self.n_samples
+            if self.inverse.reliable_from > hard and 0 <= soft_end < chunk.n:
+                self.settled_t = float(t[soft_end])  # the first sample past the whole warm-up
             for i, grid in enumerate(self.grids):
                 grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m)
             self.n_samples += chunk.n
@@ -257,11 +268,15 @@ class PassProcessor:
             seg_vals, seg_valid = seg_vals[first : last + 1], seg_valid[first : last + 1]
             sigma = np.full(seg_vals.size, ap_sigma(vals, valid))
             flags = 0
+            t_seg = g.t[a - g.base + first : a - g.base + last + 1]
+            unsettled = t_seg < self.settled_t
+            if unsettled.any():
+                sigma[unsettled] *= 100.0
+                flags |= FLAG_UNRELIABLE
             if not seg_valid.all():
                 sigma[~seg_valid] *= 100.0  # unreliable points carry (almost) no weight
                 seg_vals = np.where(seg_valid, seg_vals, 0.0)
                 flags |= FLAG_UNRELIABLE
-            t_seg = g.t[a - g.base + first : a - g.base + last + 1]
             out.append(ApSegment.make(
                 seg_vals, sigma, vehicle_id=self.vehicle_id, pass_id=self.pass_id, route_id=self.route_id,
                 tile=tile, axle=axle, start_index=a + int(first), spacing_m=self.config.spacing_m,

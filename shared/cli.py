@@ -23,6 +23,8 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, help="replay at X× real time (default: as fast as possible)")
     p.add_argument("--align", action="store_true",
                    help="align passes in chainage against the consensus (GNSS bias, odometry stretch)")
+    p.add_argument("--shards", type=int, default=1, metavar="N",
+                   help="split the routes among N cloud daemons behind two routers (scale-out, exercised locally)")
 
 
 def _cmd_run(args) -> int:
@@ -32,7 +34,8 @@ def _cmd_run(args) -> int:
 
     try:
         res = run(Path(args.logs), Path(args.site), Path(args.export), Path(args.rrd) if args.rrd else None,
-                  args.calibration, args.connect, args.net, args.viewer, rate=args.rate, align=args.align)
+                  args.calibration, args.connect, args.net, args.viewer, rate=args.rate, align=args.align,
+                  shards=args.shards)
     except RunError as e:
         print(f"driveby run: {e}", file=sys.stderr)
         return 1

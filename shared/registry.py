@@ -16,6 +16,7 @@ from typing import Any
 from shared.drivelog import MODEL_PARAMS, one_line
 
 SUPPORTS = ("simply_supported", "rotational_springs")
+DECKS = ("rough", "smooth")
 
 
 class RegistryError(ValueError):
@@ -60,6 +61,9 @@ class Bridge:
     damping_ratio: float
     supports: str
     krot_nm_per_rad: float | None = None
+    # Optional: "smooth" declares a deck without its own profile (the damage hypotheses and the alarm
+    # rely on it); "rough" (default, the safe assumption) makes the cloud estimate the deck profile.
+    deck: str = "rough"
 
     @property
     def end_chainage_m(self) -> float:
@@ -242,7 +246,10 @@ def _bridge(t: Mapping, kp: str, file: str) -> Bridge:
             f"unknown supports {fields['supports']!r} (expected one of {', '.join(SUPPORTS)})",
         )
     krot = _real(t, "krot_nm_per_rad", kp, file, lo=0.0) if "krot_nm_per_rad" in t else None
-    return Bridge(**fields, krot_nm_per_rad=krot)
+    deck = _string(t, "deck", kp, file) if "deck" in t else "rough"
+    if deck not in DECKS:
+        raise RegistryError(file, f"{kp}.deck", f"unknown deck {deck!r} (expected one of {', '.join(DECKS)})")
+    return Bridge(**fields, krot_nm_per_rad=krot, deck=deck)
 
 
 def _vehicle_class(t: Mapping, kp: str, file: str) -> VehicleClass:
@@ -353,6 +360,7 @@ def site_to_dict(site: Site) -> dict[str, Any]:
             }
             if b.krot_nm_per_rad is not None:
                 entry["krot_nm_per_rad"] = b.krot_nm_per_rad
+            entry["deck"] = b.deck
             doc["bridge"].append(entry)
     if site.vehicle_classes:
         doc["vehicle_class"] = [

@@ -35,6 +35,7 @@ import functools
 import json
 import math
 import re
+import struct
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -50,7 +51,7 @@ SCHEMA_VERSION = 1
 META_KEY = b"driveby"
 
 MAX_PAYLOAD_BYTES = 4 * 1024 * 1024
-MAX_DECODED_BYTES = 64 * 1024 * 1024  # guards against compressed IPC bodies expanding
+MAX_DECODED_BYTES = 64 * 1024 * 1024  # cap on a decoded batch's buffers
 MAX_SAMPLES = 1 << 20
 MAX_CHANNELS = 32
 MAX_PARAMS = 64
@@ -272,6 +273,7 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
     if len(payload) == 0:
         raise DecodeError("not_arrow", "empty payload")
     try:
+        _refuse_compressed(payload)
         reader = pa.ipc.open_stream(pa.py_buffer(payload))
         batches = []
         for batch in reader:
@@ -302,6 +304,65 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
         want = "one row" if max_rows == 1 else f"1 to {max_rows} rows"
         raise DecodeError("bad_shape", f"expected one batch of {want}, got rows {n_rows}")
     return kind, version, batches[0]
+
+
+_U8, _U16, _U32, _I32, _I64 = (struct.Struct(f) for f in ("<B", "<H", "<I", "<i", "<q"))
+_DICTIONARY_BATCH, _RECORD_BATCH = 2, 3  # Arrow's MessageHeader union
+
+
+def _fb(fmt: struct.Struct, buf, pos: int) -> int:
+    if not 0 <= pos <= len(buf) - fmt.size:
+        raise ValueError("flatbuffer offset out of range")
+    return fmt.unpack_from(buf, pos)[0]
+
+
+def _fb_field(buf, table: int, field: int) -> int | None:
+    """Position of a flatbuffer table's field, or None if absent (bounds-checked: ValueError)."""
+    vtable = table - _fb(_I32, buf, table)
+    if 4 + 2 * field >= _fb(_U16, buf, vtable):
+        return None
+    offset = _fb(_U16, buf, vtable + 4 + 2 * field)
+    return table + offset if offset else None
+
+
+def _refuse_compressed(payload) -> None:
+    """Refuse compressed record batches and dictionaries *before* Arrow inflates them.
+
+    A few kB of zstd expand to gigabytes (found by fuzzing: 9 kB became 200 MB before the
+    size cap could see it), and a bound checked after decompression comes too late. Our
+    encoder never compresses, nor uses dictionaries, so both are refused from the message
+    headers alone, walking the stream's framing (Arrow's Message.fbs: ``Message`` fields
+    1 ``header_type``, 2 ``header``, 3 ``bodyLength``; ``RecordBatch`` field 3 ``compression``).
+    Framing it cannot follow is left to Arrow's reader, which refuses it.
+    """
+    view = memoryview(payload)
+    pos = 0
+    for _ in range(3):  # the schema and the (at most) two batches _read_batch reads
+        if pos + 8 > len(view):
+            return
+        size = _fb(_U32, view, pos)
+        if size == 0xFFFFFFFF:  # continuation marker, then the metadata's length
+            size = _fb(_U32, view, pos + 4)
+            pos += 8
+        else:  # the pre-1.0 framing: the length alone
+            pos += 4
+        if size == 0 or pos + size > len(view):
+            return
+        meta = view[pos : pos + size]
+        root = _fb(_U32, meta, 0)
+        kind = _fb_field(meta, root, 1)
+        kind = _fb(_U8, meta, kind) if kind is not None else 0
+        if kind == _DICTIONARY_BATCH:
+            raise DecodeError("bad_type", "dictionary-encoded columns")
+        if kind == _RECORD_BATCH:
+            header = _fb_field(meta, root, 2)
+            if header is None:
+                return
+            batch = header + _fb(_U32, meta, header)
+            if _fb_field(meta, batch, 3) is not None:
+                raise DecodeError("oversize", "compressed IPC body (its decoded size is unknown until inflated)")
+        body = _fb_field(meta, root, 3)
+        pos += size + (_fb(_I64, meta, body) if body is not None else 0)
 
 
 @functools.lru_cache(maxsize=64)
@@ -945,6 +1006,9 @@ class PassDone(_Message):
     calib_version: int
     n_segments: int
     vehicle_model: str = ""  # optional (added in v1.1 of the message): lets the cloud calibrate
+    # Optional (v1.2): the vehicle parameters the edge computed the pass with (e.g. a log's nominal
+    # ones under ``--calibration nominal``), so the cloud's models of the pass use the same vehicle.
+    params: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
         _id("vehicle_id", self.vehicle_id)
@@ -956,6 +1020,8 @@ class PassDone(_Message):
         object.__setattr__(self, "n_segments", _int("n_segments", self.n_segments, 0, MAX_INT32))
         if self.vehicle_model and _text("vehicle_model", self.vehicle_model) not in VEHICLE_MODELS:
             _fail("bad_value", f"vehicle_model {self.vehicle_model!r} not in {sorted(VEHICLE_MODELS)}")
+        if self.params is not None:
+            object.__setattr__(self, "params", _params("params", self.params))
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this marker."""
@@ -968,6 +1034,7 @@ class PassDone(_Message):
                 "calib_version": _scalar(self.calib_version, pa.int64()),
                 "n_segments": _scalar(self.n_segments, pa.int64()),
                 "vehicle_model": _scalar(self.vehicle_model, pa.string()),
+                "params": _params_column(self.params),
             },
         )
 
@@ -980,6 +1047,7 @@ def _build_pass_done(r: _Row) -> PassDone:
         calib_version=r.integer("calib_version"),
         n_segments=r.integer("n_segments"),
         vehicle_model=r.text("vehicle_model") if "vehicle_model" in r.names else "",
+        params=r.params("params", optional=True) if "params" in r.names else None,
     )
 
 

@@ -9,6 +9,12 @@ processes, so no ``zenohd`` binary is needed::
 prints one ``ready <zid>`` line on stdout once listening and runs until SIGTERM or
 SIGINT (or, with ``--exit-on-stdin-eof``, until its parent closes its stdin).
 :func:`run_router` starts it as a subprocess for tests and for ``driveby run``.
+
+Secured (``shared.security``): ``--security DIR --id ROUTER --net NET`` makes the router
+listen on TLS only, require every peer's certificate (mTLS) and apply the access control
+of DIR's identities; it counts the messages Zenoh refuses and answers the counts on
+``driveby/<net>/control/<ROUTER>/denials``.  Daemons connect with
+``--connect tls/HOST:PORT --tls-ca DIR/ca.pem --tls-cert DIR/<id>.pem --tls-key DIR/<id>.key``.
 """
 
 from __future__ import annotations
@@ -24,9 +30,15 @@ import subprocess
 import sys
 import tempfile
 import threading
+import typing
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 
 import zenoh
+
+from shared.keys import check_id
+from shared.security import ACL_LOG_DIRECTIVE, DenialCounter, SecurityDir, TlsFiles, denials_key, router_config, \
+    tls_config
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +72,7 @@ def zenoh_config(
     listen: Sequence[str] | str = (),
     config_file: str | os.PathLike[str] | None = None,
     no_multicast: bool = True,
+    tls: TlsFiles | None = None,
 ) -> zenoh.Config:
     """Build a ``zenoh.Config`` from plain values.
 
@@ -74,6 +87,9 @@ def zenoh_config(
     no_multicast : bool
         Turn multicast scouting off (the default), so that sessions on one machine
         never find each other by accident: they meet only through explicit endpoints.
+    tls : TlsFiles, optional
+        The CA (and this session's certificate and key) for ``tls/...`` endpoints; a session
+        that listens (a router, or given ``listen``) requires its peers' certificates.
     """
     if mode is not None and mode not in MODES:
         raise ValueError(f"mode {mode!r} not in {MODES}")
@@ -88,6 +104,8 @@ def zenoh_config(
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if no_multicast:
         conf.insert_json5("scouting/multicast/enabled", "false")
+    if tls is not None:
+        conf.insert_json5("transport/link/tls", json.dumps(tls_config(tls, listen=bool(listen) or mode == "router")))
     return conf
 
 
@@ -117,18 +135,30 @@ def run_router(
     host: str = "127.0.0.1",
     config_file: str | os.PathLike[str] | None = None,
     timeout_s: float = 10.0,
+    security: str | os.PathLike[str] | None = None,
+    net: str = "net",
+    router_id: str = "router",
+    connect: Sequence[str] = (),
 ) -> Iterator[str]:
     """Run a zenoh router in a subprocess; yields its endpoint ``tcp/<host>:<port>``.
+
+    With ``security`` (a ``shared.security`` directory holding ``router_id``'s certificate)
+    the router is secured (TLS, mTLS, access control on network ``net``) and the endpoint
+    is ``tls/<host>:<port>``.
 
     Waits (at most ``timeout_s``) for the router's ``ready`` line; on exit sends
     SIGTERM and waits, then kills.  The router also exits if this process dies, since
     it watches its stdin.  ``port=None`` picks a free port (and retries on another
-    one if it was taken in between).
+    one if it was taken in between).  ``connect``: endpoints of routers to join.
     """
     attempts = 3 if port is None else 1
     for attempt in range(attempts):
-        endpoint = f"tcp/{host}:{free_port(host) if port is None else port}"
-        proc, error = _start_router(endpoint, config_file, timeout_s)
+        proto = "tcp" if security is None else "tls"
+        endpoint = f"{proto}/{host}:{free_port(host) if port is None else port}"
+        extra = [] if security is None else ["--security", os.fspath(security), "--net", net, "--id", router_id]
+        for other in connect:  # join other routers: one Zenoh network across router processes
+            extra += ["--connect", other]
+        proc, error = _start_router(endpoint, config_file, timeout_s, extra)
         if error is None:
             break
         if attempt == attempts - 1:
@@ -141,10 +171,10 @@ def run_router(
 
 
 def _start_router(
-    endpoint: str, config_file: str | os.PathLike[str] | None, timeout_s: float
+    endpoint: str, config_file: str | os.PathLike[str] | None, timeout_s: float, extra: Sequence[str] = ()
 ) -> tuple[subprocess.Popen, str | None]:
     """Start the router subprocess; returns it and None once ready, or its error (stopped)."""
-    cmd = [sys.executable, "-m", "shared.transport", "router", "--listen", endpoint, "--exit-on-stdin-eof"]
+    cmd = [sys.executable, "-m", "shared.transport", "router", "--listen", endpoint, "--exit-on-stdin-eof", *extra]
     if config_file is not None:
         cmd += ["--config", os.fspath(config_file)]
     with tempfile.TemporaryFile(mode="w+") as errors:
@@ -179,21 +209,73 @@ def _watch_stdin(stop: threading.Event) -> None:
     stop.set()
 
 
+def _add_tls_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tls-ca", help="PEM of the CA that signs every peer (for tls/... endpoints)")
+    p.add_argument("--tls-cert", help="this session's certificate (PEM; its CN is its identity)")
+    p.add_argument("--tls-key", help="this session's private key (PEM)")
+
+
+def _tls_from_args(args: argparse.Namespace) -> TlsFiles | None:
+    """TlsFiles from ``--tls-ca/--tls-cert/--tls-key``; raises ValueError (one line) if incomplete."""
+    if args.tls_ca is None:
+        if args.tls_cert or args.tls_key:
+            raise ValueError("--tls-cert/--tls-key need --tls-ca")
+        return None
+    return TlsFiles(Path(args.tls_ca), args.tls_cert and Path(args.tls_cert), args.tls_key and Path(args.tls_key))
+
+
 def add_zenoh_arguments(p: argparse.ArgumentParser, default_mode: str = "client") -> None:
-    """The ``--mode/--connect/--listen/--config`` options every daemon shares."""
+    """The ``--mode/--connect/--listen/--config`` and ``--tls-*`` options every daemon shares."""
     p.add_argument("--mode", choices=MODES, default=None, help=f"zenoh session mode (default {default_mode})")
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on (repeatable)")
     p.add_argument("--config", help="zenoh JSON5 config file (TLS, access control, ...)")
+    _add_tls_arguments(p)
     p.set_defaults(_default_mode=default_mode)
 
 
 def config_from_args(args: argparse.Namespace) -> zenoh.Config:
-    """A ``zenoh.Config`` from :func:`add_zenoh_arguments` options."""
+    """A ``zenoh.Config`` from :func:`add_zenoh_arguments` options (ValueError if they are invalid)."""
     mode = args.mode or (None if args.config else args._default_mode)
     if mode == "client" and not args.connect and not args.config:
         mode = "peer"  # a client needs a router to connect to; alone, be a peer
-    return zenoh_config(mode, connect=args.connect, listen=args.listen, config_file=args.config)
+    return zenoh_config(mode, connect=args.connect, listen=args.listen, config_file=args.config,
+                        tls=_tls_from_args(args))
+
+
+DENIALS_LOGGED = 20  # each of the first refusals is logged; then one line per this many
+
+
+def _capture_zenoh_log(counter: DenialCounter) -> typing.TextIO:
+    """Turn on Zenoh's access-control trace and count the refusals in it (:class:`DenialCounter`).
+
+    Zenoh logs to this process's stdout (fd 1): fd 1 becomes a pipe read by a thread here,
+    which counts refusals and passes every other non-trace line on to stderr. Returns a
+    text file on the original stdout (for the ``ready`` line).
+    """
+    sys.stdout.flush()
+    original = os.fdopen(os.dup(1), "w", buffering=1)
+    read_fd, write_fd = os.pipe()
+    os.dup2(write_fd, 1)
+    os.close(write_fd)
+    sys.stdout = original
+    os.environ["RUST_LOG"] = f"{os.environ.get('RUST_LOG') or 'warn'},{ACL_LOG_DIRECTIVE}"
+    zenoh.init_log_from_env_or("warn")
+
+    def read() -> None:
+        with os.fdopen(read_fd, "r", errors="replace") as lines:
+            for line in lines:
+                denial = counter.feed(line)
+                if denial is not None:
+                    if counter.total <= DENIALS_LOGGED or counter.total % (DENIALS_LOGGED * 50) == 0:
+                        who, message, flow, key = denial
+                        log.warning("access denied (%d so far): %s %s %s on %s", counter.total, who, message,
+                                    flow, key)
+                elif " TRACE " not in line:
+                    sys.stderr.write(line)
+
+    threading.Thread(target=read, daemon=True, name="zenoh-log").start()
+    return original
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -204,24 +286,52 @@ def main(argv: Sequence[str] | None = None) -> int:
     router.add_argument("--listen", "-l", action="append", default=[], help="endpoint, e.g. tcp/127.0.0.1:7447")
     router.add_argument("--connect", "-e", action="append", default=[], help="another router to join")
     router.add_argument("--config", "-c", help="zenoh JSON5 config file")
+    router.add_argument("--security", metavar="DIR", help="secure the router from a shared.security directory: "
+                        "TLS only, mutual authentication, access control of DIR's identities")
+    router.add_argument("--id", default="router", help="with --security: the router's identity in DIR")
+    router.add_argument("--net", default="net", help="with --security: the network the access control covers")
+    router.add_argument("--no-count-denials", action="store_true",
+                        help="with --security: do not count refusals (their trace costs about half the throughput)")
+    _add_tls_arguments(router)
     router.add_argument("--multicast", action="store_true", help="enable multicast scouting")
     router.add_argument("--exit-on-stdin-eof", action="store_true", help="also stop when stdin closes")
     args = parser.parse_args(argv)
 
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s router %(levelname)s %(message)s")
+    counter = None
     try:
-        conf = zenoh_config("router", args.connect, args.listen, args.config, no_multicast=not args.multicast)
+        conf = zenoh_config("router", args.connect, args.listen, args.config, no_multicast=not args.multicast,
+                            tls=_tls_from_args(args))
+        if args.security is not None:
+            check_id(args.net, "net")
+            secured = router_config(SecurityDir(Path(args.security)), args.net, check_id(args.id, "id"))
+            for section in ("transport/link/protocols", "transport/link/tls", "access_control"):
+                value = secured
+                for part in section.split("/"):
+                    value = value[part]
+                conf.insert_json5(section, json.dumps(value))
+            counter = None if args.no_count_denials else DenialCounter()
     except (ValueError, zenoh.ZError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    out = sys.stdout if counter is None else _capture_zenoh_log(counter)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     if args.exit_on_stdin_eof:
         threading.Thread(target=_watch_stdin, args=(stop,), daemon=True).start()
 
+    declared = []  # the denial queryable, held for the session's lifetime
+
     def ready(session: zenoh.Session) -> None:
-        sys.stdout.write(f"{READY} {session.zid()}\n")
-        sys.stdout.flush()
+        if counter is not None:
+            def on_denials(query):
+                with query:
+                    query.reply(denials_key(args.net, args.id), json.dumps(counter.snapshot()).encode())
+
+            declared.append(session.declare_queryable(denials_key(args.net, args.id), on_denials))
+        out.write(f"{READY} {session.zid()}\n")
+        out.flush()
 
     try:
         serve_router(conf, stop, ready)

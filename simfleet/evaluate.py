@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,7 +15,7 @@ from scipy.signal import butter, sosfiltfilt
 @dataclass(frozen=True)
 class ProfileScore:
     rel_error: float  # std of band-passed (estimate − truth) / std of band-passed truth
-    coverage: float  # fraction of grid points whose 95 % band holds the truth (offset removed)
+    coverage: float  # fraction of grid points whose 95 % band holds the drift-controlled truth (+ a level)
     n_points: int
     max_passes: int
 
@@ -58,16 +59,53 @@ def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0, fit_frame
     a = band_pass(est[seg], h)[k:-k]
     b = band_pass(true[seg], h)[k:-k]
     rel = float(np.std(a - b) / np.std(b))
-    # Coverage of the estimand: the edge's drift control removes each pass's ±150 m local linear
-    # trend, so the profile is known relative to that trend (and up to a constant level).
-    from edge.drift import drift_trend
-    from edge.pipeline import EdgeConfig
-
-    cfg = EdgeConfig()
-    t_seg = true[seg] - drift_trend(true[seg], np.ones(len(seg), bool), cfg.drift_points)
+    t_seg = drift_controlled_truth(true[seg], npass[seg])
     off = float(np.mean(est[seg] - t_seg))
     inside = (t_seg + off >= lo[seg]) & (t_seg + off <= hi[seg])
     return ProfileScore(rel, float(np.mean(inside[k:-k])), int(a.size), int(npass.max(initial=0)))
+
+
+def pass_extents(n_passes: np.ndarray) -> list[tuple[int, int]]:
+    """The index ranges ``[a, b)`` of the passes that add up to a pass count per point.
+
+    Every pass covers one contiguous stretch, so a pass starts wherever the count rises and ends
+    wherever it falls; starts are paired with ends in order (first in, first out).
+    """
+    d = np.diff(np.concatenate([[0], np.asarray(n_passes, dtype=np.int64), [0]]))
+    starts = np.repeat(np.arange(d.size), np.maximum(d, 0))
+    ends = np.repeat(np.arange(d.size), np.maximum(-d, 0))
+    return list(zip(starts.tolist(), ends.tolist()))
+
+
+def drift_controlled_truth(true: np.ndarray, n_passes: np.ndarray) -> np.ndarray:
+    """The estimand of the exported profile and its band (up to a constant level).
+
+    Each pass's AP is drift-controlled on the edge: its own ±``drift_half_width_m`` local linear
+    trend, fitted over the stretch that pass covers, is removed (:mod:`edge.drift`). What a pass
+    measures of the road is therefore ``R − T_p R``, ``T_p`` that trend over the pass's own
+    stretch; near a route's ends, where passes start and stop at different points, the ``T_p``
+    differ. The fused profile estimates their average over the passes covering each point, which is
+    what this returns (the trend at full resolution, the ideal the edge's lattice approximates).
+    Pass stretches are recovered from the exported ``n_passes`` (:func:`pass_extents`).
+    """
+    from edge.drift import local_linear_trend
+    from edge.pipeline import EdgeConfig
+
+    H = EdgeConfig().drift_points
+    total = np.zeros(true.size)
+    count = np.zeros(true.size)
+    for (a, b), m in collections.Counter(pass_extents(n_passes)).items():
+        part = true[a:b]
+        total[a:b] += m * (part - local_linear_trend(part, np.ones(part.size, dtype=np.bool_), H))
+        count[a:b] += m
+    has = count > 0
+    if not has.any():
+        return true - local_linear_trend(true, np.ones(true.size, dtype=np.bool_), H)
+    out = np.empty(true.size)
+    out[has] = total[has] / count[has]
+    i = np.arange(true.size)
+    out[~has] = np.interp(i[~has], i[has], out[has])  # gaps the prior bridges: no pass defines them
+    return out
 
 
 def load_truth(path: Path) -> dict:
@@ -85,3 +123,44 @@ def score_vehicles(export_dir: Path, truth: dict) -> dict[str, tuple[float, floa
         true = to_calibration(model, truth["vehicles"][vid])[param]
         errs.setdefault(param, []).append(abs(mean / true - 1.0))
     return {p: (float(np.median(e)), float(np.max(e))) for p, e in errs.items()}
+
+
+@dataclass(frozen=True)
+class IriScore:
+    median_rel_error: float  # over the scored segments: |exported IRI / truth's IRI − 1|
+    max_rel_error: float
+    coverage: float  # fraction of segments whose exported 95 % band holds the truth's IRI
+    n_segments: int
+
+
+def score_iri(export_dir: Path, truth: dict, length_m: float = 100.0, trim_m: float = 0.0) -> IriScore:
+    """The exported IRI per ``length_m`` segment against the IRI of the true profile on the same segments.
+
+    The truth's IRI is computed by the same Golden-Car code on the simulation's profile (the tyre-
+    filtered surface the fleet drove). Segments within ``trim_m`` of the route's ends are left out,
+    as for the profile score. The IRI is a slope statistic and blind to the absolute level and
+    linear trend, so no frame or offset is fitted.
+    """
+    from shared.roughness import iri_segments
+
+    t = pq.read_table(Path(export_dir) / "roughness.parquet").to_pydict()
+    route = truth["route"]["id"]
+    rows = [i for i, (r, L) in enumerate(zip(t["route_id"], t["length_m"])) if r == route and L == length_m]
+    start = np.asarray(t["start_m"])[rows]
+    end = np.asarray(t["end_m"])[rows]
+    est = np.asarray(t["iri_m_per_km"])[rows]
+    lo = np.asarray(t["iri_lo95"])[rows]
+    hi = np.asarray(t["iri_hi95"])[rows]
+    p = truth["profile"]
+    tx = p["start_m"] + p["spacing_m"] * np.arange(len(p["elevation_m"]))
+    ts, te, tv = iri_segments(tx, np.asarray(p["elevation_m"]), length_m)
+    length = truth["route"]["length_m"]
+    keep = (start >= trim_m - 1e-9) & (end <= length - trim_m + 1e-9) & (end - start >= 0.99 * length_m)
+    j = np.clip(np.searchsorted(ts, start - 1e-6), 0, ts.size - 1)
+    keep &= np.isclose(ts[j], start) & np.isclose(te[j], end) & np.isfinite(est)  # the same segment
+    true = tv[j]
+    rel = np.abs(est[keep] / true[keep] - 1.0)
+    inside = (true[keep] >= lo[keep]) & (true[keep] <= hi[keep])
+    if not rel.size:
+        raise ValueError(f"{export_dir}: no {length_m:g} m roughness segment to score")
+    return IriScore(float(np.median(rel)), float(rel.max()), float(inside.mean()), int(rel.size))

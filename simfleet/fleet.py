@@ -41,7 +41,7 @@ from shared.vbi import simulate_vbi
 from shared.vehicles import MODELS, vehicle_from_params
 
 from .replay import CHUNK_S, chunks_of
-from .sim import RUN_IN_M, SUBSTEPS
+from .sim import RUN_IN_M, SIM_GAMMA, SUBSTEPS
 
 log = logging.getLogger("driveby.fleet")
 
@@ -158,7 +158,7 @@ def simulate_drive(plan: DrivePlan, noise_pct: float, sample_rate_hz: float = SA
     rear = float(system.offsets_m.min())
     resp = simulate_vbi(system, world.surface.at, world.surface.slope, x0, plan.speed_mps,
                         (world.length_m - x0) / plan.speed_mps, 1.0 / (sample_rate_hz * SUBSTEPS),
-                        beam=world.beam, bridge_start_m=world.bridge_start_m)
+                        beam=world.beam, bridge_start_m=world.bridge_start_m, gamma=SIM_GAMMA)
     x_cg = resp.x_cg[::SUBSTEPS]
     idx = np.flatnonzero((x_cg >= 0.0) & (x_cg <= world.length_m + rear))
     channels = resp.channels[::SUBSTEPS][idx]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -31,6 +32,8 @@ from .replay import replay
 
 STARTUP_TIMEOUT_S = 120.0  # first start compiles numba kernels into the cache
 IDLE_TIMEOUT_S = 120.0  # no acknowledgement for this long → something is wrong
+SUPERVISE_S = 0.5  # how often the run checks that its daemons are alive
+MAX_RESTARTS = 5  # a daemon that dies more often than this in one run is broken, not unlucky
 
 
 class RunError(Exception):
@@ -75,52 +78,128 @@ def load_inputs(logs_dir: Path, site_path: Path) -> tuple[Site, list[DriveLog]]:
     return site, logs
 
 
-def _spawn(module: str, args: list[str], log_dir: Path) -> subprocess.Popen:
-    out = open(log_dir / f"{module}.log", "wb")
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", module, *args], stdout=out, stderr=subprocess.STDOUT,
-                            stdin=subprocess.DEVNULL, env=env)
+class Daemon:
+    """A supervised daemon process: restarted (up to ``MAX_RESTARTS`` times) when it dies.
+
+    Its pid is kept in ``<work>/<name>.pid`` (as a service manager would), its output appended to
+    ``<work>/<name>.log`` (``name`` defaults to the module). A restarted daemon resumes from its durable state (the cloud's journal,
+    the edge's spool of unacknowledged passes), so a crash costs time, not data.
+    """
+
+    def __init__(self, module: str, args: list[str], work: Path, name: str | None = None):
+        self.module, self.args, self.work = module, args, work
+        self.name = name or module
+        self.restarts = 0
+        self.proc = self._start("wb")
+
+    def _start(self, mode: str) -> subprocess.Popen:
+        out = open(self.work / f"{self.name}.log", mode)
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen([sys.executable, "-m", self.module, *self.args], stdout=out,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        out.close()
+        (self.work / f"{self.name}.pid").write_text(f"{proc.pid}\n")
+        return proc
+
+    def supervise(self) -> None:
+        """Restart the daemon if it has exited; RunError once it keeps dying."""
+        code = self.proc.poll()
+        if code is None:
+            return
+        tail = (self.work / f"{self.name}.log").read_text(errors="replace").strip().splitlines()[-1:] or [""]
+        if code == 2 or self.restarts >= MAX_RESTARTS:  # 2: bad arguments or input; restarting cannot help
+            raise RunError(f"{self.name} daemon exited with code {code}: {tail[0] or '(no output)'}")
+        self.restarts += 1
+        print(f"driveby run: {self.name} daemon exited with code {code}; restarting "
+              f"({self.restarts}/{MAX_RESTARTS})", file=sys.stderr)
+        self.proc = self._start("ab")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+
+    def wait(self, timeout: float) -> None:
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
 
 
-def _stop(procs: list[subprocess.Popen]) -> None:
+def _stop(procs: list[Daemon]) -> None:
     for p in procs:
-        if p.poll() is None:
-            p.terminate()
+        p.stop()
     deadline = time.monotonic() + 15.0
     for p in procs:
-        try:
-            p.wait(max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
+        p.wait(max(0.1, deadline - time.monotonic()))
 
 
 def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = None, calibration: str = "fleet",
         connect: str | None = None, net: str = "net", viewer: bool = False, progress: bool | None = None,
-        rate: float | None = None, align: bool = False) -> RunResult:
+        rate: float | None = None, align: bool = False, shards: int = 1) -> RunResult:
+    """Replay ``logs_dir`` through edge and cloud daemons; ``shards`` > 1 splits the routes among that
+    many cloud daemons behind two routers (as on separate machines) and merges their exports."""
     t0 = time.monotonic()
     site, logs = load_inputs(Path(logs_dir), Path(site_path))
+    routes = sorted(r.id for r in site.routes)
+    if not 1 <= shards <= len(routes):
+        raise RunError(f"--shards: expected 1 to {len(routes)} (the site's routes), got {shards}")
     export_dir = Path(export_dir)
     export_dir.mkdir(parents=True, exist_ok=True)
     work = export_dir / ".run"
     work.mkdir(exist_ok=True)
-    router = run_router() if connect is None else contextlib.nullcontext(connect)
-    with router as endpoint:
-        common = ["--connect", endpoint, "--net", net, "--site", str(Path(site_path).resolve())]
-        cloud_args = [*common, "--id", "cloud-1", "--calibration", calibration] + (["--align"] if align else [])
-        if rrd is not None:
-            cloud_args += ["--rrd", str(Path(rrd).resolve())]
-        if viewer:
-            cloud_args += ["--viewer"]
-        procs = [_spawn("cloud", cloud_args, work),
-                 _spawn("edge", [*common, "--id", "edge-1", "--calibration", calibration], work)]
+    with contextlib.ExitStack() as stack:
+        if connect is not None:
+            endpoints = [connect]
+        else:
+            endpoints = [stack.enter_context(run_router())]
+            if shards > 1:  # a second router joined to the first: shard traffic crosses routers, as between machines
+                endpoints.append(stack.enter_context(run_router(connect=endpoints[:1])))
+        site_arg = ["--net", net, "--site", str(Path(site_path).resolve())]
+        # A run starts from nothing: state left by an earlier run into this directory is not this run's.
+        for stale in work.glob("*-state"):
+            shutil.rmtree(stale, ignore_errors=True)
+        shutil.rmtree(work / "edge-spool", ignore_errors=True)
+        clouds = []
+        for i in range(shards):
+            cid = "cloud-1" if shards == 1 else f"cloud-{i + 1}"
+            args = ["--connect", endpoints[i % len(endpoints)], *site_arg, "--id", cid, "--calibration", calibration,
+                    "--state", str(work / f"{cid}-state")]
+            args += ["--align"] if align else []
+            if shards > 1:
+                args += ["--routes", ",".join(routes[i::shards])]
+            if rrd is not None:
+                path = Path(rrd).resolve()
+                args += ["--rrd", str(path if shards == 1 else path.with_name(f"{path.stem}-{cid}{path.suffix}"))]
+            if viewer:
+                args += ["--viewer"]
+            clouds.append(Daemon("cloud", args, work, name=cid if shards > 1 else "cloud"))
+        edge = Daemon("edge", ["--connect", endpoints[0], *site_arg, "--id", "edge-1", "--calibration", calibration,
+                               "--spool", str(work / "edge-spool")], work)
+        procs = [*clouds, edge]
         try:
-            return _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0)
+            cloud_ids = ["cloud-1"] if shards == 1 else [c.name for c in clouds]
+            return _drive(endpoints[0], net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids)
         finally:
             _stop(procs)
 
 
-def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> RunResult:
+def _merge_exports(parts: list[Path], export_dir: Path) -> list[str]:
+    """One export from the shards' exports: each table is the concatenation of the shards' rows."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    names = sorted({p.name for d in parts for p in d.glob("*.parquet")})
+    written = []
+    for name in names:
+        tables = [pq.read_table(d / name) for d in parts if (d / name).exists()]
+        out = export_dir / name
+        pq.write_table(pa.concat_tables(tables, promote_options="default"), out)
+        written.append(str(out))
+    return written
+
+
+def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids) -> RunResult:
     with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
         alive: set[str] = set()
         ready = threading.Event()
@@ -128,17 +207,21 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
         progressed = threading.Event()
         expected = {(log.meta.vehicle_id, log.meta.pass_id) for log in logs}
         all_done = threading.Event()
-        status: dict = {}
+        statuses: dict[str, dict] = {cid: {} for cid in cloud_ids}
 
         def check_done():
-            if expected <= acked and status.get("settled") and status.get("passes_current", 0) >= len(expected):
+            current = sum(st.get("passes_current", 0) for st in statuses.values())
+            if expected <= acked and all(st.get("settled") for st in statuses.values()) and current >= len(expected):
                 all_done.set()
 
         def on_status(sample):
             try:
-                status.update(json.loads(sample.payload.to_bytes()))
+                cid = str(sample.key_expr).rsplit("/", 1)[-1]
+                body = json.loads(sample.payload.to_bytes())
             except ValueError:
                 return
+            if cid in statuses:
+                statuses[cid] = body
             progressed.set()
             check_done()
 
@@ -149,7 +232,7 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
                 return
             if sample.kind == zenoh.SampleKind.PUT:
                 alive.add(f"{role}/{ident}")
-            if {"cloud/cloud-1", "edge/edge-1"} <= alive:
+            if {f"cloud/{cid}" for cid in cloud_ids} | {"edge/edge-1"} <= alive:
                 ready.set()
 
         def on_ack(sample):
@@ -163,7 +246,7 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
 
         live = session.liveliness().declare_subscriber(keys.alive_keyexpr(net), on_alive, history=True)
         acks = session.declare_subscriber(keys.ack_keyexpr(net), on_ack)
-        stat = session.declare_subscriber(keys.status_key(net, "cloud-1"), on_status)
+        stats_subs = [session.declare_subscriber(keys.status_key(net, cid), on_status) for cid in cloud_ids]
         _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start")
         publisher_opts = dict(congestion_control=zenoh.CongestionControl.BLOCK)
 
@@ -174,42 +257,66 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0) -> 
         feeder = threading.Thread(target=replay, args=(logs, publish, net, rate, stop), daemon=True)
         feeder.start()
         with Progress(len(expected), "passes", enabled=progress) as bar:
+            idle_since = time.monotonic()
             while not all_done.is_set():
-                progressed.clear()
-                if not progressed.wait(IDLE_TIMEOUT_S) and not all_done.is_set():
-                    _check_alive(procs, work)
+                # Wake at least every SUPERVISE_S: a dead daemon is restarted promptly, not at the idle limit.
+                if progressed.wait(SUPERVISE_S):
+                    progressed.clear()
+                    idle_since = time.monotonic()
+                _check_alive(procs, work)
+                if time.monotonic() - idle_since > IDLE_TIMEOUT_S and not all_done.is_set():
                     stop.set()
                     missing = sorted(p for _, p in expected - acked)
                     raise RunError(f"timed out: no pass acknowledged for {IDLE_TIMEOUT_S:.0f} s; "
                                    f"{len(missing)} pass(es) missing, e.g. {missing[:3]}")
-                _check_alive(procs, work)
                 bar.advance(len(acked & expected) - bar.done)
-                if status.get("calibration_rounds"):
-                    bar.label = f"passes (calibration round {status['calibration_rounds']})"
+                rounds = max(st.get("calibration_rounds", 0) for st in statuses.values())
+                if rounds:
+                    bar.label = f"passes (calibration round {rounds})"
         feeder.join(timeout=10.0)
-        replies = list(session.get(keys.control_key(net, "cloud-1", "export") + f"?dir={export_dir.resolve()}",
-                                   timeout=60.0))
+        sharded = len(cloud_ids) > 1
+        bodies = []
+        for cid in cloud_ids:
+            target = (work / f"export-{cid}") if sharded else export_dir
+            replies = list(session.get(keys.control_key(net, cid, "export") + f"?dir={target.resolve()}",
+                                       timeout=60.0))
+            body = None
+            for r in replies:
+                if r.ok is not None:
+                    body = json.loads(r.ok.payload.to_bytes())
+                else:
+                    raise RunError(f"{cid} export failed: {r.err.payload.to_bytes().decode(errors='replace')}")
+            if body is None:
+                raise RunError(f"{cid} did not answer the export request")
+            bodies.append(body)
         acks.undeclare()
-        stat.undeclare()
+        for sub in stats_subs:
+            sub.undeclare()
         live.undeclare()
-    body = None
-    for r in replies:
-        if r.ok is not None:
-            body = json.loads(r.ok.payload.to_bytes())
-        else:
-            raise RunError(f"cloud export failed: {r.err.payload.to_bytes().decode(errors='replace')}")
-    if body is None:
-        raise RunError("cloud did not answer the export request")
-    return RunResult(len(expected), len(acked & expected), body["written"], body["stats"], time.monotonic() - t0,
-                     int(status.get("calibration_rounds", 0)))
+    written = _merge_exports([work / f"export-{cid}" for cid in cloud_ids], export_dir) if sharded \
+        else bodies[0]["written"]
+    stats = bodies[0]["stats"] if not sharded else _sum_stats([b["stats"] for b in bodies])
+    rounds = max(st.get("calibration_rounds", 0) for st in statuses.values())
+    return RunResult(len(expected), len(acked & expected), written, stats, time.monotonic() - t0, int(rounds))
+
+
+def _sum_stats(parts: list[dict]) -> dict:
+    """The shards' aggregator counters added up (nested counters by reason too)."""
+    out: dict = {}
+    for st in parts:
+        for k, v in st.items():
+            if isinstance(v, dict):
+                sub = out.setdefault(k, {})
+                for r, n in v.items():
+                    sub[r] = sub.get(r, 0) + n
+            elif isinstance(v, (int, float)):
+                out[k] = out.get(k, 0) + v
+    return out
 
 
 def _check_alive(procs, work) -> None:
     for p in procs:
-        if p.poll() is not None:
-            name = p.args[2]
-            tail = (work / f"{name}.log").read_text(errors="replace").strip().splitlines()[-1:] or ["(no output)"]
-            raise RunError(f"{name} daemon exited with code {p.returncode}: {tail[0]}")
+        p.supervise()
 
 
 def _wait(event: threading.Event, timeout: float, procs, work, what: str) -> None:

@@ -140,3 +140,9 @@ def fleet_class(scenario: Scenario) -> tuple[dict[str, float], dict[str, float]]
     # Axle positions are nearly fixed by design; everything else varies ~10 % across a class.
     std = {k: (0.02 if k in ("D1", "D2") else 0.10) * mean[k] for k in mean}
     return mean, std
+
+
+# Rail worlds (one instrumented carriage, batches of runs): simfleet.rail.
+from .rail import rail_scenarios  # noqa: E402
+
+SCENARIOS.update(rail_scenarios())

@@ -210,7 +210,7 @@ def generic_inverse(system, channels, dt, initial, gamma=0.8, beta=None):
     n, nc = system.n_dof, system.n_contacts
     measured = [ch.dof for ch in system.channels]
     free = [i for i in range(n) if i not in measured]
-    u, v, a, y, ydot = (np.array(x, float) for x in initial)
+    u, v, a, y, ydot = (np.array(x, float) for x in initial[:5])  # (ÿ is for the Newmark contact rule)
     out = [y.copy()]
     for t in range(1, len(channels)):
         # Newmark predictors: what u, v at t+Δt would be with zero new acceleration

@@ -44,5 +44,64 @@ def test_realign_puts_values_back_on_true_chainage():
                          speed_mps=20.0, t_first=0.0, t_last=1.0, seq=0)
     (out,) = realign([seg], al)
     assert out.identity == seg.identity
-    assert np.max(np.abs(out.values - f(out.chainage_m))) < 2e-5  # linear interpolation of a 7 m sine
+    assert np.max(np.abs(out.values - f(out.chainage_m))) < 1e-7  # cubic interpolation of a 7 m sine
     assert x_true[0] <= out.chainage_m[0]
+
+
+def test_a_stretch_that_disagrees_with_the_consensus_does_not_bias_the_alignment():
+    """Windows are fitted by a robust line: 30 m of the pass on a different surface (a patch, another
+    lane) is an outlier, not a shift."""
+    h = 0.05
+    profile = tyre_filter(iso8608_profile(260.0, 0.01, "A", seed=8))
+    other = tyre_filter(iso8608_profile(260.0, 0.01, "A", seed=9))
+    x_true = np.arange(10.0, 230.0, h)
+    truth = profile.at(x_true)
+    patch = (x_true > 100.0) & (x_true < 130.0)
+    truth[patch] = other.at(x_true[patch])
+    al_true = Alignment(3.1, -0.018, float(x_true[0]), 1.0)
+    x_rep = al_true.true_to_reported(x_true)
+    grid = np.arange(np.ceil(x_rep[0] / h), np.floor(x_rep[-1] / h)) * h
+    ap = np.interp(grid, x_rep, truth)
+    xc = np.arange(0.0, 250.0, h)
+    al = estimate_alignment(grid, ap, xc, profile.at(xc))
+    assert al is not None
+    assert np.max(np.abs(al.true_to_reported(x_true) - x_rep)) < 0.05
+
+
+def test_realigned_segments_carry_the_true_speed_and_their_own_time_span():
+    """The calibration's time base is chainage over time: after re-gridding both must be true."""
+    h, v_true, eps = 0.05, 20.0, 0.02
+    al = Alignment(shift_m=0.7, stretch=eps, x_ref_m=0.0, score=1.0)
+    x_rep = np.arange(1000, 2000) * h
+    t = (al.reported_to_true(x_rep)) / v_true  # the vehicle passed true chainage x at x / v
+    seg = ApSegment.make(np.zeros(x_rep.size), np.full(x_rep.size, 1e-4), vehicle_id="v", pass_id="p",
+                         route_id="R1", tile=1, axle=1, start_index=1000, spacing_m=h, calib_version=0,
+                         speed_mps=v_true * (1 + eps), t_first=float(t[0]), t_last=float(t[-1]), seq=0)
+    (out,) = realign([seg], al)
+    assert out.speed_mps == pytest.approx(v_true, rel=1e-12)
+    x = out.chainage_m
+    assert (x[-1] - x[0]) / (out.t_last - out.t_first) == pytest.approx(v_true, rel=1e-9)
+    assert out.t_first == pytest.approx(x[0] / v_true, abs=1e-9)
+
+
+@pytest.mark.parametrize("stretch", [0.021, -0.017])
+def test_abutting_segments_still_abut_after_realignment(stretch):
+    """No one-point holes or overlaps at the seams (a hole costs the calibration metres around it)."""
+    h = 0.05
+    al = Alignment(shift_m=-1.3, stretch=stretch, x_ref_m=5.0, score=1.0)
+
+    def f(x):
+        return 1e-3 * np.sin(2 * np.pi * x / 3.7)
+
+    segs = []
+    for k, (a, b) in enumerate([(200, 1000), (1000, 2000), (2000, 2600), (2700, 3000)]):  # a real hole
+        x_rep = np.arange(a, b) * h
+        segs.append(ApSegment.make(f(al.reported_to_true(x_rep)), np.full(b - a, 1e-4), vehicle_id="v", pass_id="p",
+                                   route_id="R1", tile=k, axle=1, start_index=a, spacing_m=h, calib_version=0,
+                                   speed_mps=20.0, t_first=a * h / 20, t_last=(b - 1) * h / 20, seq=k))
+    out = sorted(realign(segs, al), key=lambda s: s.start_index)
+    assert [s.tile for s in out] == [0, 1, 2, 3]
+    assert out[0].end_index == out[1].start_index and out[1].end_index == out[2].start_index
+    assert out[3].start_index - out[2].end_index > 50  # the hole stays a hole
+    for s in out:
+        assert np.max(np.abs(s.values - f(s.chainage_m))) < 1e-7

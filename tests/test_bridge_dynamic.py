@@ -45,7 +45,7 @@ def test_moving_force_with_the_measured_wheel_load_reproduces_the_coupled_deflec
 def test_dynamic_model_removes_the_quasi_static_bias():
     """Noise-free passes of one vehicle (known weight) at 15–22 m/s over the healthy bridge."""
     setup = Setup.of(BRIDGE)
-    edge = EdgeSettings(vehicle_dt_s=1 / 2000)  # the simulator's vehicle integrator
+    edge = EdgeSettings()
     pds = []
     for i, v in enumerate(np.linspace(15.0, 22.0, 6)):
         segs, _, _ = _pass(float(v))

@@ -10,6 +10,7 @@ import pytest
 from shared.vehicles import MODELS, BogieHalfCar, HalfCar, QuarterCar, SprungMass, vehicle_from_params
 from shared.vehicles.base import GRAVITY
 from shared.vehicles.bogie import table_3_2
+from shared.vehicles.carriage import table_3_1
 from shared.vehicles.half_car import TABLE_2_1
 
 QC = dict(M=4450.0, m=420.0, K=5.0e5, k=1.95e6, c=2.0e4)
@@ -82,7 +83,7 @@ def test_static_wheel_loads_carry_the_weight(vehicle):
 def test_every_model_round_trips_its_params():
     for name, cls in MODELS.items():
         v = {"sprung_mass": SprungMass(m=1.0, k=2.0), "quarter_car": QuarterCar(**QC),
-             "half_car": HalfCar(**TABLE_2_1), "bogie_half_car": table_3_2()}[name]
+             "half_car": HalfCar(**TABLE_2_1), "bogie_half_car": table_3_2(), "carriage": table_3_1()}[name]
         assert vehicle_from_params(name, v.params()) == v
         assert isinstance(v, cls)
     assert isinstance(table_3_2(), BogieHalfCar)

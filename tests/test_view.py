@@ -281,3 +281,37 @@ def test_rrd_verify_accepts_the_file(rrd, tmp_path):
     done = subprocess.run([str(cli), "rrd", "verify", str(rrd)], capture_output=True, text=True, env=env,
                           timeout=60)
     assert done.returncode == 0, done.stderr
+
+
+def test_bridge_mril_indicators_and_summary(rrd):
+    from cloud.view import MRIL_MM_PER_MN
+
+    x = np.linspace(0.0, 20.0, 5)
+    J = np.array([0.0, 2.7e-9, 3.8e-9, 2.7e-9, 0.0])
+    with View(rrd, bridges=["B1"], clock=FakeClock()) as view:
+        view.set_pass(4)
+        view.log_bridge_mril("B1", x, J, 0.9 * J)
+        view.log_bridge_indicators("B1", 10.0, 9.5, 0.97)
+        view.log_bridge_summary("B1", "**B1** after 4 passes")
+        with pytest.raises(ValueError):
+            view.log_bridge_mril("B1", x, J[:3])
+    (cur,) = temporal_rows(rrd, "/bridge/B1/mril/current")
+    (base,) = temporal_rows(rrd, "/bridge/B1/mril/baseline")
+    assert cur["pass"] == 4
+    pts = np.asarray(cur["LineStrips2D:strips"][0])
+    np.testing.assert_allclose(pts[:, 0], x)
+    # Deflection is drawn downwards: stored y = SCREEN_Y · (−J) in mm/MN.
+    np.testing.assert_allclose(pts[:, 1], -SCREEN_Y * J * MRIL_MM_PER_MN, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(base["LineStrips2D:strips"][0])[:, 1], 0.9 * pts[:, 1], rtol=1e-6)
+    (ind,) = temporal_rows(rrd, "/bridge/B1/indicators")
+    np.testing.assert_allclose(ind["Scalars:scalars"], [10.0, 9.5, 97.0])
+    (doc,) = temporal_rows(rrd, "/bridge/B1/summary")
+    assert doc["TextDocument:text"][0].startswith("**B1**")
+
+
+def test_blueprint_takes_registry_bridges():
+    from shared.registry import Bridge
+
+    b = Bridge(id="B1", route="R1", start_chainage_m=100.0, span_m=20.0, n_elements=20, E_pa=35e9, I_m4=1.25,
+               mass_per_m=37500.0, depth_m=1.0, damping_ratio=0.03, supports="simply_supported")
+    assert isinstance(blueprint({"R1": 140.0}, [b]), rr.blueprint.Blueprint)

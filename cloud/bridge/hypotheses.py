@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -136,6 +136,11 @@ class Kernels:
         return cls(setup, basis.coefficients(G.T).T, beam.E_pa * beam.I_m4, basis.coefficients(J),
                    np.einsum("bx,xij->bij", basis.projector, zz), Cf)
 
+    @property
+    def design_area(self) -> float:
+        """∫J dx of the design (pinned) span, m²/N."""
+        return float(self.bearing_J @ self.setup.basis.integrals)
+
     def simply_supported(self, ratio: np.ndarray) -> np.ndarray:
         """Coefficients of J for element stiffness ratios (K, n_e) → (K, n_b)."""
         return (1.0 / (self.ei_design * np.atleast_2d(ratio))) @ self.element.T
@@ -199,13 +204,19 @@ def _summary(values: np.ndarray, p: np.ndarray) -> tuple[float, float, float]:
 
 
 def assess(stats: Sequence[VehicleStats], setup: Setup, weight_prior: WeightPrior,
-           settings: HypothesisSettings = HypothesisSettings(), kernels: Kernels | None = None) -> Assessment:
+           settings: HypothesisSettings = HypothesisSettings(), kernels: Kernels | None = None,
+           level_loglik: Callable[[np.ndarray], np.ndarray] | None = None) -> Assessment:
     """Compare the hypotheses on the data summarised by ``stats`` and decide the alarm.
 
     The stats' dynamic correction columns (if any) are used as they are for every hypothesis: they
     were computed at the fleet's estimated stiffness level (:mod:`cloud.bridge.dynamic`), and
     rescaling them with each hypothesis' compliance is worse than keeping them (the excess depends
     on the frequency, not only on the amplitude: measured, it moved a 10 % loss to 8 %).
+
+    With ε fixed, though, the likelihood misses what the bridge's vibration says about its
+    stiffness — most of the information on the global level at 15–22 m/s. ``level_loglik(g)``
+    adds it back as a function of each node's effective log level ``g = log(area of the design
+    MR-IL / area of the node's)`` (see :meth:`~cloud.bridge.estimator.BridgeEstimator.estimate`).
     """
     S = Stacked.of(stats, weight_prior)
     kern = kernels or Kernels.of(setup)
@@ -217,6 +228,8 @@ def assess(stats: Sequence[VehicleStats], setup: Setup, weight_prior: WeightPrio
         if grid.name not in names:
             continue
         ll = marginal_loglik_batch(S, grid.a) + grid.log_weight
+        if level_loglik is not None:
+            ll = ll + level_loglik(np.log(kern.design_area / (grid.a @ kern.setup.basis.integrals)))
         top = ll.max()
         z = top + math.log(np.sum(np.exp(ll - top)))
         p = np.exp(ll - z)

@@ -55,20 +55,15 @@ class EdgeSettings:
     ``correction_cutoff_hz``: the discretisation correction is applied in full below this
     frequency and faded out by 1.5× it (the bridge signal lives below ~10 Hz).
 
-    ``vehicle_dt_s``/``vehicle_gamma`` describe the *true* dynamics of the vehicles: ``None``
-    (default) is continuous-time physics, as for real vehicles. A simulated fleet whose vehicles
-    are themselves integrated by Newmark-β (``simfleet``: γ = 0.8 at 2 kHz) is a slightly
-    different system — 0.4 % in amplitude and 1.4 mrad at the body mode — and behind a bridge's
-    entrance ramp that difference is as large as the deflection (measured in
-    ``tests/test_bridge_passdata.py``); give the simulator's step here to remove it.
+    The vehicles' own dynamics are taken as continuous-time physics: nothing here describes how
+    data were made (a simulator must integrate accurately enough to be physics, as ``simfleet``
+    does with γ = ½ at 2 kHz).
     """
 
     sample_rate_hz: float = 500.0
     gamma: float = 0.8
     beta: float | None = None
     correction_cutoff_hz: float = 30.0
-    vehicle_dt_s: float | None = None
-    vehicle_gamma: float = 0.8
 
     @property
     def dt(self) -> float:
@@ -200,8 +195,8 @@ def continuous_transfer(system: VehicleSystem, freqs_hz: np.ndarray) -> np.ndarr
 
 
 def correction_response(system: VehicleSystem, freqs_hz: np.ndarray, edge: EdgeSettings) -> np.ndarray:
-    """``T⁻¹H``: maps the edge's AP to the AP of an exact inverse of the vehicles' true dynamics
-    (``T``: continuous, or the discrete system of ``edge.vehicle_dt_s``), (n_f, n_c, n_c).
+    """``T⁻¹H``: maps the edge's AP to the AP of an exact inverse of the vehicles' continuous
+    dynamics ``T``, (n_f, n_c, n_c).
 
     Identity at 0 Hz and faded to identity between ``edge.correction_cutoff_hz`` and 1.5× it.
     """
@@ -216,10 +211,7 @@ def correction_response(system: VehicleSystem, freqs_hz: np.ndarray, edge: EdgeS
     use = (f > 0) & (fade > 0)
     if use.any():
         H = newmark_transfer(system, f[use], edge.dt, edge.gamma, edge.beta)
-        if edge.vehicle_dt_s is None:
-            T = continuous_transfer(system, f[use])
-        else:
-            T = newmark_transfer(system, f[use], edge.vehicle_dt_s, edge.vehicle_gamma)
+        T = continuous_transfer(system, f[use])
         out[use] = eye + fade[use, None, None] * (np.linalg.solve(T, H) - eye)
     return out
 

@@ -28,6 +28,11 @@ recursion on the banded factor, O(P b²)), and posterior draws are ``μ + L⁻�
 every block are NaN. Blocks are solved independently; the random walk's coupling across a gap
 longer than ``max_gap_m`` is weak and ignored. The result is cached per route until the next
 update or retract touching it.
+
+The band here is this posterior's, i.e. it believes the white (or AR(1)) error model. The passes'
+real errors are coloured (integration drift at long wavelengths, calibration error in between);
+what they add is measured from the passes' disagreement by :mod:`.long_wave`, which the cloud
+applies to the exported band.
 """
 
 from __future__ import annotations

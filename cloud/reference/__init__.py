@@ -2,17 +2,20 @@
 
 * :mod:`.cross_entropy` — fleet calibration by Cross-Entropy optimisation with injections (§2.4);
 * :mod:`.mcmc` — the Bayesian profile and vehicle properties by Metropolis-within-Gibbs (§4.3),
-  plus the exact Gaussian posterior of the same model for fixed vehicles.
+  plus the exact Gaussian posterior of the same model for fixed vehicles, and the bridge's element
+  second moments of area with the vehicles' weights (§4.5.4).
 
 They are deliberately faithful rather than fast; the production estimators live in
 ``cloud/estimators`` and ``cloud/calibration.py``. Nothing in the daemons imports this package.
 """
 
 from .cross_entropy import cross_entropy_fleet, fleet_aps, objective, population_aps
-from .mcmc import (THESIS_PROPOSAL_SD, McmcResult, ProfilePosterior, exact_profile_posterior, forward_channels,
-                   mcmc_profile_and_vehicles, response_matrix)
+from .mcmc import (THESIS_PROPOSAL_SD, BridgeMcmcResult, McmcResult, ProfilePosterior, exact_profile_posterior, forward_channels,
+                   mcmc_bridge_elements, mcmc_profile_and_vehicles, response_matrix)
 
 __all__ = [
+    "BridgeMcmcResult",
+    "mcmc_bridge_elements",
     "McmcResult",
     "ProfilePosterior",
     "THESIS_PROPOSAL_SD",

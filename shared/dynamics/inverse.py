@@ -9,7 +9,10 @@ serves every :class:`~shared.vehicles.VehicleSystem`:
    DOFs (axles, or a carriage body) and the contact forces g = kc·y + cc·ẏ — the thesis's
    elimination (eq. 2.23–2.25, B.31) is this solve written out for one model;
 3. the profile follows from g: y = g/kc for a tyre (eq. 2.16, 2.31), or, where the contact has a
-   damper (bogie on the rail), from the first-order ODE kc·y + cc·ẏ = g by the trapezoidal rule.
+   damper (bogie on the rail), from the first-order ODE kc·y + cc·ẏ = g by the trapezoidal rule
+   (``contact_rule="trapezoid"``, default), or by Newmark's own (γ, β) relations between y, ẏ and ÿ
+   (``contact_rule="newmark"``: the rule a coupled train–track Newmark simulation obeys, whose wheel
+   displacement *is* the AP; the two coincide for γ = ½, β = ¼).
 
 For fixed vehicle parameters the step is a linear time-invariant map, so it is compiled once into
 a state-space recursion  s' = A s + B z,  y = C s + D z  (probing the readable step with unit
@@ -37,26 +40,35 @@ from .newmark import NewmarkConstants, newmark_constants
 
 
 class InverseState(NamedTuple):
-    """Newmark state of every DOF plus the contact ODE state (y, ẏ) of each contact."""
+    """Newmark state of every DOF plus the contact ODE state (y, ẏ, ÿ) of each contact.
+
+    ``yddot`` is only used by the ``"newmark"`` contact rule; None reads as zeros.
+    """
 
     u: np.ndarray
     v: np.ndarray
     a: np.ndarray
     y: np.ndarray
     ydot: np.ndarray
+    yddot: np.ndarray | None = None
 
     @classmethod
     def zeros(cls, system: VehicleSystem) -> "InverseState":
         n, nc = system.n_dof, system.n_contacts
-        return cls(np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(nc), np.zeros(nc))
+        return cls(np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(nc), np.zeros(nc), np.zeros(nc))
 
     def as_vector(self) -> np.ndarray:
-        return np.concatenate(self)
+        yddot = np.zeros(len(self.y)) if self.yddot is None else self.yddot
+        return np.concatenate([self.u, self.v, self.a, self.y, self.ydot, yddot])
 
     @classmethod
     def from_vector(cls, system: VehicleSystem, s: np.ndarray) -> "InverseState":
         n, nc = system.n_dof, system.n_contacts
-        return cls(s[:n], s[n : 2 * n], s[2 * n : 3 * n], s[3 * n : 3 * n + nc], s[3 * n + nc :])
+        return cls(s[:n], s[n : 2 * n], s[2 * n : 3 * n], s[3 * n : 3 * n + nc], s[3 * n + nc : 3 * n + 2 * nc],
+                   s[3 * n + 2 * nc :])
+
+
+CONTACT_RULES = ("trapezoid", "newmark")
 
 
 def _solve_matrix(system: VehicleSystem, c: NewmarkConstants) -> tuple[np.ndarray, np.ndarray]:
@@ -78,9 +90,14 @@ def _solve_matrix(system: VehicleSystem, c: NewmarkConstants) -> tuple[np.ndarra
 
 
 def inverse_step(
-    system: VehicleSystem, c: NewmarkConstants, state: InverseState, z: np.ndarray, _solve=None
+    system: VehicleSystem, c: NewmarkConstants, state: InverseState, z: np.ndarray, _solve=None,
+    contact_rule: str = "trapezoid",
 ) -> tuple[InverseState, np.ndarray]:
-    """Advance one sample: ``z`` holds the measured channels at t+Δt; returns (state, y at t+Δt)."""
+    """Advance one sample: ``z`` holds the measured channels at t+Δt; returns (state, y at t+Δt).
+
+    ``contact_rule`` integrates a damped contact's kc·y + cc·ẏ = g: ``"trapezoid"`` or ``"newmark"``
+    (see the module docstring).
+    """
     S_inv, free = _solve if _solve is not None else _solve_matrix(system, c)
     dt, gamma, beta = c.dt, c.gamma, c.beta
     u, v, a = state.u.copy(), state.v.copy(), state.a.copy()
@@ -110,14 +127,22 @@ def inverse_step(
     g = x[len(free) :]
     y = np.empty(system.n_contacts)
     ydot = np.zeros(system.n_contacts)
+    yddot = np.zeros(system.n_contacts)
+    y_acc = np.zeros(system.n_contacts) if state.yddot is None else state.yddot
     for i in range(system.n_contacts):
         kc, cc = system.kc[i], system.cc[i]
         if cc == 0.0:
             y[i] = g[i] / kc
-        else:  # kc·y + cc·ẏ = g, trapezoidal rule (A-stable, second order)
+        elif contact_rule == "trapezoid":  # kc·y + cc·ẏ = g, trapezoidal rule (A-stable, second order)
             y[i] = (g[i] + cc * (2.0 * state.y[i] / dt + state.ydot[i])) / (kc + 2.0 * cc / dt)
             ydot[i] = 2.0 * (y[i] - state.y[i]) / dt - state.ydot[i]
-    return InverseState(u, v, a, y, ydot), y
+        else:  # Newmark: y, ẏ are the predictors plus βΔt²ÿ, γΔtÿ; solve kc·y + cc·ẏ = g for ÿ
+            y_pred = state.y[i] + dt * state.ydot[i] + dt * dt * (0.5 - beta) * y_acc[i]
+            v_pred_c = state.ydot[i] + dt * (1.0 - gamma) * y_acc[i]
+            yddot[i] = (g[i] - kc * y_pred - cc * v_pred_c) / (kc * beta * dt * dt + cc * gamma * dt)
+            y[i] = y_pred + beta * dt * dt * yddot[i]
+            ydot[i] = v_pred_c + gamma * dt * yddot[i]
+    return InverseState(u, v, a, y, ydot, yddot), y
 
 
 
@@ -145,6 +170,7 @@ class InverseModel(NamedTuple):
     system: VehicleSystem
     constants: NewmarkConstants
     realisation: "Realisation | None" = None
+    contact_rule: str = "trapezoid"
 
 
 class Realisation(NamedTuple):
@@ -345,11 +371,18 @@ def _agrees(fast: Realisation, dense: Realisation, A: np.ndarray, n_check: int =
     return bool(np.isfinite(y_fast).all() and np.abs(y_fast - y_dense).max() <= 1e-9 * max(ref, 1e-300))
 
 
-def build_inverse(system: VehicleSystem, dt: float, gamma: float = 0.8, beta: float | None = None) -> InverseModel:
-    """Compile the inverse step of ``system`` at time step ``dt`` (s) into state-space matrices."""
+def build_inverse(
+    system: VehicleSystem, dt: float, gamma: float = 0.8, beta: float | None = None, contact_rule: str = "trapezoid"
+) -> InverseModel:
+    """Compile the inverse step of ``system`` at time step ``dt`` (s) into state-space matrices.
+
+    ``contact_rule``: how a damped contact's first-order ODE is integrated (module docstring).
+    """
+    if contact_rule not in CONTACT_RULES:
+        raise ValueError(f"contact_rule: must be one of {CONTACT_RULES}, got {contact_rule!r}")
     c = newmark_constants(dt, gamma, beta)
     solve = _solve_matrix(system, c)
-    n_state = 3 * system.n_dof + 2 * system.n_contacts
+    n_state = 3 * system.n_dof + 3 * system.n_contacts
     n_in, n_out = len(system.channels), system.n_contacts
     A = np.zeros((n_state, n_state))
     B = np.zeros((n_state, n_in))
@@ -359,12 +392,12 @@ def build_inverse(system: VehicleSystem, dt: float, gamma: float = 0.8, beta: fl
     for j in range(n_state):
         e = zero_state.copy()
         e[j] = 1.0
-        s1, y = inverse_step(system, c, InverseState.from_vector(system, e), zero_in, solve)
+        s1, y = inverse_step(system, c, InverseState.from_vector(system, e), zero_in, solve, contact_rule)
         A[:, j], C[:, j] = s1.as_vector(), y
     for m in range(n_in):
         e = zero_in.copy()
         e[m] = 1.0
-        s1, y = inverse_step(system, c, InverseState.from_vector(system, zero_state), e, solve)
+        s1, y = inverse_step(system, c, InverseState.from_vector(system, zero_state), e, solve, contact_rule)
         B[:, m], D[:, m] = s1.as_vector(), y
     # Drop state entries nothing reads (e.g. a tyre contact's ẏ), repeatedly.
     keep = np.arange(n_state)
@@ -379,7 +412,7 @@ def build_inverse(system: VehicleSystem, dt: float, gamma: float = 0.8, beta: fl
     decaying = eig[eig < 1.0 - neutral_tol]
     rho = float(decaying.max()) if decaying.size else 0.0
     n_warmup = 1 if rho <= 1e-12 else int(math.ceil(math.log(1e-4) / math.log(rho)))
-    return InverseModel(A, B, C, D, keep, max(n_warmup, 1), system, c, realise(A, B, C, D, neutral_tol))
+    return InverseModel(A, B, C, D, keep, max(n_warmup, 1), system, c, realise(A, B, C, D, neutral_tol), contact_rule)
 
 
 # Only FMA contraction: no reassociation, so every sample is computed by the same operations in the
@@ -585,9 +618,10 @@ def apparent_profile(
     initial: InverseState | None = None,
     gamma: float = 0.8,
     beta: float | None = None,
+    contact_rule: str = "trapezoid",
 ) -> np.ndarray:
     """The whole-record convenience: AP (n_samples, n_contacts) from channels (n_samples, n_channels)."""
-    return InverseStream(build_inverse(system, dt, gamma, beta), initial).update(channels)
+    return InverseStream(build_inverse(system, dt, gamma, beta, contact_rule), initial).update(channels)
 
 
 class InverseBank:

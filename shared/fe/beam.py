@@ -219,6 +219,17 @@ def _element_mass(le: float, mu: float) -> np.ndarray:
     return mu * le / 420.0 * m
 
 
+def element_matrices(le: float, ei: np.ndarray, mass_per_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Stiffness and consistent mass of Hermite elements of length ``le`` (m), for assembling other
+    beams (e.g. a rail on discrete supports): ``ei`` (n_e,) N·m², ``mass_per_m`` kg/m.
+
+    Returns (ke, me), each (n_e, 4, 4), DOFs (w_start, θ_start, w_end, θ_end).
+    """
+    ei = np.atleast_1d(np.asarray(ei, dtype=float))
+    me = np.broadcast_to(_element_mass(le, mass_per_m), (len(ei), 4, 4))
+    return _element_stiffness(le, ei), np.array(me)
+
+
 def _free_dofs(n_elements: int) -> np.ndarray:
     """Global indices of the DOFs left after removing w_0 and w_n."""
     n_total = 2 * (n_elements + 1)

@@ -2,13 +2,14 @@
 
 from .base import GRAVITY, Channel, Vehicle, VehicleSystem
 from .bogie import BogieHalfCar
+from .carriage import Carriage
 from .half_car import HalfCar
 from .quarter_car import QuarterCar
 from .sprung_mass import SprungMass
 
-#: interfaces.md §1 ``vehicle_model`` → parameter class (the carriage joins with the rail work).
+#: interfaces.md §1 ``vehicle_model`` → parameter class.
 MODELS: dict[str, type[Vehicle]] = {
-    cls.model: cls for cls in (SprungMass, QuarterCar, HalfCar, BogieHalfCar)
+    cls.model: cls for cls in (SprungMass, QuarterCar, HalfCar, BogieHalfCar, Carriage)
 }
 
 
@@ -22,4 +23,4 @@ def vehicle_from_params(model: str, params: dict[str, float]) -> Vehicle:
 
 
 __all__ = ["GRAVITY", "Channel", "Vehicle", "VehicleSystem", "SprungMass", "QuarterCar", "HalfCar",
-           "BogieHalfCar", "MODELS", "vehicle_from_params"]
+           "BogieHalfCar", "Carriage", "MODELS", "vehicle_from_params"]

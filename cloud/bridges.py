@@ -1,0 +1,191 @@
+"""Bridge monitoring in the cloud: the site's bridges fed from completed passes, estimated, alarmed.
+
+Transport-free, like :class:`cloud.node.Cloud` which owns it. One
+:class:`~cloud.bridge.estimator.BridgeEstimator` per bridge of the registry. The daemon calls
+:meth:`BridgeMonitor.sync` and :meth:`BridgeMonitor.estimate` when the bus is quiet, never per
+segment: a pass's bridge data costs a forward simulation of the vehicle (~50 ms) and an estimate
+of the whole bridge ~0.5 s.
+
+``sync`` reconciles what each estimator holds with the aggregator: every acknowledged pass at its
+vehicle's current calibration is (re-)added with the segments the road estimators hold for it
+(chainage-aligned where alignment moved it) and the parameters the edge computed it with; a pass
+recomputed under a new calibration, or re-aligned, replaces its old version (mirroring the road
+side's retract/re-add); a pass that no longer crosses the bridge is removed. A pass whose vehicle
+has been recalibrated since is kept as it is until its recomputation is acknowledged.
+
+The alarm is a state: :meth:`BridgeMonitor.estimate` returns an :class:`~shared.schema.Alarm` only
+when a bridge's damage decision changes — raised (``kind`` = the damage hypothesis: crack,
+global, bearings) or cleared (``kind`` = ``"cleared"``) — never once per pass.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import logging
+from collections import Counter
+from collections.abc import Callable, Mapping
+
+from shared.registry import Bridge, Site
+from shared.schema import Alarm, ApSegment
+
+from .bridge.estimator import BridgeEstimate, BridgeEstimator, BridgeSettings, class_weight_prior
+
+log = logging.getLogger(__name__)
+
+CLEARED = "cleared"  # Alarm.kind of the message that ends an alarm
+
+
+def _utc_now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+
+
+@dataclasses.dataclass
+class _Fed:
+    calib_version: int
+    segments: tuple[ApSegment, ...]  # the held segment objects the pass was last built from
+
+
+@dataclasses.dataclass
+class BridgeState:
+    """One bridge: its estimator, what was fed to it, its latest estimate and alarm state."""
+
+    bridge: Bridge
+    estimator: BridgeEstimator
+    fed: dict[tuple[str, str], _Fed] = dataclasses.field(default_factory=dict)
+    dirty: bool = False  # passes changed since the last estimate
+    latest: BridgeEstimate | None = None
+    alarmed: bool = False
+    version: int = 0  # estimates made so far
+
+
+class BridgeMonitor:
+    """The bridges of a site. ``settings``: how every bridge is estimated (deck, dynamics, alarm)."""
+
+    def __init__(self, site: Site, settings: BridgeSettings = BridgeSettings(), clock: Callable[[], str] = _utc_now):
+        self.site, self.settings, self.clock = site, settings, clock
+        self.skipped: Counter[str] = Counter()  # passes not used, by reason
+        self.model, prior = self._weight_prior(site)
+        self.bridges: dict[str, BridgeState] = {}
+        if prior is None:
+            if site.bridges:
+                log.warning("no single-contact vehicle class in the registry: bridges are not estimated")
+            return
+        for b in site.bridges:  # each bridge's deck is the registry's word on it
+            self.bridges[b.id] = BridgeState(b, BridgeEstimator(b, prior, dataclasses.replace(settings, deck=b.deck)))
+
+    @staticmethod
+    def _weight_prior(site: Site):
+        """The wheel-load prior of the first single-contact vehicle class (the estimator's fleet)."""
+        for vc in site.vehicle_classes:
+            try:
+                return vc.model, class_weight_prior(site, vc.model)
+            except (ValueError, KeyError):
+                continue
+        return None, None
+
+    @property
+    def due(self) -> bool:
+        return any(st.dirty for st in self.bridges.values())
+
+    # -- data ------------------------------------------------------------------------------
+    def sync(self, passes: Mapping, held: Mapping[tuple, ApSegment],
+             params_of: Callable[[str, str, int], dict | None]) -> int:
+        """Bring every estimator up to date with the aggregator; returns the passes (re-)added.
+
+        ``passes``: ``Aggregator.passes`` ((vehicle, pass) → PassState); ``held``: the segments the
+        estimators hold per slot; ``params_of(vehicle, model, calib_version)``: the parameters the
+        edge used for that calibration version, or None if it is not the vehicle's current one.
+        """
+        if not self.bridges:
+            return 0
+        changed = 0
+        for key, ps in passes.items():
+            if not ps.acked or not ps.slots:
+                continue
+            bridges = [st for st in self.bridges.values() if st.bridge.route == ps.route_id]
+            if not bridges:
+                continue
+            segs = tuple(held[sl] for sl in sorted(ps.slots) if sl in held)
+            for st in bridges:
+                fed = st.fed.get(key)
+                if fed is not None and fed.calib_version == ps.calib_version and len(fed.segments) == len(segs) \
+                        and all(a is b for a, b in zip(fed.segments, segs)):
+                    continue  # unchanged
+                if ps.model and ps.model != self.model:  # the estimator models single-contact vehicles
+                    self.skipped["unsupported_model"] += 1
+                    st.fed[key] = _Fed(ps.calib_version, segs)
+                    continue
+                # What the edge says it used (pass-done v1.2), else what the cloud knows it sent.
+                params = ps.params if ps.params is not None else \
+                    params_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
+                if params is None:
+                    continue  # a newer calibration is on its way: wait for the recomputed pass
+                try:
+                    crosses = st.estimator.add_segments(segs, ps.model or self.model, params)
+                except (ValueError, KeyError, FloatingPointError, ArithmeticError) as e:
+                    log.warning("bridge %s: pass %s/%s not usable: %s", st.bridge.id, *key, e)
+                    self.skipped["unusable"] += 1
+                    crosses = False
+                if not crosses and fed is not None:
+                    st.estimator.remove(*key)
+                st.fed[key] = _Fed(ps.calib_version, segs)
+                st.dirty = st.dirty or crosses or fed is not None
+                changed += crosses
+        return changed
+
+    # -- estimation --------------------------------------------------------------------------
+    def estimate(self) -> list[Alarm]:
+        """Estimate every bridge with new data; the alarms whose state changed."""
+        alarms = []
+        for st in self.bridges.values():
+            if not st.dirty:
+                continue
+            st.dirty = False
+            est = st.estimator.estimate()
+            if est is None:
+                continue
+            st.latest, st.version = est, st.version + 1
+            alarm = self._alarm(st, est)
+            if alarm is not None:
+                alarms.append(alarm)
+        return alarms
+
+    def _alarm(self, st: BridgeState, est: BridgeEstimate) -> Alarm | None:
+        a = est.assessment
+        raised = bool(a is not None and a.alarm)
+        if raised == st.alarmed:
+            return None
+        st.alarmed = raised
+        if raised:
+            where = "whole bridge" if a.element < 0 else f"element {a.element} (x = {a.location_m:.1f} m)"
+            return Alarm(bridge_id=st.bridge.id, time_utc=self.clock(), kind=a.kind, element=a.element,
+                         x_m=a.location_m, severity=a.severity, probability=min(max(a.loss_probability, 0.0), 1.0),
+                         message=f"{a.kind} damage at {where}: largest element loss {100 * a.severity:.1f} %, "
+                                 f"P(loss > alarm threshold) = {a.loss_probability:.3f} after {est.n_passes} passes")
+        p = 0.0 if a is None else min(max(a.loss_probability, 0.0), 1.0)
+        return Alarm(bridge_id=st.bridge.id, time_utc=self.clock(), kind=CLEARED, element=-1, x_m=0.0, severity=0.0,
+                     probability=p, message=f"alarm cleared after {est.n_passes} passes")
+
+    def final(self) -> dict[str, BridgeEstimate | None]:
+        """The latest estimate of every bridge (None before it has enough passes)."""
+        return {bid: st.latest for bid, st in self.bridges.items()}
+
+    # -- export rows (interfaces.md §3) --------------------------------------------------------
+    def element_rows(self) -> list[dict]:
+        return [r for st in self.bridges.values() if st.latest is not None for r in st.latest.element_rows()]
+
+    def bearing_rows(self) -> list[dict]:
+        return [r for st in self.bridges.values() if st.latest is not None for r in st.latest.bearing_rows()]
+
+    def summary_rows(self) -> list[dict]:
+        """One row per bridge of the registry; a bridge without an estimate yet has NaN indicators."""
+        nan = float("nan")
+        rows = []
+        for bid, st in self.bridges.items():
+            if st.latest is not None:
+                rows.append(st.latest.summary_row())
+            else:
+                rows.append(dict(bridge_id=bid, n_passes=st.estimator.n_passes, D1_pct=nan, D2_pct=nan,
+                                 midspan_mril=nan, damaged=False))
+        return rows

@@ -1,0 +1,139 @@
+"""The cloud's durable state: what goes into the journal, how a restart rebuilds from it, and compaction.
+
+Three kinds of record rebuild the whole state, because everything else is a function of them:
+
+* ``ap`` — an AP payload as received (one segment or a batch),
+* ``done`` — a pass-done as received,
+* ``calib`` — a calibration the cloud itself issued (its own decisions are inputs to its future),
+  journalled before it is published,
+* ``calibrator`` — the calibrator's whole state after a round (fits, step damping, round count).
+
+Replaying them in order through the same handlers (:meth:`Cloud.on_segment`, :meth:`Cloud.on_done`,
+the calibrator's ``restore``) gives the same aggregator state and the same exact posteriors (up to
+floating-point summation order after a compaction). A snapshot is the compacted record set: the
+segments the aggregator holds now, the latest pass-done of each pass and each vehicle's current
+calibration — so recovery costs one pass over live state, never over history.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Iterable, Iterator
+
+from shared import keys
+from shared.schema import Calibration, DecodeError, decode_calibration
+
+from .journal import Journal, Record
+
+log = logging.getLogger("driveby.cloud.durable")
+
+AP, DONE, CALIB, CALIBRATOR = "ap", "done", "calib", "calibrator"
+SNAPSHOT_EVERY_RECORDS = 200_000  # compact once the journal has grown by this many records…
+SNAPSHOT_EVERY_S = 600.0  # …or this long has passed with anything new
+
+
+def replay(cloud, records: Iterable[Record]) -> int:
+    """Feed journal records back through the cloud's handlers; returns how many were applied."""
+    n = 0
+    for r in records:
+        if r.kind == AP:
+            cloud.on_segment(r.key, r.payload)
+        elif r.kind == DONE:
+            cloud.on_done(r.key, r.payload)
+        elif r.kind == CALIB:
+            if cloud.calibrator is not None:
+                try:
+                    restore_calibration(cloud.calibrator, decode_calibration(r.payload))
+                except (DecodeError, KeyError, ValueError) as e:  # written by us: only a version skew
+                    log.warning("journal: calibration record %d not restored: %s", r.seq, e)
+        elif r.kind == CALIBRATOR:
+            if cloud.calibrator is not None:
+                try:
+                    cloud.calibrator.load_state(json.loads(r.payload))
+                except (ValueError, KeyError, TypeError) as e:
+                    log.warning("journal: calibrator state %d not restored: %s", r.seq, e)
+        else:
+            log.warning("journal: unknown record kind %r (seq %d) skipped", r.kind, r.seq)
+            continue
+        n += 1
+    return n
+
+
+def restore_calibration(calibrator, cal: Calibration) -> None:
+    """Make ``cal`` the calibrator's current state of its vehicle (as when it was issued)."""
+    st = calibrator.initial(cal.vehicle_id, cal.vehicle_model)
+    if cal.version >= st.version:
+        st.model, st.version, st.params = cal.vehicle_model, cal.version, dict(cal.params)
+
+
+def current_calibrations(calibrator) -> list[Calibration]:
+    """Each calibrated vehicle's current calibration, as the edges hold it."""
+    return [Calibration(vehicle_id=vid, version=st.version, vehicle_model=st.model, params=dict(st.params),
+                        source="fleet")
+            for vid, st in sorted(calibrator.vehicles.items()) if st.version > 0]
+
+
+def compacted(cloud) -> Iterator[tuple[str, str, bytes]]:
+    """The records that rebuild the cloud's current state, in an order replay accepts."""
+    if cloud.calibrator is not None:
+        yield CALIBRATOR, "", json.dumps(cloud.calibrator.state()).encode()
+    agg = cloud.aggregator
+    for (vehicle, pass_id, route, tile, _axle), seg in agg.segments.items():
+        yield AP, keys.ap_key(cloud.net, route, tile, vehicle), seg.encode()
+    for (vehicle, pass_id), ps in agg.passes.items():
+        if ps.done_payload is not None:
+            yield DONE, keys.done_key(cloud.net, vehicle), ps.done_payload
+
+
+class Durability:
+    """The journal, wired to one cloud: append before apply, sync before publishing, compact when due."""
+
+    def __init__(self, journal: Journal, cloud):
+        self.journal, self.cloud = journal, cloud
+        self.live = False  # False while recovering: replayed input is not journalled again
+        self.since_snapshot = 0
+        self._snapshot_at = time.monotonic()
+
+    def recover(self) -> int:
+        meta, records = self.journal.recover()
+        first_tail = int(meta.get("next_seq", 0))  # records before it are the snapshot's
+        agg = self.cloud.aggregator
+        n = replay(self.cloud, (r for r in records if r.seq < first_tail))
+        if meta:
+            # Counters are state too, and compaction keeps only what is held: restore them as they were.
+            agg.rejected.clear()
+            agg.rejected.update(meta.get("rejected", {}))
+            agg.accepted = int(meta.get("accepted", agg.accepted))
+        n += replay(self.cloud, (r for r in records if r.seq >= first_tail))
+        if n:
+            log.warning("recovered %d journal records (%d passes complete)", n, self.cloud.passes_complete)
+        return n
+
+    def record(self, kind: str, key: str, payload: bytes) -> None:
+        self.journal.append(kind, key, payload)
+        self.since_snapshot += 1
+
+    def record_calibrator(self) -> None:
+        """After a calibration round: the calibrator's whole state (damping, fits, round count)."""
+        if self.cloud.calibrator is not None:
+            self.record(CALIBRATOR, "", json.dumps(self.cloud.calibrator.state()).encode())
+
+    def before_publish(self) -> None:
+        self.journal.sync()
+
+    def maybe_snapshot(self, force: bool = False) -> bool:
+        due = self.since_snapshot >= SNAPSHOT_EVERY_RECORDS or (
+            self.since_snapshot and time.monotonic() - self._snapshot_at >= SNAPSHOT_EVERY_S)
+        if not (force or due):
+            return False
+        agg = self.cloud.aggregator
+        meta = {"rejected": dict(agg.rejected), "accepted": agg.accepted, "written_utc": time.time()}
+        self.journal.write_snapshot(compacted(self.cloud), meta)
+        self.since_snapshot = 0
+        self._snapshot_at = time.monotonic()
+        return True
+
+    def close(self) -> None:
+        self.journal.close()

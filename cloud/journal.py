@@ -1,0 +1,230 @@
+"""The cloud's write-ahead journal: every input it acts on, in Arrow IPC, before it acts on it.
+
+Layout of a state directory::
+
+    journal-000001.arrows   one Arrow IPC stream per daemon lifetime (append-only, never rewritten)
+    journal-000002.arrows
+    snapshot-000002.arrow   the compacted state as of the start of journal 2 (Arrow IPC file)
+
+A record is ``(seq, kind, key, payload)``: ``seq`` counts records over the directory's whole history,
+``kind`` says which handler replays it (an AP payload, a pass-done, a calibration the cloud issued),
+``key``/``payload`` are the message as it came off the bus. Replaying the records in ``seq`` order
+through the same handlers rebuilds the same state: the aggregator is a deterministic state machine
+and duplicates are idempotent by (vehicle, pass, tile, calibration version).
+
+Durability policy (why these two steps):
+
+* **Write-through before apply.** Each record is written to the OS (unbuffered ``write``) before the
+  handler runs, so a process crash (SIGKILL, OOM) at any instant loses nothing the cloud acted on.
+* **fsync before anything leaves the process that promises durability** — an acknowledgement or a
+  calibration — and at most every ``fsync_interval_s`` otherwise. An OS crash or power loss can lose
+  only records written since the last fsync, none of them acknowledged; the edges keep their raw
+  spool until a pass is acknowledged, so they resend exactly those.
+
+A torn tail (a crash in the middle of a write) is detected on open and ignored: the stream reader
+stops at the last complete record batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import time
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+import pyarrow as pa
+
+SCHEMA = pa.schema([
+    ("seq", pa.uint64()),
+    ("kind", pa.string()),
+    ("key", pa.string()),
+    ("payload", pa.binary()),
+])
+_JOURNAL = re.compile(r"journal-(\d{6})\.arrows$")
+_SNAPSHOT = re.compile(r"snapshot-(\d{6})\.arrow$")
+
+
+@dataclasses.dataclass(frozen=True)
+class Record:
+    seq: int
+    kind: str
+    key: str
+    payload: bytes
+
+
+class JournalError(RuntimeError):
+    """The state directory cannot be used (not a directory, unreadable snapshot, …)."""
+
+
+def _read_stream(path: Path) -> Iterator[Record]:
+    """Records of one journal file, stopping quietly at a torn tail."""
+    try:
+        reader = pa.ipc.open_stream(pa.memory_map(str(path)))
+    except (pa.ArrowInvalid, OSError):  # crashed before the schema was complete: nothing in it
+        return
+    while True:
+        try:
+            batch = reader.read_next_batch()
+        except StopIteration:
+            return
+        except (pa.ArrowInvalid, OSError):  # the record being written when the process died
+            return
+        cols = batch.to_pydict()
+        for seq, kind, key, payload in zip(cols["seq"], cols["kind"], cols["key"], cols["payload"]):
+            yield Record(int(seq), kind, key, payload)
+
+
+class Journal:
+    """An append-only record log in ``directory`` with periodic compacted snapshots.
+
+    ``open`` reads what is there (newest snapshot, then the journals after it) and starts a new
+    journal file for this lifetime; a journal file is never appended to by a second lifetime, so a
+    torn tail can only ever be at the end of a finished file.
+    """
+
+    def __init__(self, directory: str | Path, fsync_interval_s: float = 0.1):
+        self.dir = Path(directory)
+        if self.dir.exists() and not self.dir.is_dir():
+            raise JournalError(f"{self.dir}: state path exists and is not a directory")
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.fsync_interval_s = fsync_interval_s
+        self._file = None
+        self._writer = None
+        self._dirty = False
+        self._synced_at = time.monotonic()
+        # Past every file there (a snapshot may be newer than the last journal), so this lifetime's
+        # journal is never older than the snapshot recovery starts from.
+        numbers = self._numbers(_JOURNAL) + self._numbers(_SNAPSHOT)
+        self.generation = (max(numbers) if numbers else 0) + 1
+        self.next_seq = 0
+        self.snapshot_generation = 0
+
+    @staticmethod
+    def _sorted(directory: Path, pattern: re.Pattern) -> list[tuple[int, Path]]:
+        out = []
+        for p in directory.iterdir():
+            m = pattern.fullmatch(p.name)
+            if m:
+                out.append((int(m.group(1)), p))
+        return sorted(out)
+
+    def _numbers(self, pattern: re.Pattern) -> list[int]:
+        return [n for n, _ in self._sorted(self.dir, pattern)]
+
+    # -- recovery ------------------------------------------------------------------------------
+    def recover(self) -> tuple[dict, list[Record]]:
+        """The newest snapshot's metadata and records, then every journal record after it, in order.
+
+        Call once, before :meth:`append`. Sets ``next_seq`` past everything seen.
+        """
+        meta: dict = {}
+        records: list[Record] = []
+        snaps = self._sorted(self.dir, _SNAPSHOT)
+        start_gen = 1
+        if snaps:
+            gen, path = snaps[-1]
+            try:
+                table = pa.ipc.open_file(pa.memory_map(str(path))).read_all()
+            except (pa.ArrowInvalid, OSError) as e:
+                raise JournalError(f"{path}: unreadable snapshot ({e})") from None
+            raw = (table.schema.metadata or {}).get(b"driveby")
+            meta = json.loads(raw) if raw else {}
+            cols = table.to_pydict()
+            records.extend(Record(int(s), k, key, p)
+                           for s, k, key, p in zip(cols["seq"], cols["kind"], cols["key"], cols["payload"]))
+            start_gen = gen
+            self.snapshot_generation = gen
+            self.next_seq = int(meta.get("next_seq", 0))
+        for gen, path in self._sorted(self.dir, _JOURNAL):
+            if gen < start_gen:
+                continue
+            for r in _read_stream(path):
+                if r.seq >= self.next_seq:  # a snapshot taken mid-journal already holds the earlier ones
+                    records.append(r)
+                    self.next_seq = r.seq + 1
+        return meta, records
+
+    # -- writing -------------------------------------------------------------------------------
+    def _open_writer(self) -> None:
+        path = self.dir / f"journal-{self.generation:06d}.arrows"
+        # buffering=0: every write goes straight to the OS, so a killed process loses nothing written.
+        self._file = open(path, "ab", buffering=0)
+        self._writer = pa.ipc.new_stream(self._file, SCHEMA)
+
+    def append(self, kind: str, key: str, payload: bytes) -> int:
+        """Write one record through to the OS; returns its ``seq``."""
+        if self._writer is None:
+            self._open_writer()
+        seq = self.next_seq
+        self.next_seq += 1
+        batch = pa.record_batch([pa.array([seq], pa.uint64()), pa.array([kind]), pa.array([key]),
+                                 pa.array([payload], pa.binary())], schema=SCHEMA)
+        self._writer.write_batch(batch)
+        self._dirty = True
+        if time.monotonic() - self._synced_at >= self.fsync_interval_s:
+            self.sync()
+        return seq
+
+    def sync(self) -> None:
+        """fsync the current journal file (before anything durable-sounding leaves the process)."""
+        if self._file is not None and self._dirty:
+            os.fsync(self._file.fileno())
+        self._dirty = False
+        self._synced_at = time.monotonic()
+
+    def write_snapshot(self, records: Iterable[tuple[str, str, bytes]], meta: dict) -> Path:
+        """Compact: ``records`` (kind, key, payload) rebuild the current state; older files go.
+
+        Records written after this call land in a new journal generation, so recovery reads this
+        snapshot and then only journals of this generation or later. The snapshot is written to a
+        temporary name, fsynced and renamed, so a crash leaves either the old state or the new one.
+        """
+        self.close()
+        self.generation += 1
+        rows = list(records)
+        seq0 = self.next_seq
+        table = pa.table({
+            "seq": pa.array(range(seq0, seq0 + len(rows)), pa.uint64()),
+            "kind": pa.array([r[0] for r in rows], pa.string()),
+            "key": pa.array([r[1] for r in rows], pa.string()),
+            "payload": pa.array([r[2] for r in rows], pa.binary()),
+        }, schema=SCHEMA)
+        self.next_seq = seq0 + len(rows)
+        meta = {**meta, "next_seq": self.next_seq}
+        table = table.replace_schema_metadata({"driveby": json.dumps(meta)})
+        final = self.dir / f"snapshot-{self.generation:06d}.arrow"
+        tmp = final.with_suffix(".tmp")
+        with open(tmp, "wb") as f:
+            with pa.ipc.new_file(f, table.schema) as w:
+                w.write_table(table)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, final)
+        dfd = os.open(self.dir, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+        self.snapshot_generation = self.generation
+        for gen, path in self._sorted(self.dir, _JOURNAL) + self._sorted(self.dir, _SNAPSHOT):
+            if gen < self.generation:
+                path.unlink(missing_ok=True)
+        return final
+
+    def close(self) -> None:
+        if self._writer is not None:
+            try:
+                self._writer.close()
+            finally:
+                self.sync()
+                self._file.close()
+                self._writer = self._file = None
+
+    def __enter__(self) -> "Journal":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,286 @@
+"""Rail worlds of ``driveby sim`` (thesis §3.4–3.6): one instrumented carriage making batches of runs
+over a ballasted track, optionally across a short simply supported span (a culvert).
+
+Each run has its own body mass ``mv``, pitch inertia ``Iv`` and speed ``v`` (passengers, timetable);
+the carriage's global properties are the Table 3.1 values with 5 % random error drawn once per
+carriage (the thesis's "inaccuracy of a global calibration"), and the site registry only declares the
+class means. Speed comes to the logs as a GNSS speed ~2 % off (and the chainage with it).
+
+The train–track(–bridge) model (:mod:`shared.dynamics.train_track`) runs at half the logger's step
+with Newmark γ = 0.6, the edge's inverse at the logger's step with γ = 0.8 (no inverse crime). As in
+the thesis's blind test, a log starts when the simulation does, with the carriage in static
+equilibrium on the track at chainage 0 (body centre of gravity) and running at its speed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from shared.drivelog import DriveLog, DriveLogMeta, write_drive_log
+from shared.dynamics.train_track import simulate_train_track
+from shared.progress import Progress
+from shared.registry import Bridge, Route, Site, VehicleClass, dump_site
+from shared.sensors import add_noise
+from shared.track import BridgeSpan, RailIrregularity, TrackParams, build_track, damaged_ei_factor
+from shared.vehicles.carriage import TABLE_3_1, Carriage
+
+ROUTE_ID = "L1"
+BRIDGE_ID = "C1"
+VEHICLE_ID = "car-0001"
+SLEEPER_M = 0.6
+TRACK_BEFORE_M = 18.0  # rail before route chainage 0 (a whole number of sleeper spacings)
+TRACK_AFTER_M = 25.2  # the leading wheel runs 2·(Lv + Lb) past the end of the route
+SUBSTEPS = 2  # the simulator runs at half the logger's step
+TRUTH_SPACING_M = 0.05
+GLOBAL_NAMES = ("mb", "Ib", "mw", "kp", "cp", "ks", "cs", "Lb", "Lv")
+RUN_NAMES = ("mv", "Iv", "v")
+
+#: True damage level (global E·I loss) of blind-test states 1..7 (thesis Table 3.6; state 7 healthy).
+STATE_LOSS = (0.03, 0.13, 0.11, 0.07, 0.05, 0.08, 0.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class RailBridgeSpec:
+    """A simply supported culvert span under the track (§3.6: 10.2 m), and its true condition."""
+
+    start_m: float = 120.0
+    span_m: float = 10.2
+    E_pa: float = 35e9
+    I_m4: float = 0.2
+    mass_per_m: float = 8000.0
+    depth_m: float = 0.8
+    damping_ratio: float = 0.03
+    global_loss: float = 0.0
+    element_sd: float = 0.05  # per-element E·I scatter of a damaged span (none when healthy)
+
+    @property
+    def n_elements(self) -> int:
+        return int(round(self.span_m / SLEEPER_M))
+
+
+@dataclasses.dataclass(frozen=True)
+class RailScenario:
+    """A batch of runs of one instrumented carriage (``kind = "rail"`` dispatches generation here)."""
+
+    name: str
+    description: str
+    kind: str = "rail"
+    vehicle_model: str = "carriage"
+    n_passes: int = 50
+    route_length_m: float = 150.0
+    profile: int = 1  # track profile (irregularity and support field) number
+    bridge: RailBridgeSpec | None = None
+    noise_pct: float = 2.0
+    speed_mean_mps: float = 30.0
+    speed_sd_mps: float = 1.5
+    mv_sd: float = 0.10  # relative sd of a run's body mass
+    Iv_extra_sd: float = 0.05  # Iv = (Iv/mv)_class · mv · (1 + this · N(0,1))
+    global_sd: float = 0.05  # relative error of the carriage's global masses, stiffnesses, dampings (once)
+    length_sd: float = 0.002  # relative error of its lengths Lb, Lv (design drawings: a few mm)
+    speed_error_sd: float = 0.02  # relative GNSS speed error per run
+    sample_rate_hz: float = 500.0
+    n_vehicles: int = 1
+
+    @property
+    def passes(self) -> int:
+        return self.n_passes
+
+
+def rail_scenarios() -> dict[str, RailScenario]:
+    out = [RailScenario("rail-track", "50 runs of a 4-axle carriage (Table 3.1; mv, Iv, v per run), 150 m "
+                        "ballasted track, GNSS speed ~2 % off, 2 % noise")]
+    for state, loss in enumerate(STATE_LOSS, start=1):
+        for profile in (1, 2):
+            what = "healthy" if loss == 0 else f"{loss:.0%} global E·I loss, 5 % per-element scatter"
+            out.append(RailScenario(
+                f"rail-bridge-state{state}-profile{profile}",
+                f"blind test (§3.6) state {state}: 50 carriage runs, 120 m track then a 10.2 m culvert ({what}), "
+                f"track profile {profile}", route_length_m=160.0, profile=profile,
+                bridge=RailBridgeSpec(global_loss=loss)))
+    return {s.name: s for s in out}
+
+
+def class_prior(scenario: RailScenario) -> tuple[dict[str, float], dict[str, float]]:
+    """What the registry declares for the carriage class: Table 3.1 with the run means, and spreads."""
+    mean = dict(TABLE_3_1)
+    mean["v"] = scenario.speed_mean_mps
+    std = {k: (scenario.length_sd if k in ("Lb", "Lv") else scenario.global_sd) * abs(v) for k, v in mean.items()}
+    std["mv"] = scenario.mv_sd * mean["mv"]
+    std["Iv"] = float(np.hypot(scenario.mv_sd, scenario.Iv_extra_sd)) * mean["Iv"]
+    std["v"] = scenario.speed_sd_mps
+    return mean, std
+
+
+def draw_carriage(scenario: RailScenario, seed: int) -> dict[str, float]:
+    """The instrumented carriage's true global properties (Table 3.1 with random error)."""
+    rng = np.random.default_rng([seed, 7])
+    return {k: float(TABLE_3_1[k] * (1.0 + (scenario.length_sd if k in ("Lb", "Lv") else scenario.global_sd)
+                                      * np.clip(rng.standard_normal(), -2.5, 2.5)))
+            for k in GLOBAL_NAMES}
+
+
+def draw_runs(scenario: RailScenario, n: int, seed: int) -> list[dict[str, float]]:
+    """Run properties: mv, Iv, true v and the GNSS speed of each run."""
+    rng = np.random.default_rng([seed, 11])
+    ratio = TABLE_3_1["Iv"] / TABLE_3_1["mv"]
+    runs = []
+    for _ in range(n):
+        z = np.clip(rng.standard_normal(4), -2.5, 2.5)
+        mv = TABLE_3_1["mv"] * (1.0 + scenario.mv_sd * z[0])
+        iv = ratio * mv * (1.0 + scenario.Iv_extra_sd * z[1])
+        v = scenario.speed_mean_mps + scenario.speed_sd_mps * z[2]
+        runs.append({"mv": float(mv), "Iv": float(iv), "v": float(v),
+                     "v_gnss": float(v * (1.0 + scenario.speed_error_sd * z[3]))})
+    return runs
+
+
+def track_of(scenario: RailScenario, seed: int):
+    """The track (and span) of a scenario; chainage 0 is at track coordinate ``TRACK_BEFORE_M``."""
+    length = TRACK_BEFORE_M + scenario.route_length_m + TRACK_AFTER_M
+    length = SLEEPER_M * np.ceil(length / SLEEPER_M - 1e-9)
+    span = None
+    b = scenario.bridge
+    if b is not None:
+        rng = np.random.default_rng([seed, scenario.profile, 13, int(round(1000 * b.global_loss))])
+        factor = damaged_ei_factor(b.n_elements, b.global_loss, b.element_sd if b.global_loss > 0 else 0.0, rng)
+        span = BridgeSpan(TRACK_BEFORE_M + b.start_m, b.span_m, b.E_pa, b.I_m4, b.mass_per_m, b.damping_ratio,
+                          ei_factor=factor)
+    return build_track(TrackParams(length_m=float(length)), rng=np.random.default_rng([seed, scenario.profile, 3]),
+                       bridge=span)
+
+
+def irregularity_of(scenario: RailScenario, seed: int) -> RailIrregularity:
+    return RailIrregularity(seed=1000 * seed + scenario.profile, min_wavelength_m=1.0, max_wavelength_m=80.0)
+
+
+def simulate_run(scenario: RailScenario, index: int, carriage: dict, run: dict, seed: int, noise_pct: float,
+                 out_dir: Path, nominal: dict) -> dict:
+    track = track_of(scenario, seed)
+    irr = irregularity_of(scenario, seed)
+    car = Carriage(**carriage, mv=run["mv"], Iv=run["Iv"], v=run["v"])
+    fs = scenario.sample_rate_hz
+    dt = 1.0 / (fs * SUBSTEPS)
+    rear = float(-car.wheel_offsets_m().min())
+    duration = (scenario.route_length_m + rear) / car.v
+    probe = None
+    if scenario.bridge is not None:
+        probe = [TRACK_BEFORE_M + scenario.bridge.start_m + scenario.bridge.span_m / 2]
+    resp = simulate_train_track(car, track, lambda x: irr.elevation(x), TRACK_BEFORE_M, duration, dt,
+                                probe_x_m=probe)
+    keep = slice(None, None, SUBSTEPS)
+    channels = resp.channels[keep]
+    n = len(channels)
+    rng = np.random.default_rng([seed, 17, index])
+    names = ("bogie1_acc", "bogie1_pitch_rate", "bogie2_acc", "bogie2_pitch_rate")
+    noisy = {name: add_noise(channels[:, i], noise_pct, rng).astype(np.float32) for i, name in enumerate(names)}
+    t = np.arange(n) / fs
+    pass_id = f"run{index + 1:03d}"
+    meta = DriveLogMeta(
+        format="driveby-drive-log", version=1, vehicle_id=VEHICLE_ID, route_id=ROUTE_ID,
+        vehicle_model="carriage", sample_rate_hz=fs,
+        start_time_utc=f"2026-11-20T{6 + index // 60:02d}:{index % 60:02d}:00Z",
+        lane_offset_m=None, nominal_params=nominal, pass_id=pass_id,
+    )
+    log = DriveLog(meta=meta, t=t, chainage=run["v_gnss"] * t, speed=np.full(n, run["v_gnss"]), speed_measured=True,
+                   channels=noisy)
+    write_drive_log(out_dir / "logs" / f"{pass_id}.parquet", log)
+    rec = {"pass_id": pass_id, "vehicle_id": VEHICLE_ID, **run, "speed_mps": run["v"], "n_samples": n,
+           "speed_scale_error": run["v_gnss"] / run["v"] - 1.0}
+    ap = resp.ap[keep]
+    rec["ap_mean_m"] = [float(a) for a in ap.mean(axis=0)]
+    if probe is not None:
+        rec["midspan_rail_deflection_min_m"] = float(resp.probes[keep, 0].min())
+    return rec
+
+
+def _run_one(args):
+    return simulate_run(*args)
+
+
+def generate_rail(scenario: RailScenario, out_dir: Path, seed: int = 0, passes: int | None = None,
+                  vehicles: int | None = None, noise_pct: float | None = None, nominal: str = "class",
+                  workers: int | None = None, progress: bool | None = None) -> dict:
+    """Simulate a rail batch into ``out_dir`` (logs/, site.toml, truth.json); returns the truth dict.
+
+    ``vehicles`` is accepted for the CLI's sake (one carriage makes every run). ``nominal``: "class"
+    writes the class mean into each log, "true" the run's own properties.
+    """
+    if passes is not None and (isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or passes < 1):
+        raise ValueError(f"passes: must be a positive integer, got {passes!r}")
+    if noise_pct is not None and not (isinstance(noise_pct, (int, float, np.number)) and 0 <= noise_pct < 100):
+        raise ValueError(f"noise_pct: must be a percentage in [0, 100), got {noise_pct!r}")
+    if nominal not in ("class", "true"):
+        raise ValueError(f"nominal: must be 'class' or 'true', got {nominal!r}")
+    out_dir = Path(out_dir)
+    (out_dir / "logs").mkdir(parents=True, exist_ok=True)
+    for old in (out_dir / "logs").glob("*.parquet"):
+        old.unlink()
+    n = passes if passes is not None else scenario.n_passes
+    noise = scenario.noise_pct if noise_pct is None else noise_pct
+    carriage = draw_carriage(scenario, seed)
+    runs = draw_runs(scenario, n, seed)
+    mean, std = class_prior(scenario)
+    jobs = []
+    for i, run in enumerate(runs):
+        nom = dict(mean) if nominal == "class" else {**carriage, **{k: run[k] for k in RUN_NAMES}}
+        jobs.append((scenario, i, carriage, run, seed, noise, out_dir, nom))
+    workers = workers if workers is not None else min(len(jobs), os.cpu_count() or 1, 4)
+    records = []
+    with Progress(len(jobs), f"sim {scenario.name}", enabled=progress) as bar:
+        if workers > 1 and len(jobs) > 1:
+            with ProcessPoolExecutor(workers) as pool:
+                for rec in pool.map(_run_one, jobs):
+                    records.append(rec)
+                    bar.advance()
+        else:
+            for job in jobs:
+                records.append(_run_one(job))
+                bar.advance()
+    _write_site(scenario, out_dir / "site.toml", mean, std)
+    truth = _truth(scenario, seed, carriage, records, noise)
+    (out_dir / "truth.json").write_text(json.dumps(truth, indent=1))
+    return truth
+
+
+def _write_site(scenario: RailScenario, path: Path, mean: dict, std: dict) -> None:
+    bridges = []
+    b = scenario.bridge
+    if b is not None:
+        bridges.append(Bridge(id=BRIDGE_ID, route=ROUTE_ID, start_chainage_m=b.start_m, span_m=b.span_m,
+                              n_elements=b.n_elements, E_pa=b.E_pa, I_m4=b.I_m4, mass_per_m=b.mass_per_m,
+                              depth_m=b.depth_m, damping_ratio=b.damping_ratio, supports="simply_supported"))
+    site = Site(routes=(Route(id=ROUTE_ID, length_m=scenario.route_length_m),), bridges=tuple(bridges),
+                vehicle_classes=(VehicleClass(model="carriage", mean=mean, std=std),))
+    dump_site(site, path)
+
+
+def _truth(scenario: RailScenario, seed: int, carriage: dict, records: list[dict], noise: float) -> dict:
+    grid = np.arange(0.0, scenario.route_length_m + 1e-9, TRUTH_SPACING_M)
+    irr = irregularity_of(scenario, seed)
+    truth = {
+        "scenario": scenario.name,
+        "kind": "rail",
+        "seed": seed,
+        "noise_pct": noise,
+        "route": {"id": ROUTE_ID, "length_m": scenario.route_length_m},
+        "profile": {"start_m": 0.0, "spacing_m": TRUTH_SPACING_M,
+                    "elevation_m": irr.elevation(grid + TRACK_BEFORE_M).tolist(),
+                    "what": "unloaded rail irregularity (the AP adds the track's deflection under the wheels)"},
+        "vehicle_model": "carriage",
+        "vehicles": {VEHICLE_ID: carriage},
+        "passes": records,
+    }
+    b = scenario.bridge
+    if b is not None:
+        track = track_of(scenario, seed)
+        ei = track.bridge.ei_factor * b.E_pa * b.I_m4
+        truth["bridge"] = {"id": BRIDGE_ID, "start_m": b.start_m, "span_m": b.span_m, "supports": "simply_supported",
+                           "global_loss": b.global_loss, "EI": ei.tolist(),
+                           "stiffness_ratio": (ei / (b.E_pa * b.I_m4)).tolist()}
+    return truth

@@ -1,0 +1,122 @@
+"""Rail scenarios (simfleet.rail) and batch self-calibration of run properties (cloud.rail_calibration,
+thesis §3.4): a quick batch of the rail-track world, 2 % noise, GNSS speed ~2 % off."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from cloud.rail_calibration import RailRun, calibrate_batch, cross_entropy_batch
+from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
+from shared.registry import load_site
+from shared.track_quality import d1_longitudinal_level
+from simfleet.cli import main as sim_main
+from simfleet.scenarios import SCENARIOS
+from simfleet.sim import generate
+
+N_RUNS = 4
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    """A quick rail-track batch (4 runs over 100 m instead of 50 over 150 m)."""
+    out = tmp_path_factory.mktemp("rail")
+    scenario = dataclasses.replace(SCENARIOS["rail-track"], route_length_m=100.0)
+    generate(scenario, out, seed=5, passes=N_RUNS, workers=2, progress=False)
+    truth = json.loads((out / "truth.json").read_text())
+    site = load_site(out / "site.toml")
+    runs = []
+    for path in list_drive_logs(out / "logs"):
+        log = read_drive_log(path)
+        z = np.stack([log.channels[c] for c in MODEL_CHANNELS["carriage"]], axis=1).astype(float)
+        runs.append(RailRun(log.meta.pass_id, z, log.meta.dt, float(np.mean(log.speed)), float(log.chainage[0])))
+    return out, truth, site, runs
+
+
+def test_scenarios_listed(capsys):
+    assert sim_main(["sim", "--list"]) == 0
+    listed = capsys.readouterr().out
+    names = ["rail-track"] + [f"rail-bridge-state{s}-profile{p}" for s in range(1, 8) for p in (1, 2)]
+    for name in names:
+        assert name in listed and SCENARIOS[name].vehicle_model == "carriage"
+    losses = sorted({SCENARIOS[f"rail-bridge-state{s}-profile1"].bridge.global_loss for s in range(1, 8)})
+    assert len(losses) == 7 and losses[0] == 0.0  # seven damage levels including a healthy one
+
+
+def test_logs_site_and_truth(batch):
+    out, truth, site, runs = batch
+    assert len(runs) == N_RUNS
+    log = read_drive_log(list_drive_logs(out / "logs")[0])
+    assert log.meta.vehicle_model == "carriage" and log.meta.pass_id == "run001"
+    assert set(MODEL_CHANNELS["carriage"]) <= set(log.channels)
+    cls = site.vehicle_class("carriage")
+    assert cls.mean["mv"] == pytest.approx(32.4e3) and cls.std["mv"] > 0
+    passes = truth["passes"]
+    # Run properties vary from run to run; the logged speed is the GNSS one, a few % off.
+    assert np.std([p["mv"] for p in passes]) > 0.02 * 32.4e3 and np.std([p["v"] for p in passes]) > 0.2
+    np.testing.assert_allclose(log.speed, passes[0]["v_gnss"], rtol=1e-12)
+    assert 0.003 < np.median([abs(p["v_gnss"] / p["v"] - 1) for p in passes]) < 0.05
+    # The carriage's global properties differ from the class means (a global calibration's error).
+    car = truth["vehicles"]["car-0001"]
+    assert max(abs(car[k] / cls.mean[k] - 1) for k in ("kp", "ks", "mb")) > 0.01
+
+
+@pytest.fixture(scope="module")
+def fit(batch):
+    _, _, site, runs = batch
+    cls = site.vehicle_class("carriage")
+    return calibrate_batch(runs, cls.mean, cls.std)
+
+
+def test_batch_calibration(batch, fit):
+    """Measured (seed 5, 4 runs, 100 m): see the report; thresholds are the issue's targets."""
+    _, truth, _, _ = batch
+    true = {p["pass_id"]: p for p in truth["passes"]}
+    err = {k: [abs(r.mean[k] / true[r.pass_id][k] - 1) for r in fit.runs] for k in ("mv", "Iv", "v")}
+    gnss = np.median([abs(p["v_gnss"] / p["v"] - 1) for p in truth["passes"]])
+    assert np.median(err["mv"]) < 0.03 and np.median(err["Iv"]) < 0.03
+    assert np.median(err["v"]) < 0.005 and np.median(err["v"]) < gnss / 3
+    inside = {k: sum(r.lo95[k] <= true[r.pass_id][k] <= r.hi95[k] for r in fit.runs) for k in ("mv", "Iv", "v")}
+    assert min(inside.values()) >= N_RUNS - 1, inside
+    rows = fit.rows("car-0001")
+    assert len(rows) == 3 * N_RUNS and {r["param"] for r in rows} == {"mv", "Iv", "v"}
+    assert all(r["lo95"] < r["mean"] < r["hi95"] and r["pass_id"].startswith("run") for r in rows)
+
+
+def test_consensus_profile_gives_the_track_quality(batch, fit):
+    """The batch's consensus AP (cubic removed) against the true unloaded rail in the D1 band:
+    the track's deflection under the wheels hardly varies, so D1 is the rail's."""
+    _, truth, _, _ = batch
+    prof = truth["profile"]
+    x_true = prof["start_m"] + prof["spacing_m"] * np.arange(len(prof["elevation_m"]))
+    z_true = np.interp(fit.grid_m, x_true, prof["elevation_m"])
+    spacing = float(fit.grid_m[1] - fit.grid_m[0])
+    d_fit = d1_longitudinal_level(fit.consensus_m, spacing, edge_m=10.0)
+    d_true = d1_longitudinal_level(z_true, spacing, edge_m=10.0)
+    ok = np.isfinite(d_fit) & np.isfinite(d_true)
+    assert ok.sum() > 300
+    assert d_fit[ok].std() == pytest.approx(d_true[ok].std(), rel=0.05)
+    assert np.abs(d_fit[ok]).max() == pytest.approx(np.abs(d_true[ok]).max(), rel=0.10)
+
+
+def test_cross_entropy_reference_improves_its_objective(batch):
+    _, _, site, runs = batch
+    cls = site.vehicle_class("carriage")
+    ce = cross_entropy_batch(runs[:3], cls.mean, cls.std, np.random.default_rng(0), population=30,
+                             max_generations=6, restarts=0)
+    assert ce.best_objective < ce.initial_objective
+    assert ce.evaluations == 1 + 30 * ce.generations
+
+
+def test_calibration_rejects_bad_input(batch):
+    _, _, site, runs = batch
+    cls = site.vehicle_class("carriage")
+    with pytest.raises(ValueError, match="at least two runs"):
+        calibrate_batch(runs[:1], cls.mean, cls.std)
+    with pytest.raises(ValueError, match="too short a window"):
+        calibrate_batch(runs[:2], cls.mean, cls.std, window_m=(20.0, 30.0))
+    with pytest.raises(ValueError, match="channels"):
+        RailRun("x", np.zeros((100, 3)), 0.002, 30.0)

@@ -1,0 +1,307 @@
+"""Security is Zenoh's: TLS with mutual authentication and access control, configured by
+``shared.security``, tested against a real router in its own process on a free port.
+
+Certificates are made here, at test time (openssl). Every wait is on an event with a timeout.
+A refusal is shown to be Zenoh's by ordering: the forged message is published *before* an
+allowed one on the same session and link, so had the router forwarded it, it would have
+arrived first; the allowed one arriving while the forged one never did is the proof.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from shared import keys
+from shared.drivelog import list_drive_logs, read_drive_log
+from shared.schema import ApSegment, Calibration, decode_ap_segment, decode_calibration
+from shared.security import (
+    ROLES,
+    DenialCounter,
+    SecurityDir,
+    SecurityError,
+    TlsFiles,
+    access_control,
+    denials_key,
+    init_ca,
+    issue,
+)
+from shared.transport import add_zenoh_arguments, config_from_args, run_router, zenoh_config
+from simfleet.replay import replay
+from simfleet.scenarios import SCENARIOS
+from simfleet.sim import generate
+
+NET = "sec"
+TIMEOUT_S = 20.0
+DAEMON_TIMEOUT_S = 120.0  # the first cloud start may compile numba kernels into the cache
+IDENTITIES = {"router-1": "router", "cloud-1": "aggregator", "V1": "vehicle", "V2": "vehicle",
+              "veh-0001": "vehicle", "viewer-1": "viewer"}
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory) -> SecurityDir:
+    sec = init_ca(tmp_path_factory.mktemp("pki"))
+    for name, role in IDENTITIES.items():
+        issue(sec, name, role)
+    return sec
+
+
+@pytest.fixture(scope="module")
+def router(pki):
+    with run_router(security=pki.path, net=NET, router_id="router-1") as endpoint:
+        yield endpoint
+
+
+def _session(endpoint: str, tls: TlsFiles) -> zenoh.Session:
+    return zenoh.open(zenoh_config("client", connect=[endpoint], tls=tls))
+
+
+def _segment(vehicle: str, seq: int = 0, tile: int = 0) -> ApSegment:
+    return ApSegment.make(np.linspace(0.0, 0.01, 20), np.full(20, 1e-4), vehicle_id=vehicle, pass_id="p1",
+                          route_id="R1", tile=tile, axle=1, start_index=tile * 1000 + 40, spacing_m=0.05,
+                          calib_version=0, speed_mps=20.0, t_first=0.0, t_last=1.0, seq=seq)
+
+
+def _denials(session: zenoh.Session, who: str, at_least: int = 0) -> dict:
+    """The router's refusal counts, asked until ``who`` has ``at_least`` (each answer is an event)."""
+    deadline = time.monotonic() + TIMEOUT_S
+    while True:
+        replies = list(session.get(denials_key(NET, "router-1"), timeout=5.0))
+        assert replies and replies[0].ok is not None, "the router did not answer its denial counts"
+        body = json.loads(replies[0].ok.payload.to_bytes())
+        body["n"] = sum(e["n"] for e in body["by"] if e["who"] == who)
+        if body["n"] >= at_least:
+            return body
+        assert time.monotonic() < deadline, f"refusals not counted: {body}"
+
+
+def _put_until_received(pub: zenoh.Session, key: str, payload: bytes, got: threading.Event) -> None:
+    """Publish until a subscriber confirms (the subscription may still be on its way to the router)."""
+    deadline = time.monotonic() + TIMEOUT_S
+    while not got.is_set():
+        assert time.monotonic() < deadline, f"{key} was never delivered"
+        pub.put(key, payload)
+        got.wait(0.5)
+
+
+def test_vehicle_publishes_its_own_keys_and_zenoh_refuses_anothers(pki, router):
+    received: queue.Queue = queue.Queue()
+    probe = threading.Event()
+
+    def on_ap(sample):
+        seg = decode_ap_segment(sample.payload.to_bytes())
+        received.put((str(sample.key_expr), seg.vehicle_id, seg.seq))
+        if seg.seq == 0:
+            probe.set()
+
+    # The vehicle's session comes from the daemons' own options (what `driveby edge` parses).
+    p = argparse.ArgumentParser()
+    add_zenoh_arguments(p)
+    args = p.parse_args(["--connect", router, "--tls-ca", str(pki.path / "ca.pem"),
+                         "--tls-cert", str(pki.path / "V1.pem"), "--tls-key", str(pki.path / "V1.key")])
+    with _session(router, pki.tls("cloud-1")) as cloud, zenoh.open(config_from_args(args)) as v1, \
+            _session(router, pki.tls("viewer-1")) as viewer:
+        cloud.declare_subscriber(keys.ap_keyexpr(NET), on_ap)
+        _put_until_received(v1, keys.ap_key(NET, "R1", 0, "V1"), _segment("V1", 0).encode(), probe)
+
+        forged_key = keys.ap_key(NET, "R1", 1, "V2")
+        v1.put(forged_key, _segment("V2", 1, tile=1).encode())  # V1 claiming to be V2
+        v1.put(keys.ap_key(NET, "R1", 1, "V1"), _segment("V1", 1, tile=1).encode())  # then its own
+        while True:
+            key, vehicle, seq = received.get(timeout=TIMEOUT_S)
+            assert key != forged_key and vehicle == "V1", "the router forwarded a forged segment"
+            if seq == 1:
+                break
+        assert all(item[1] == "V1" for item in list(received.queue))
+
+        body = _denials(viewer, "V1", 1)
+        mine = [e for e in body["by"] if e["who"] == "V1"]
+        assert mine == [{"who": "V1", "message": "put", "flow": "ingress", "n": 1}], body
+        assert {"who": "V1", "message": "put", "flow": "ingress", "key": forged_key} in body["recent"]
+
+
+def test_vehicle_reads_only_its_calibration(pki, router):
+    got: queue.Queue = queue.Queue()
+    probe = threading.Event()
+
+    def on_calib(sample):
+        cal = decode_calibration(sample.payload.to_bytes())
+        got.put((cal.vehicle_id, cal.version))
+        probe.set()
+
+    def calibration(vehicle: str, version: int) -> bytes:
+        return Calibration(vehicle, version, "quarter_car", {"K/M": 112.0}, "fleet").encode()
+
+    with _session(router, pki.tls("cloud-1")) as cloud, _session(router, pki.tls("V2")) as v2, \
+            _session(router, pki.tls("viewer-1")) as viewer:
+        v2.declare_subscriber(keys.calib_keyexpr(NET), on_calib)  # by wildcard, as the edge daemon does
+        _put_until_received(cloud, keys.calib_key(NET, "V2"), calibration("V2", 1), probe)
+        cloud.put(keys.calib_key(NET, "V1"), calibration("V1", 2))  # another vehicle's: not for V2's eyes
+        cloud.put(keys.calib_key(NET, "V2"), calibration("V2", 2))
+        while (item := got.get(timeout=TIMEOUT_S)) != ("V2", 2):
+            assert item == ("V2", 1), f"V2 received {item}"
+        assert got.empty()
+        body = _denials(viewer, "V2", 1)
+        assert {"who": "V2", "message": "put", "flow": "egress", "key": keys.calib_key(NET, "V1")} in body["recent"]
+
+
+def test_without_a_valid_certificate_the_connection_is_refused(pki, router, tmp_path):
+    with pytest.raises(zenoh.ZError):  # the CA but no certificate of one's own
+        zenoh.open(zenoh_config("client", connect=[router], tls=pki.tls()))
+    rogue = init_ca(tmp_path / "rogue")  # a certificate named like a vehicle, from another CA
+    issue(rogue, "V1", "vehicle")
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(zenoh_config("client", connect=[router],
+                                tls=TlsFiles(pki.path / "ca.pem", rogue.path / "V1.pem", rogue.path / "V1.key")))
+    with pytest.raises(zenoh.ZError):  # plain TCP to the TLS port
+        zenoh.open(zenoh_config("client", connect=[router.replace("tls/", "tcp/")]))
+
+
+@pytest.fixture(scope="module")
+def road(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("road")
+    generate(SCENARIOS["road-qc"], out, seed=3, passes=1, workers=1, progress=False)
+    return out
+
+
+def _daemon(module: str, router: str, pki: SecurityDir, name: str, workdir: Path, *extra: str) -> subprocess.Popen:
+    tls = ["--tls-ca", str(pki.path / "ca.pem"), "--tls-cert", str(pki.path / f"{name}.pem"),
+           "--tls-key", str(pki.path / f"{name}.key")]
+    return subprocess.Popen([sys.executable, "-m", module, "--connect", router, *tls, "--net", NET, "--id", name,
+                             *extra], env=dict(os.environ, PYTHONUNBUFFERED="1"), stdin=subprocess.DEVNULL,
+                            stdout=open(workdir / f"{module}.log", "wb"), stderr=subprocess.STDOUT)
+
+
+def test_real_daemons_under_access_control(pki, router, road, tmp_path):
+    """The roles suffice for the real daemons: a vehicle's own edge (its raw stream in, its calibration,
+    the cloud's liveliness) and the cloud (segments in, acks out, queries); a vehicle's pass goes end to end
+    over TLS. A forged segment never reaches the cloud: its own counters show no trace of it."""
+    vehicle = "veh-0001"  # the log's vehicle, and its identity
+    site = str(road / "site.toml")
+    procs = [_daemon("cloud", router, pki, "cloud-1", tmp_path, "--site", site, "--calibration", "nominal"),
+             _daemon("edge", router, pki, vehicle, tmp_path, "--site", site, "--calibration", "nominal",
+                     "--vehicle", vehicle)]
+    try:
+        with _session(router, pki.tls("viewer-1")) as viewer, _session(router, pki.tls(vehicle)) as sensor, \
+                _session(router, pki.tls("V1")) as v1:
+            up, acked = threading.Event(), threading.Event()
+            alive: set[str] = set()
+
+            def on_alive(sample):
+                if sample.kind == zenoh.SampleKind.PUT:
+                    alive.add(str(sample.key_expr))
+                if {keys.alive_key(NET, "cloud", "cloud-1"), keys.alive_key(NET, "edge", vehicle)} <= alive:
+                    up.set()
+
+            viewer.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
+            viewer.declare_subscriber(keys.ack_key(NET, vehicle), lambda s: acked.set())
+            assert up.wait(DAEMON_TIMEOUT_S), \
+                f"daemons did not come up: {alive} {[(tmp_path / f'{m}.log').read_text() for m in ('cloud', 'edge')]}"
+
+            log = read_drive_log(list_drive_logs(road / "logs")[0])
+            assert log.meta.vehicle_id == vehicle
+            replay([log], lambda k, p: sensor.put(k, p, congestion_control=zenoh.CongestionControl.BLOCK), NET)
+            assert acked.wait(DAEMON_TIMEOUT_S), "the vehicle's pass was not acknowledged through the secured router"
+
+            def stats() -> dict:
+                replies = list(viewer.get(keys.control_key(NET, "cloud-1", "stats"), timeout=5.0))
+                assert replies and replies[0].ok is not None, "the viewer may ask the cloud's statistics"
+                return json.loads(replies[0].ok.payload.to_bytes())["stats"]
+
+            before, denied = stats(), _denials(viewer, "V1")["n"]
+            assert before["accepted"] > 0
+            v1.put(keys.ap_key(NET, "R1", 0, vehicle), _segment(vehicle, 0).encode())  # forged first
+            v1.put(keys.ap_key(NET, "R1", 0, "V1"), _segment("V1", 0).encode())
+            deadline = time.monotonic() + TIMEOUT_S
+            while (after := stats())["accepted"] == before["accepted"]:
+                assert time.monotonic() < deadline, f"V1's own segment not accepted: {after}"
+            assert after["accepted"] == before["accepted"] + 1, after
+            assert after["rejected"] == before["rejected"], after  # the cloud never saw the forgery
+            assert _denials(viewer, "V1", denied + 1)["n"] == denied + 1
+            assert all(p.poll() is None for p in procs)
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(15)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_every_vehicle_rule_names_only_its_own_keys():
+    acl = access_control(NET, {"V1": "vehicle", "V2": "vehicle", "c": "aggregator"})
+    assert acl["default_permission"] == "deny"
+    by_id = {r["id"]: r for r in acl["rules"]}
+    policy = {p["id"]: p for p in acl["policies"]}
+    for me, other in (("V1", "V2"), ("V2", "V1")):
+        assert {"id": me, "cert_common_names": [me]} in acl["subjects"]
+        publish = [k for rid in policy[me]["rules"] for r in [by_id[rid]] if r["flows"] == ["ingress"]
+                   and "put" in r["messages"] for k in r["key_exprs"]]
+        receive = [k for rid in policy[me]["rules"] for r in [by_id[rid]] if r["flows"] == ["egress"]
+                   and "put" in r["messages"] for k in r["key_exprs"]]
+        own = [keys.imu_key(NET, me), keys.ap_key(NET, "R1", 3, me), keys.done_key(NET, me)]
+        theirs = [keys.imu_key(NET, other), keys.ap_key(NET, "R1", 3, other), keys.done_key(NET, other),
+                  keys.calib_key(NET, me), keys.status_key(NET, me), keys.ack_key(NET, me)]
+        assert all(any(zenoh.KeyExpr(k).includes(key) for k in publish) for key in own)
+        assert not any(zenoh.KeyExpr(k).intersects(zenoh.KeyExpr(key)) for k in publish for key in theirs)
+        assert all(any(zenoh.KeyExpr(k).includes(key) for k in receive)
+                   for key in (keys.calib_key(NET, me), keys.ack_key(NET, me)))
+        assert not any(zenoh.KeyExpr(k).intersects(zenoh.KeyExpr(key)) for k in receive
+                       for key in (keys.calib_key(NET, other), keys.imu_key(NET, other), keys.ack_key(NET, other)))
+    assert set(ROLES) >= {"vehicle", "aggregator", "viewer", "router"}
+    # Nobody but a vehicle (and the trusted fleet roles) publishes segments; a viewer publishes nothing.
+    acl = access_control(NET, {"view": "viewer", "c": "aggregator"})
+    puts = [k for r in acl["rules"] if r["flows"] == ["ingress"] and "put" in r["messages"] for k in r["key_exprs"]]
+    assert all(k.startswith(f"driveby/{NET}/") and "/ap/" not in k and "/veh/" not in k for k in puts), puts
+    assert not [r for r in acl["rules"] if r["id"].startswith("view/") and r["flows"] == ["ingress"]
+                and {"put", "delete", "declare_queryable", "reply", "liveliness_token"} & set(r["messages"])]
+
+
+def test_bad_security_inputs_are_one_line_errors(pki, tmp_path):
+    with pytest.raises(SecurityError, match="nope.pem"):
+        TlsFiles(tmp_path / "nope.pem")
+    with pytest.raises(SecurityError, match="both"):
+        TlsFiles(pki.path / "ca.pem", pki.path / "V1.pem")
+    with pytest.raises(SecurityError, match="unknown role"):
+        access_control(NET, {"V1": "superuser"})
+    with pytest.raises(ValueError, match="identity"):
+        access_control(NET, {"V1/ap": "vehicle"})
+    p = argparse.ArgumentParser()
+    add_zenoh_arguments(p)
+    with pytest.raises(ValueError, match="need --tls-ca"):
+        config_from_args(p.parse_args(["--tls-cert", "x.pem"]))
+    res = subprocess.run([sys.executable, "-m", "shared.transport", "router", "--listen", "tls/127.0.0.1:1",
+                          "--security", str(tmp_path)], capture_output=True, text=True, timeout=60,
+                         stdin=subprocess.DEVNULL)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "ca.pem" in res.stderr
+
+
+def test_denial_counter_attributes_each_drop_to_its_decision():
+    zid = "7ab9d677ca41b2cb809adaa4fb92601d"
+    subject = f"Interface(lo)+CertCommonName(V1)+Transport(Tls)+{zid}"
+    trace = "TRACE rx-0 ThreadId(8) zenoh::net::routing::interceptor"
+    lines = [
+        # decisions computed to fill the cache at a declaration: no message dropped, not counted
+        f"{trace}::access_control: {zid} on {subject} is unauthorized to Put (ingress) on {NET}/x",
+        f"{trace}::access_control: {zid} on {subject} is unauthorized to Reply (egress) on {NET}/x",
+        f"{trace}::access_control: Using cached result: {zid} is unauthorized to Put (ingress) on {NET}/y",
+        f"{trace}: Msg intercepted!",
+        f"{trace}::access_control: {zid} on {subject} is authorized to Put (ingress) on {NET}/z",
+        f"{trace}: Msg intercepted!",  # no unauthorized decision pending on this thread: not a denial
+    ]
+    c = DenialCounter()
+    assert [c.feed(line) for line in lines] == [None, None, None, ("V1", "put", "ingress", f"{NET}/y"), None,
+                                                None]
+    assert c.snapshot()["total"] == 1
