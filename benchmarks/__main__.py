@@ -19,6 +19,7 @@ REGISTRY: dict[str, str] = {
     "bus": "benchmarks.bus",
     "profile": "benchmarks.profile",
     "bridge": "benchmarks.bridge",
+    "crash": "benchmarks.crash",
 }
 
 
