@@ -133,6 +133,21 @@ class Aggregator:
         ps.params = dict(done.params) if done.params is not None else None
         return self._maybe_ack(done.vehicle_id, done.pass_id)
 
+    def repeat_ack(self, payload: bytes) -> Ack | None:
+        """The acknowledgement again, if ``payload`` is the pass-done of a pass acknowledged already.
+
+        An edge sends a pass again only while it has not heard its acknowledgement (one published
+        while a router was down is lost), so the acknowledgement is sent again, changing nothing."""
+        try:
+            done = decode_pass_done(payload)
+        except DecodeError:
+            return None
+        ps = self.passes.get((done.vehicle_id, done.pass_id))
+        if ps is None or not ps.acked or ps.calib_version != done.calib_version:
+            return None
+        return Ack(vehicle_id=done.vehicle_id, pass_id=done.pass_id, n_segments_accepted=len(ps.seqs),
+                   calib_version=ps.calib_version)
+
     # -- rules ---------------------------------------------------------------------------------
     def _check(self, seg: ApSegment, key_vehicle: str | None) -> str | None:
         if key_vehicle is not None and key_vehicle != seg.vehicle_id:

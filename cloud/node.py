@@ -104,7 +104,14 @@ class Cloud:
         self._acks(self.aggregator.on_segment(payload, vehicle))
 
     def on_done(self, key: str, payload: bytes) -> None:
-        self._acks(self.aggregator.on_pass_done(payload))
+        acks = self.aggregator.on_pass_done(payload)
+        if acks:
+            self._acks(acks)
+            return
+        again = self.aggregator.repeat_ack(payload)
+        if again is not None:  # a pass sent again: its acknowledgement was lost (e.g. a router restart)
+            self.publish(keys.ack_key(self.net, again.vehicle_id), again.encode())
+            self.status_due = True  # the status published with it may be lost too
 
     def _reapply_alignment(self, key: tuple[str, str]) -> None:
         """A recomputed pass keeps the chainage alignment found for it (until the next sweep)."""
