@@ -204,23 +204,14 @@ def _run_one(args):
 
 
 def generate_rail(scenario: RailScenario, out_dir: Path, seed: int = 0, passes: int | None = None,
-                  vehicles: int | None = None, noise_pct: float | None = None, nominal: str = "class",
-                  workers: int | None = None, progress: bool | None = None) -> dict:
+                  noise_pct: float | None = None, nominal: str = "class", workers: int | None = None,
+                  progress: bool | None = None) -> dict:
     """Simulate a rail batch into ``out_dir`` (logs/, site.toml, truth.json); returns the truth dict.
 
-    ``vehicles`` is accepted for the CLI's sake (one carriage makes every run). ``nominal``: "class"
-    writes the class mean into each log, "true" the run's own properties.
+    Called by :func:`simfleet.sim.generate`, which validates the arguments and prepares ``out_dir``
+    (one carriage makes every run, so there is no vehicle count). ``nominal``: "class" writes the
+    class mean into each log, "true" the run's own properties.
     """
-    if passes is not None and (isinstance(passes, bool) or not isinstance(passes, (int, np.integer)) or passes < 1):
-        raise ValueError(f"passes: must be a positive integer, got {passes!r}")
-    if noise_pct is not None and not (isinstance(noise_pct, (int, float, np.number)) and 0 <= noise_pct < 100):
-        raise ValueError(f"noise_pct: must be a percentage in [0, 100), got {noise_pct!r}")
-    if nominal not in ("class", "true"):
-        raise ValueError(f"nominal: must be 'class' or 'true', got {nominal!r}")
-    out_dir = Path(out_dir)
-    (out_dir / "logs").mkdir(parents=True, exist_ok=True)
-    for old in (out_dir / "logs").glob("*.parquet"):
-        old.unlink()
     n = passes if passes is not None else scenario.n_passes
     noise = scenario.noise_pct if noise_pct is None else noise_pct
     carriage = draw_carriage(scenario, seed)

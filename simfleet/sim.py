@@ -160,10 +160,6 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
     exceed vehicles); ``nominal`` is "class" (the class mean in every log) or "true" (each vehicle's
     own parameters). Invalid values raise ValueError before anything is written.
     """
-    if getattr(scenario, "kind", "road") == "rail":  # a carriage's batch of runs: simfleet.rail
-        from .rail import generate_rail
-
-        return generate_rail(scenario, out_dir, seed, passes, vehicles, noise_pct, nominal, workers, progress)
     for name, value in (("passes", passes), ("vehicles", vehicles)):
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1):
             raise ValueError(f"{name}: must be a positive integer, got {value!r}")
@@ -175,6 +171,10 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
     (out_dir / "logs").mkdir(parents=True, exist_ok=True)
     for old in (out_dir / "logs").glob("*.parquet"):
         old.unlink()
+    if getattr(scenario, "kind", "road") == "rail":  # a carriage's batch of runs: simfleet.rail
+        from .rail import generate_rail
+
+        return generate_rail(scenario, out_dir, seed, passes, noise_pct, nominal, workers, progress)
     rng = np.random.default_rng(seed)
     n_veh = vehicles if vehicles is not None else scenario.n_vehicles
     n_pass = passes if passes is not None else (scenario.n_passes or n_veh)
