@@ -79,11 +79,13 @@ class SystemRun:
     stats: dict = dataclasses.field(default_factory=dict)
 
 
-def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spacing_m: float = 0.05):
+def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spacing_m: float = 0.05,
+                   align: bool = False):
     """The edge and cloud cores wired by an in-memory queue instead of Zenoh; returns (cloud, rounds).
 
     Same code as the daemons (``edge.node.Edge``, ``cloud.node.Cloud``): chunks in, segments,
-    pass markers and calibrations routed by key, a calibration round whenever the queue is empty.
+    pass markers and calibrations routed by key, and whenever the queue is empty what the daemon
+    does when the bus is quiet: an alignment sweep (``align``) or else a calibration round.
     """
     from cloud.node import Cloud
     from edge.node import Edge
@@ -96,7 +98,7 @@ def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spa
         queue.append((key, payload))
 
     edge = Edge("net", publish, site, calibration)
-    cloud = Cloud("net", site, publish, spacing_m=spacing_m, calibration=calibration)
+    cloud = Cloud("net", site, publish, spacing_m=spacing_m, calibration=calibration, align=align)
     route = {"veh": lambda k, p: edge.on_chunk(p), "ap": cloud.on_segment, "done": cloud.on_done,
              "calib": lambda k, p: edge.on_calibration(p)}
 
@@ -110,7 +112,7 @@ def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spa
     replay(logs, publish, "net")
     pump()
     rounds = 0
-    while cloud.maybe_calibrate():
+    while cloud.maybe_align() or cloud.maybe_calibrate():
         rounds += 1
         pump()
     if export_dir is not None:

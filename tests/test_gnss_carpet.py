@@ -8,7 +8,6 @@ calibrate. Truth is read only here, to score.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 
 import numpy as np
@@ -16,10 +15,9 @@ import pytest
 
 from cloud.node import Cloud
 from edge.chainage import ChainageTracker
-from edge.node import Edge
 from shared.drivelog import list_drive_logs, read_drive_log
 from simfleet.evaluate import load_truth, score_profile
-from simfleet.replay import replay
+from simfleet.reproduce import run_in_process
 from simfleet.run import load_inputs
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
@@ -34,28 +32,9 @@ def _simulate(tmp_path, name: str, passes: int, length_m: float, nominal: str = 
     return out
 
 
-def _run(sim_dir, calibration: str, align: bool, max_steps: int = 40) -> Cloud:
+def _run(sim_dir, calibration: str, align: bool) -> Cloud:
     site, logs = load_inputs(sim_dir / "logs", sim_dir / "site.toml")
-    queue: collections.deque = collections.deque()
-    edge = Edge("net", lambda k, p: queue.append((k, p)), site, calibration)
-    cloud = Cloud("net", site, lambda k, p: queue.append((k, p)), calibration=calibration, align=align)
-    route = {"veh": lambda k, p: edge.on_chunk(p), "ap": cloud.on_segment, "done": cloud.on_done,
-             "calib": lambda k, p: edge.on_calibration(p)}
-
-    def pump():
-        while queue:
-            key, payload = queue.popleft()
-            handler = route.get(key.split("/")[2])
-            if handler is not None:
-                handler(key, payload)
-
-    replay(logs, lambda k, p: queue.append((k, p)), "net")
-    pump()
-    for _ in range(max_steps):
-        if not (cloud.maybe_align() or cloud.maybe_calibrate()):
-            break
-        pump()
-    cloud.export(sim_dir / "export")
+    cloud, _ = run_in_process(logs, site, sim_dir / "export", calibration, align=align)
     return cloud
 
 
