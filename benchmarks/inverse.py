@@ -1,6 +1,8 @@
 """Inverse Newmark-β throughput: samples per second per core, against real time and a plain loop.
 
 * ``inverse.<model>.one_stream``: one vehicle, the whole record in one update (kernel throughput);
+  models: sprung mass, quarter-car, half-car, bogie half-car and the 4-axle carriage (whose samples
+  are four channels in, the AP under four wheels out);
 * ``inverse.quarter_car.one_stream_1s_chunks``: the same fed one second (500 samples) at a time,
   as an edge node receives it (adds the per-update overhead);
 * ``inverse.quarter_car.bank_<S>_streams``: S quarter-cars with different parameters interleaved
@@ -24,6 +26,7 @@ from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import InverseBank, InverseStream, build_inverse
 from shared.vehicles import HalfCar, QuarterCar, SprungMass
 from shared.vehicles.bogie import table_3_2
+from shared.vehicles.carriage import table_3_1
 from shared.vehicles.half_car import TABLE_2_1
 
 log = logging.getLogger(__name__)
@@ -37,6 +40,7 @@ VEHICLES = {
     "quarter_car": QuarterCar(M=4450.0, m=420.0, K=5e5, k=1.95e6, c=2e4),
     "half_car": HalfCar(**TABLE_2_1),
     "bogie_half_car": table_3_2(),
+    "carriage": table_3_1(),  # 6 DOF, four channels in, AP under four wheels out (App. B.2)
 }
 
 
@@ -93,6 +97,7 @@ def plain_loop_rate(name: str, vehicle, z: np.ndarray) -> float | None:
         "quarter_car": lambda: naive.quarter_car_inverse(*p.values(), z[:, 0], DT, initial[:3]),
         "half_car": lambda: naive.half_car_inverse(*p.values(), z[:, 0], z[:, 1], DT, initial[:3]),
         "bogie_half_car": lambda: naive.bogie_half_car_inverse(vehicle, z, DT, initial),
+        "carriage": lambda: naive.generic_inverse(system, z, DT, initial),
     }
     return len(z) / best_time(loops[name], repeats=3)
 

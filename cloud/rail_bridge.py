@@ -10,11 +10,30 @@ a batch, at each chainage,
     y_r,i(x) = a_i(x) + W_r · b_i(x)        (i = the leading bogie's two wheels)
 
 and the slope b_i (least squares over runs) is the deflection per unit wheel load with the profile
-gone. Each run's AP is first taken relative to the line through its values at the two supports
-(the thesis's drift removal by the zero deflection at the supports, which also removes the track's
-own settlement there). J(x) = −½(b_1 + b_2) is the leading bogie's influence per unit wheel load
-(J⁰(x) + J¹(x, x ∓ 2·Lb) in the thesis's notation); D1 and D2 compare its mid-span ordinate and its
-area over the span with the healthy batch's, as :func:`cloud.bridge.mril.damage_indicators` does.
+gone. Each run's AP is first taken relative to the line through its values at the two supports (the
+thesis's drift removal by the zero deflection at the supports, which also removes the track's own
+settlement there). J(x) = −½(b_1 + b_2), low-passed (:data:`MIN_WAVELENGTH_M`), is the leading
+bogie's influence per unit wheel load (J⁰(x) + J¹(x, x ∓ 2·Lb) in the thesis's notation); D1 and D2
+compare its mid-span ordinate and its area over the span with the healthy batch's, as
+:func:`cloud.bridge.mril.damage_indicators` does. On a 10 m span the unloaded profile relative to
+the supports' line is as large as the deflection (~0.5 mm mid-span in our blind-test worlds), so
+reading the mean AP per unit load with the profile left in (``unseparated``, as the thesis does)
+dilutes D by about half.
+
+Across independent batches (different runs, as the thesis's) the per-batch slope is noisy — its
+lever arm is the wheel load's ~7 % spread (25 runs against 25: ±20 points in D). The batch mean
+of the AP per unit load is not, and the profile is common to every batch on the track, so
+:func:`damage_from_batch_means` takes the change of that mean between the healthy and the current
+batch and only the scale from the healthy batch's slope.
+
+The AP comes from the carriage inverse (all four channels) or from the 2-DOF bogie half-car of
+App. A.3 (the leading bogie's two channels). The half-car ignores the body's force through the
+secondary suspension; the body's response to the track depends on its mass, so the half-car's AP
+error is correlated with the wheel load and the regression's slope is biased (on our batches it
+even has the wrong sign): the half-car cannot separate the profile this way. The two wheels'
+time-synchronous difference is free of that force (it acts at the bogie's centre), so on the
+difference (:attr:`BogieInfluence.difference`, the matrix method for J⁰) the half-car and the
+carriage give the same line.
 
 (The thesis's matrix method, eq. 3.16–3.23, applied to b·W̄ of the two wheels, is available as
 :func:`cloud.bridge.mril.mril_two_axle`; on our simulated blind-test batches its indicators were
@@ -30,9 +49,11 @@ import dataclasses
 from typing import Sequence
 
 import numpy as np
+from scipy.signal import butter, sosfiltfilt
 
 from shared.dynamics.inverse import InverseStream, build_inverse
 from shared.vehicles import GRAVITY
+from shared.vehicles.bogie import BogieHalfCar
 from shared.vehicles.carriage import Carriage
 
 from .bridge.mril import MrIl
@@ -40,6 +61,10 @@ from .rail_calibration import FIXED, BatchFit, RailRun
 
 GRID_M = 0.05
 APPROACH_M = 10.0  # AP kept either side of the span, m
+#: Shortest wavelength kept in J, m. The regression's noise is short-waved and the span's vibration
+#: (~14 Hz at 30 m/s: ~2 m) rides on the line; a 10 m span's static line has nothing below ~5 m.
+#: The thesis low-passes its mean MR-IL too (FIR, §3.5.3) before reading the mid-span ordinate.
+MIN_WAVELENGTH_M = 4.0
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -50,35 +75,74 @@ class BogieInfluence:
     mril: MrIl  # x_m from the first support
     wheel_load_n: np.ndarray  # (n_runs,) static wheel load of each run, N
     intercept_m: np.ndarray  # (2, K) a_i(x): the profile (relative to the supports' line), m
+    #: The thesis's reading (profile not separated): −½ Σ_i mean_r(y_r,i / W_r), m/N — for comparison.
+    unseparated: MrIl | None = None
+    #: J⁰ by the matrix method on the wheels' time-synchronous AP difference (:func:`_difference_mril`).
+    difference: MrIl | None = None
+    #: The same from the batch mean of the difference per unit load (profile left in), m/N.
+    difference_unseparated: MrIl | None = None
+
+
+def _leading_bogie_ap(run: RailRun, est, globals_: dict[str, float], class_mean: dict[str, float],
+                      model: str) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """AP (n, 2) under the leading bogie's two wheels, their offsets ahead of the body's centre of
+    gravity (m), the run's speed (m/s) and its static wheel load (N), under the run's calibration.
+
+    ``carriage``: the 6-DOF carriage inverse from all four channels (App. B.2). ``bogie_half_car``:
+    the 2-DOF bogie half-car of App. A.3 (Table 3.5: the bogie's mass, inertia, primary suspension
+    and half wheelbase) from the leading bogie's two channels alone — the body's load through the
+    secondary suspension is not modelled, as in the thesis's test of a simpler model.
+    """
+    car = Carriage(**{k: class_mean[k] for k in FIXED}, **globals_, **est.mean)
+    load = GRAVITY * (car.mv / 4 + car.mb / 2 + car.mw)
+    if model == "carriage":
+        ap = InverseStream(build_inverse(car.system(), run.dt)).update(run.channels)[:, :2]
+    elif model == "bogie_half_car":
+        bogie = BogieHalfCar(ms=car.mb, Is=car.Ib, K1=car.kp, K2=car.kp, C1=car.cp, C2=car.cp, D1=car.Lb, D2=car.Lb)
+        ap = InverseStream(build_inverse(bogie.system(), run.dt)).update(np.asarray(run.channels)[:, :2])
+    else:
+        raise ValueError(f"bogie_influence: unknown model {model!r} (carriage or bogie_half_car)")
+    return ap, car.wheel_offsets_m()[:2], car.v, load
 
 
 def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str, float], start_m: float,
-                    span_m: float) -> BogieInfluence:
+                    span_m: float, model: str = "carriage") -> BogieInfluence:
     """J(x) of a batch over the span [start_m, start_m + span_m] (route chainage, m), with each run
     inverted under its calibrated properties (``fit``; ``class_mean`` supplies the fixed lengths
-    and wheelset mass)."""
+    and wheelset mass); ``model``: the inverse giving the AP, ``carriage`` or ``bogie_half_car``
+    (:func:`_leading_bogie_ap`). The wheel loads are the calibrated ones either way."""
     if len(runs) != len(fit.runs) or any(r.pass_id != e.pass_id for r, e in zip(runs, fit.runs)):
         raise ValueError("bogie_influence: the fit must be of these runs, in order")
     if len(runs) < 3:
         raise ValueError("bogie_influence: needs at least three runs (a slope over wheel loads)")
+    if model not in ("carriage", "bogie_half_car"):
+        raise ValueError(f"bogie_influence: unknown model {model!r} (carriage or bogie_half_car)")
     a, b = start_m, start_m + span_m
     x = np.arange(a - APPROACH_M, b + APPROACH_M + 1e-9, GRID_M)
-    Y, W = [], []
+    Y, W, DIFF = [], [], []
+    M_span = c = None
     for run, est in zip(runs, fit.runs):
-        car = Carriage(**{k: class_mean[k] for k in FIXED}, **fit.globals_, **est.mean)
-        ap = InverseStream(build_inverse(car.system(), run.dt)).update(run.channels)
+        ap, off, v, load = _leading_bogie_ap(run, est, fit.globals_, class_mean, model)
         t = np.arange(len(ap)) * run.dt
-        off = car.wheel_offsets_m()
+        if c is None:  # the difference's grid: a whole number c of steps per wheelbase
+            c = max(1, int(round((off[0] - off[1]) / GRID_M)))
+            h = (off[0] - off[1]) / c
+            M_span = int(np.floor(span_m / h + 1e-9)) + 1
+            xd = a + h * np.arange(M_span + c)
+        # Both wheels at one instant, wheel 1 at xd (wheel 2 a wheelbase behind); the line through
+        # the ends (both wheels off the span, before and after) removes the run's drift.
+        dd = np.interp((xd - run.x0_m - off[0]) / v, t, ap[:, 0] - ap[:, 1])
+        DIFF.append(dd - (dd[0] + (dd[-1] - dd[0]) * (xd - a) / (xd[-1] - a)))
         ys = []
         for i in (0, 1):
-            ti = (x - run.x0_m - off[i]) / car.v
+            ti = (x - run.x0_m - off[i]) / v
             if ti[0] < 0 or ti[-1] > t[-1]:
                 raise ValueError(f"bogie_influence: run {run.pass_id} does not cover the span with both wheels")
             y = np.interp(ti, t, ap[:, i])
             ya, yb = np.interp(a, x, y), np.interp(b, x, y)
             ys.append(y - (ya + (yb - ya) * (x - a) / (b - a)))
         Y.append(ys)
-        W.append(GRAVITY * (car.mv / 4 + car.mb / 2 + car.mw))
+        W.append(load)
     Y, W = np.asarray(Y), np.asarray(W)
     Wc = W - W.mean()
     if np.sum(Wc**2) <= (1e-3 * W.mean()) ** 2 * len(W):
@@ -86,5 +150,47 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
     slope = np.einsum("r,rik->ik", Wc, Y - Y.mean(axis=0)) / np.sum(Wc**2)
     intercept = Y.mean(axis=0) - slope * W.mean()
     on = (x >= a - 1e-9) & (x <= b + 1e-9)
-    J = -0.5 * (slope[0] + slope[1])
-    return BogieInfluence(MrIl(x[on] - a, J[on], len(runs)), W, intercept[:, on])
+    sos = butter(4, GRID_M / (0.5 * MIN_WAVELENGTH_M), output="sos")  # zero phase, over span and approaches
+    J = sosfiltfilt(sos, -0.5 * (slope[0] + slope[1]))
+    J_unseparated = sosfiltfilt(sos, -0.5 * (Y / W[:, None, None]).mean(axis=0).sum(axis=0))
+    DIFF = np.asarray(DIFF)
+    g = -np.einsum("r,rk->k", Wc, DIFF - DIFF.mean(axis=0)) / np.sum(Wc**2)
+    g_unseparated = -(DIFF / W[:, None]).mean(axis=0)
+    return BogieInfluence(MrIl(x[on] - a, J[on], len(runs)), W, intercept[:, on],
+                          MrIl(x[on] - a, J_unseparated[on], len(runs)), _difference_mril(xd - a, g, M_span, c, len(runs)),
+                          _difference_mril(xd - a, g_unseparated, M_span, c, len(runs)))
+
+
+def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fundamental: bool = False):
+    """D1/D2 (eq. 3.24) of ``current`` against ``healthy`` when the two batches are different runs
+    over the same track: the change of the batch-mean AP per unit load (the profile, common to both,
+    cancels; run-to-run noise averages) over the healthy batch's separated line (which only sets the
+    scale): J_D = J_H + (Ȳ_D/W − Ȳ_H/W). The regression alone (:attr:`BogieInfluence.mril`) is
+    noisy across independent batches (its lever arm is the wheel load's ~7 % spread);
+    ``fundamental``: the same on the wheels' difference (J⁰, free of a force at the bogie centre)."""
+    from .bridge.mril import damage_indicators
+
+    ref, h, c = ((healthy.difference, healthy.difference_unseparated, current.difference_unseparated) if fundamental
+                 else (healthy.mril, healthy.unseparated, current.unseparated))
+    return damage_indicators(ref, MrIl(ref.x_m, ref.J + c.J - h.J, current.mril.n_passes))
+
+
+def _difference_mril(x_m: np.ndarray, g: np.ndarray, M: int, c: int, n_runs: int) -> MrIl:
+    """J⁰ on the span from g_k = J⁰_k − J⁰_(k−c), the slope over wheel loads of the two wheels'
+    time-synchronous AP difference (eq. 3.16 with equal axle loads W: W·(δ_A − δ_B) = W²·(J⁰_k −
+    J⁰_(k−c)); Betti removes the cross terms, the regression the profile's difference).
+
+    Least squares with J⁰ = 0 off the span (the matrix method, eq. 3.17–3.23, for unit loads), then
+    the low-pass of :data:`MIN_WAVELENGTH_M`. Why the difference: a body's force through the secondary
+    suspension acts at the bogie's centre and moves both wheels' AP alike at each instant — the
+    error of the bogie half-car (module docstring) cancels; a uniform track compliance cancels too.
+    """
+    K = M + c
+    A = np.zeros((K, M))
+    A[np.arange(M), np.arange(M)] = 1.0
+    A[np.arange(c, K), np.arange(K - c)] = -1.0
+    J = np.linalg.lstsq(A, g, rcond=None)[0]
+    J -= J[0] + (J[-1] - J[0]) * np.arange(M) / (M - 1)  # relative to the supports, as the AP chords
+    h = x_m[1] - x_m[0]
+    J = sosfiltfilt(butter(4, h / (0.5 * MIN_WAVELENGTH_M), output="sos"), J)
+    return MrIl(x_m[:M], J, n_runs)

@@ -728,7 +728,9 @@ class ApSegment(_Message):
         _id("route_id", self.route_id)
         set_(self, "tile", _int("tile", self.tile, 0, MAX_INT32))
         set_(self, "axle", _int("axle", self.axle, 1, 16))
-        set_(self, "start_index", _int("start_index", self.start_index, 0, MAX_INDEX))
+        # Negative: points before the route's start (a rail vehicle's trailing wheels when its log
+        # starts; the cloud keeps them for re-running the pass, and fuses only chainage >= 0).
+        set_(self, "start_index", _int("start_index", self.start_index, -MAX_INDEX, MAX_INDEX))
         set_(self, "spacing_m", _float("spacing_m", self.spacing_m, 0.0, 100.0, lo_open=True))
         values_q = _array("values_q", self.values_q, np.int16)
         sigma_q = _array("sigma_q", self.sigma_q, np.int16)

@@ -17,6 +17,10 @@ from scipy.signal import butter, sosfiltfilt
 
 D1_BAND_M = (3.0, 25.0)
 SEGMENT_M = 200.0
+#: Alert limits (mm) for lines of 80 < V <= 120 km/h, within the ranges EN 13848-5 leaves to the
+#: infrastructure manager: an isolated defect's |D1| (mean to peak) and the sd per 200 m.
+ALERT_ISOLATED_MM = 8.0
+ALERT_SD_MM = 1.8
 
 
 @dataclasses.dataclass(frozen=True)

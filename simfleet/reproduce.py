@@ -857,9 +857,10 @@ def _json_default(x):
 
 
 def _arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    p.add_argument("what", choices=("road", "bridge"),
-                   help="which results: road (Tables 2.3, 2.6, Fig. 2.12, §4.3 MCMC) or bridge (Table 3.3, "
-                        "Table 4.2, Fig. 4.12, Cramér–Rao bound)")
+    p.add_argument("what", choices=("road", "bridge", "rail"),
+                   help="which results: road (Tables 2.3, 2.6, Fig. 2.12, §4.3 MCMC), bridge (Table 3.3, "
+                        "Table 4.2, Fig. 4.12, Cramér–Rao bound) or rail (Table 3.6 blind test, batch "
+                        "calibration, Fig. 3.10)")
     p.add_argument("--out", default="driveby-reproduce", help="output directory (default ./driveby-reproduce)")
     p.add_argument("--quick", action="store_true", help="smaller fleets, fewer noise levels and iterations")
     p.add_argument("--seed", type=int, default=0)
@@ -867,7 +868,7 @@ def _arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 def add_reproduce_arguments(subparsers) -> argparse.ArgumentParser:
-    """``driveby reproduce road|bridge [--out DIR] [--quick] [--seed N]`` on the ``driveby`` command line."""
+    """``driveby reproduce road|bridge|rail [--out DIR] [--quick] [--seed N]`` on the ``driveby`` command line."""
     return _arguments(subparsers.add_parser(
         "reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))
 
@@ -878,6 +879,10 @@ def run_reproduce(args) -> int:
         from .reproduce_bridge import reproduce_bridge
 
         report = reproduce_bridge(args.out, quick=args.quick, seed=args.seed)
+    elif getattr(args, "what", "road") == "rail":
+        from .reproduce_rail import reproduce_rail
+
+        report = reproduce_rail(args.out, quick=args.quick, seed=args.seed)
     else:
         report = reproduce_road(args.out, quick=args.quick, seed=args.seed)
     print(f"driveby reproduce: report written to {report}")

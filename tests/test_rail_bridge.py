@@ -4,46 +4,71 @@ culvert span under quick batches (10 runs, 40 m approach instead of 50 runs over
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 
 from cloud.bridge.mril import damage_indicators
-from cloud.rail_bridge import bogie_influence
-from cloud.rail_calibration import RailRun, calibrate_batch
-from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
-from shared.registry import load_site
+from cloud.rail_bridge import bogie_influence, damage_from_batch_means
+from cloud.rail_calibration import calibrate_batch
 from simfleet.rail import RailBridgeSpec
+from simfleet.reproduce_rail import load_runs, true_effective_levels
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
 
 N_RUNS = 10
 
 
-def influence(tmp_path, name, loss):
+def influences(tmp_path, name, loss):
+    """Both models' influence of a quick batch, and the batch's truth (read only to score)."""
     scenario = dataclasses.replace(SCENARIOS["rail-bridge-state7-profile1"], route_length_m=70.0,
                                    bridge=RailBridgeSpec(start_m=40.2, global_loss=loss))
     generate(scenario, tmp_path / name, seed=3, passes=N_RUNS, workers=2, progress=False)
-    site = load_site(tmp_path / name / "site.toml")
-    cls, bridge = site.vehicle_class("carriage"), site.bridges[0]
-    runs = []
-    for path in list_drive_logs(tmp_path / name / "logs"):
-        log = read_drive_log(path)
-        z = np.stack([log.channels[c] for c in MODEL_CHANNELS["carriage"]], axis=1).astype(float)
-        runs.append(RailRun(log.meta.pass_id, z, log.meta.dt, float(np.mean(log.speed)), float(log.chainage[0])))
+    runs, cls, bridge = load_runs(tmp_path / name)
     fit = calibrate_batch(runs, cls.mean, cls.std, window_m=(0.0, bridge.start_chainage_m - 2.0))  # off the bridge
-    return bogie_influence(runs, fit, cls.mean, bridge.start_chainage_m, bridge.span_m)
+    out = {m: bogie_influence(runs, fit, cls.mean, bridge.start_chainage_m, bridge.span_m, model=m)
+           for m in ("carriage", "bogie_half_car")}
+    return out, json.loads((tmp_path / name / "truth.json").read_text())
 
 
 def test_damage_level_from_a_healthy_and_a_damaged_batch(tmp_path):
-    """Same track and runs, the span's E·I 13 % lower (and 5 % per-element scatter): measured
-    D1 13.3 %, D2 13.4 % (seed 3); with 8 runs 19 %, with 16 runs 13.9 % — the spread of a small
-    batch. The indicators' bounds are ±5 points here (the blind test's 50 runs: see the report)."""
-    healthy = influence(tmp_path, "healthy", 0.0)
-    damaged = influence(tmp_path, "damaged", 0.13)
+    """Same track and runs, the span's E·I 13 % lower with 5 % per-element scatter (its realised
+    effective loss: ~16 % by D1/D2 of its static line). Regression over the calibrated wheel loads
+    with the carriage inverse: measured D1 13.3 %, D2 13.4 % before the low-pass of J (seed 3); with 8
+    runs 19 %, with 16 runs 13.9 % — the spread of a small batch. The indicators' bounds are ±5
+    points here (the blind test's 50 runs: ``driveby reproduce rail``)."""
+    healthy, _ = influences(tmp_path, "healthy", 0.0)
+    damaged, truth = influences(tmp_path, "damaged", 0.13)
+    h, d = healthy["carriage"], damaged["carriage"]
     # Deflection per unit wheel load (m/N) of the order of a 10 m span plus its track: ~1e-8.
-    assert 3e-9 < healthy.mril.midspan() < 3e-8
-    assert healthy.mril.J[0] == pytest.approx(0.0, abs=0.1 * healthy.mril.midspan())  # zero at the supports
-    d = damage_indicators(healthy.mril, damaged.mril)
-    assert 8.0 < d.D1_pct < 18.0 and 8.0 < d.D2_pct < 18.0, d
-    assert np.ptp(healthy.wheel_load_n) > 0.05 * healthy.wheel_load_n.mean()  # what separates the profile
+    assert 3e-9 < h.mril.midspan() < 3e-8
+    assert h.mril.J[0] == pytest.approx(0.0, abs=0.1 * h.mril.midspan())  # zero at the supports
+    effective = true_effective_levels(truth, h.mril.x_m)
+    ind = damage_indicators(h.mril, d.mril)
+    assert abs(ind.D1_pct - effective[0]) < 5.0 and abs(ind.D2_pct - effective[1]) < 5.0, (ind, effective)
+    assert np.ptp(h.wheel_load_n) > 0.05 * h.wheel_load_n.mean()  # what separates the profile
+    means = damage_from_batch_means(h, d)  # the estimator that also holds across independent batches
+    assert abs(means.D1_pct - effective[0]) < 5.0 and abs(means.D2_pct - effective[1]) < 5.0, (means, effective)
+    # The body's force on a bogie acts at its centre: the two wheels' time-synchronous AP difference
+    # is the same whether the body is modelled (carriage) or not (bogie half-car).
+    for batch in (healthy, damaged):
+        for line in ("difference", "difference_unseparated"):
+            a, b = getattr(batch["carriage"], line).J, getattr(batch["bogie_half_car"], line).J
+            assert np.abs(a - b).max() <= 1e-6 * np.abs(a).max()
+        a = batch["carriage"].difference.J
+        assert a.max() > 0.3 * batch["carriage"].mril.J.max()  # a line, not noise: same order as J⁰ + J¹
+
+
+def test_true_effective_level_of_a_uniform_loss_is_the_loss():
+    """The scoring's 'effective' level: a uniform loss L reads as D1 = D2 = 100·L; scatter moves it."""
+    spec = RailBridgeSpec()
+    x = np.linspace(0.0, spec.span_m, 205)
+    ei = spec.E_pa * spec.I_m4
+    for loss in (0.0, 0.05, 0.13):
+        truth = {"bridge": {"span_m": spec.span_m, "EI": [ei * (1 - loss)] * spec.n_elements}}
+        d1, d2 = true_effective_levels(truth, x)
+        assert d1 == pytest.approx(100 * loss, abs=1e-6) and d2 == pytest.approx(100 * loss, abs=1e-6)
+    weak_middle = [ei * (0.7 if 6 <= i <= 10 else 1.0) for i in range(spec.n_elements)]
+    d1, d2 = true_effective_levels({"bridge": {"span_m": spec.span_m, "EI": weak_middle}}, x)
+    assert 0 < d2 < 30 and d1 > d2  # a weak middle shows more at mid-span than in the area

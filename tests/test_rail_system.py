@@ -1,5 +1,6 @@
-"""Carriage drive logs through edge and cloud over Zenoh (``driveby run``): the four wheels' AP is
-fused into the rail route's profile and the export carries its EN 13848 D1 track quality."""
+"""Carriage drive logs through edge and cloud (issue #6): ``driveby run`` over Zenoh calibrates the
+batch's run properties in the cloud daemon, re-keys each run's AP with its calibrated speed, and the
+export and the Rerun recording carry the run estimates and the EN 13848 D1 track quality."""
 
 from __future__ import annotations
 
@@ -8,35 +9,205 @@ import json
 
 import numpy as np
 import pyarrow.parquet as pq
+import pytest
+from rerun.chunk import RrdReader
+from scipy.interpolate import make_interp_spline
 
+from cloud.aggregator import on_route
+from cloud.rail import rebuild_pass
+from cloud.reference.cross_entropy import population_aps
+from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
+from shared.registry import load_site
 from shared.track_quality import d1_longitudinal_level
+from simfleet.reproduce import run_in_process
 from simfleet.run import run
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
 
+N_RUNS = 12
+ROUTE_M = 100.0  # the shortest with a D1 sd (a quarter of a 200 m segment past the filter's edges)
 
-def test_rail_logs_run_end_to_end(tmp_path):
-    sim = tmp_path / "sim"
-    scenario = dataclasses.replace(SCENARIOS["rail-track"], route_length_m=100.0)
-    generate(scenario, sim, seed=2, passes=3, workers=2, progress=False)
-    res = run(sim / "logs", sim / "site.toml", tmp_path / "export", progress=False)
-    assert res.acked == res.passes == 3
-    quality = pq.read_table(tmp_path / "export" / "track_quality.parquet").to_pylist()
-    assert len(quality) == 1 and quality[0]["route_id"] == "L1" and quality[0]["start_m"] == 0.0
-    profile = {k: np.asarray(v) for k, v in pq.read_table(tmp_path / "export" / "profile.parquet").to_pydict().items()}
-    assert profile["n_passes"].max() == 3
-    # The fused AP against the true rail in the D1 band: the same shape, smoothed, since the edge
-    # maps each run with its GNSS chainage (~2 % stretched: metres at the far end) and inverts with
-    # the class-mean properties (the batch calibration's run properties do not reach the edge yet).
-    # Measured (seed 2, 3 runs): correlation 0.81, sd ratio 0.93; 4 runs over 150 m: 0.93, 0.78.
-    truth = json.loads((sim / "truth.json").read_text())["profile"]
-    x_true = truth["start_m"] + truth["spacing_m"] * np.arange(len(truth["elevation_m"]))
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    """A quick rail-track batch (12 runs over 100 m instead of 50 over 150 m) run through Zenoh."""
+    tmp = tmp_path_factory.mktemp("railsys")
+    sim = tmp / "sim"
+    scenario = dataclasses.replace(SCENARIOS["rail-track"], route_length_m=ROUTE_M)
+    generate(scenario, sim, seed=2, passes=N_RUNS, workers=2, progress=False)
+    res = run(sim / "logs", sim / "site.toml", tmp / "export", rrd=tmp / "view.rrd", progress=False)
+    truth = json.loads((sim / "truth.json").read_text())
+    return sim, tmp / "export", tmp / "view.rrd", res, truth
+
+
+def test_run_properties_calibrated_in_the_daemon(batch):
+    """Measured (seed 2, 12 runs, 100 m; in-process and through Zenoh alike): median |error| mv
+    0.40 %, Iv 0.49 %, v 0.010 % (GNSS 2.1 %); every 95 % interval held the true value."""
+    _, export, _, res, truth = batch
+    assert res.acked == res.passes == N_RUNS
+    rows = pq.read_table(export / "vehicles.parquet").to_pylist()
+    true = {p["pass_id"]: p for p in truth["passes"]}
+    assert sorted({r["pass_id"] for r in rows}) == sorted(true)
+    gnss = np.median([abs(p["v_gnss"] / p["v"] - 1) for p in truth["passes"]])
+    err, inside = {}, {}
+    for k in ("mv", "Iv", "v"):
+        rk = [r for r in rows if r["param"] == k and r["vehicle_id"] == "car-0001"]
+        assert len(rk) == N_RUNS and all(r["lo95"] < r["mean"] < r["hi95"] for r in rk)
+        err[k] = float(np.median([abs(r["mean"] / true[r["pass_id"]][k] - 1) for r in rk]))
+        inside[k] = float(np.mean([r["lo95"] <= true[r["pass_id"]][k] <= r["hi95"] for r in rk]))
+    print(f"median errors {err}, GNSS {gnss:.4f}, 95 % coverage {inside}")
+    assert err["mv"] <= 0.03 and err["Iv"] <= 0.03 and err["v"] <= 0.005
+    assert err["v"] < gnss / 4  # the calibrated speed beats the GNSS speed
+    assert min(inside.values()) >= 0.75
+
+
+def test_profile_rekeyed_with_calibrated_speed(batch):
+    """The fused AP against the true rail in the D1 band. Keyed with GNSS chainage (~2 % stretched)
+    and the class-mean properties the 12 runs fuse to correlation 0.86, sd ratio 0.86 (measured);
+    re-keyed with each run's calibrated speed and properties, to 0.999 and 1.01."""
+    sim, export, _, _, truth = batch
+    profile = {k: np.asarray(v) for k, v in pq.read_table(export / "profile.parquet").to_pydict().items()}
+    assert profile["n_passes"].max() == N_RUNS
+    tp = truth["profile"]
+    x_true = tp["start_m"] + tp["spacing_m"] * np.arange(len(tp["elevation_m"]))
     d_fused = d1_longitudinal_level(profile["elevation_m"], 0.05)
-    d_true = d1_longitudinal_level(np.interp(profile["chainage_m"], x_true, truth["elevation_m"]), 0.05)
+    d_true = d1_longitudinal_level(np.interp(profile["chainage_m"], x_true, tp["elevation_m"]), 0.05)
     ok = np.isfinite(d_fused) & np.isfinite(d_true)
-    print(f"fused vs true D1: corr {np.corrcoef(d_fused[ok], d_true[ok])[0, 1]:.3f}, "
-          f"sd {1e3 * d_fused[ok].std():.3f} vs {1e3 * d_true[ok].std():.3f} mm, {res.seconds:.1f} s")
-    assert ok.sum() > 500
-    assert np.corrcoef(d_fused[ok], d_true[ok])[0, 1] > 0.7
-    assert 0.6 < d_fused[ok].std() / d_true[ok].std() < 1.1
-    assert quality[0]["sd_d1_mm"] > 0.3
+    corr = np.corrcoef(d_fused[ok], d_true[ok])[0, 1]
+    ratio = d_fused[ok].std() / d_true[ok].std()
+    print(f"fused vs true D1: corr {corr:.4f}, sd ratio {ratio:.3f}")
+    assert ok.sum() > 900
+    assert corr > 0.95 and 0.9 < ratio < 1.1
+
+
+def _rows(path, entity):
+    out = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == entity and not chunk.is_static:
+            rb = chunk.to_record_batch()
+            names = [n for n in rb.schema.names if ":" in n]  # components (not row ids, timelines)
+            out += [{n: rb.column(n)[i].as_py() for n in names} for i in range(chunk.num_rows)]
+    return out
+
+
+def test_track_quality_in_export_and_rerun(batch):
+    _, export, rrd, _, _ = batch
+    quality = pq.read_table(export / "track_quality.parquet").to_pylist()
+    assert len(quality) == 1 and quality[0]["route_id"] == "L1" and quality[0]["start_m"] == 0.0
+    sd = quality[0]["sd_d1_mm"]
+    assert 0.2 < sd < 5.0 and quality[0]["max_abs_d1_mm"] > 2 * sd
+    # Rerun: the D1 level against chainage, its sd per 200 m, the alert limits and a table.
+    table = _rows(rrd, "/rail/L1/track_quality/table")
+    assert table and f"| 0 | 100 | {sd:.3f} | {quality[0]['max_abs_d1_mm']:.3f} |" in str(table[-1])
+    steps = [r for r in _rows(rrd, "/rail/L1/track_quality/sd_per_200m")]
+    strip = np.asarray(steps[-1]["LineStrips2D:strips"][0])
+    assert strip[0, 0] == 0.0 and strip[0, 1] == pytest.approx(-sd)
+    d1 = np.concatenate([np.asarray(s) for s in _rows(rrd, "/rail/L1/track_quality/d1")[-1]["LineStrips2D:strips"]])
+    assert d1.shape[0] > 900 and np.all(np.isfinite(d1))
+    assert np.abs(d1[:, 1]).max() == pytest.approx(quality[0]["max_abs_d1_mm"], rel=1e-6)
+    # The run estimates: one point per run for each property.
+    mv = _rows(rrd, "/rail/car-0001/runs/mv")[-1]["Points2D:positions"]
+    assert len(mv) == N_RUNS and all(25e3 < p[1] < 40e3 for p in mv)
+
+
+def test_all_four_wheels_from_the_first_sample(batch):
+    """The edge keeps the trailing bogie's AP from before chainage 0 (Lv + Lb = 10.78 m behind the
+    body's centre at the start) and the warm-up; the cloud holds it but fuses chainage >= 0 only; the
+    channels rebuilt from the held AP give that AP back through the calibration's inverse."""
+    sim, _, _, _, _ = batch
+    site = load_site(sim / "site.toml")
+    logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")[:1]]
+    cloud, _ = run_in_process(logs, site, None)
+    agg = cloud.aggregator
+    (key, ps), = agg.passes.items()
+    segs = [agg.segments[sl] for sl in ps.slots]
+    first = {a: min((s for s in segs if s.axle == a), key=lambda s: s.start_index) for a in (1, 2, 3, 4)}
+    speed = logs[0].speed[0]
+    for a, off in zip((1, 2, 3, 4), (10.78, 8.22, -8.22, -10.78)):
+        assert first[a].tile == 0 and abs(first[a].start_index * 0.05 - off) < 0.06
+        assert first[a].t_first < 0.05 / speed + 1e-9  # nothing of the first samples dropped
+    held = [agg.held[sl] for sl in ps.slots if sl in agg.held]
+    assert min(h.start_index for h in held) == 0
+    assert on_route(first[4]).n == first[4].n + first[4].start_index
+    rb = rebuild_pass(ps.vehicle_id, segs, "carriage", ps.params or dict(site.vehicle_class("carriage").mean))
+    assert rb.t0_s < 0.05 / speed + 1e-9 and abs(rb.run.x0_m) < 0.06
+    ap = population_aps("carriage", [rb.params], rb.run.channels, rb.run.dt)[0][0]
+    t = rb.t0_s + rb.run.dt * np.arange(len(ap))
+    for a in (1, 4):
+        xs = sorted((s for s in segs if s.axle == a), key=lambda s: s.start_index)
+        tt = np.concatenate([np.linspace(s.t_first, s.t_last, s.n) for s in xs])
+        vv = np.concatenate([s.values for s in xs])
+        expected = make_interp_spline(tt, vv, k=3)(t)  # the grid → time resampling rebuild_pass uses
+        # The inverse starts at level 0: the AP is defined up to a constant.
+        assert np.abs(ap[:, a - 1] - (expected - expected[0])).max() <= 1e-6 * np.abs(expected).max()
+    # And the rebuilt pitch rates are the measured ones (accelerations carry the noise the AP grid drops).
+    raw = np.interp(t, logs[0].t - logs[0].t[0], logs[0].channels[MODEL_CHANNELS["carriage"][1]].astype(float))
+    assert np.corrcoef(raw, rb.run.channels[:, 1])[0, 1] > 0.99
+
+
+# -- a bridge under the track: the batches' bogie MR-IL and D1/D2 in the bridge summary -------------
+
+
+@pytest.fixture(scope="module")
+def bridge_runs(tmp_path_factory):
+    """Three runs over the healthy culvert, then three after a 13 % stiffness loss (blind-test states
+    7 and 2, profile 1), on a 90 m route with the span at 54 m: one carriage, distinct pass ids."""
+    tmp = tmp_path_factory.mktemp("railbridge")
+    logs = []
+    for tag, state in (("a", 7), ("b", 2)):
+        sc = SCENARIOS[f"rail-bridge-state{state}-profile1"]
+        sc = dataclasses.replace(sc, route_length_m=90.0, bridge=dataclasses.replace(sc.bridge, start_m=54.0))
+        generate(sc, tmp / tag, seed=1, passes=3, workers=2, progress=False)
+        for path in list_drive_logs(tmp / tag / "logs"):
+            log = read_drive_log(path)
+            meta = dataclasses.replace(log.meta, pass_id=f"{tag}-{log.meta.pass_id}")
+            logs.append(dataclasses.replace(log, meta=meta))
+    return logs, load_site(tmp / "a" / "site.toml")
+
+
+def test_bridge_batches_give_d1_d2_and_the_alarm_state(bridge_runs, tmp_path):
+    """Plumbing and fidelity of the daemon's bridge path (the indicators' accuracy needs the thesis's
+    large batches: measured on the full worlds with 25 + 25 runs, D1 13.3 % and D2 12.4 % for a 13 %
+    loss, and the daemon's MR-ILs within 0.4 % at mid-span of those from the raw channels)."""
+    from cloud.rail import RailBatches
+    from cloud.view import View
+    from cloud.rail_bridge import bogie_influence
+    from cloud.rail_calibration import RailRun
+    from shared.schema import decode_alarm
+
+    logs, site = bridge_runs
+    cloud, _ = run_in_process(logs, site, None)
+    cloud.rail = RailBatches(site, bridge_batch_runs=3)
+    cloud.view = View(rrd_path=tmp_path / "bridge.rrd", routes={"L1": 90.0}, bridges=list(site.bridges))
+    published = []
+    cloud.publish = lambda key, payload: published.append((key, payload))
+    assert cloud.rail.step(cloud, force=True)
+    bs = cloud.rail.bridges["C1"]
+    assert bs.reference is not None and bs.latest is not None and bs.n_runs == 3
+    row = next(r for r in cloud.rail.bridge_rows() if r["bridge_id"] == "C1")
+    assert np.isfinite(row["D1_pct"]) and np.isfinite(row["D2_pct"]) and row["midspan_mril"] > 0
+    assert row["damaged"] == (row["D1_pct"] > cloud.rail.alarm_pct)
+    alarms = [decode_alarm(p) for k, p in published if "/alarm/" in k]
+    assert len(alarms) == int(row["damaged"]) and all(a.bridge_id == "C1" and a.kind == "global" for a in alarms)
+    cloud.export(tmp_path / "export")
+    summary = pq.read_table(tmp_path / "export" / "bridge_summary.parquet").to_pylist()
+    assert len(summary) == 1 and summary[0]["bridge_id"] == "C1" and summary[0]["n_passes"] == 3
+    assert summary[0]["D1_pct"] == pytest.approx(row["D1_pct"]) and summary[0]["damaged"] == row["damaged"]
+    cloud.view.close()
+    mril = _rows(tmp_path / "bridge.rrd", "/bridge/C1/mril/current")
+    indicators = _rows(tmp_path / "bridge.rrd", "/bridge/C1/indicators")
+    assert mril and indicators[-1]["Scalars:scalars"][:2] == pytest.approx([row["D1_pct"], row["D2_pct"]])
+    # The latest batch's MR-IL from the AP the cloud holds, against the same runs' raw channels
+    # under the same calibration: the same line.
+    fit = next(iter(cloud.rail.batches.values())).fit
+    est = {r.pass_id: r for r in fit.runs}
+    raw = []
+    for log in logs[-3:]:
+        z = np.stack([log.channels[c] for c in MODEL_CHANNELS["carriage"]], axis=1).astype(float)
+        raw.append(RailRun(log.meta.pass_id, z, log.meta.dt, float(np.mean(log.speed)), float(log.chainage[0])))
+    b = site.bridges[0]
+    J = bogie_influence(raw, dataclasses.replace(fit, runs=[est[r.pass_id] for r in raw]),
+                        site.vehicle_class("carriage").mean, b.start_chainage_m, b.span_m).mril
+    print(f"D1 {row['D1_pct']:.1f} %, D2 {row['D2_pct']:.1f} %; MR-IL corr {np.corrcoef(J.J, bs.latest.J)[0, 1]:.4f}, "
+          f"mid-span ratio {bs.latest.midspan() / J.midspan():.3f}")
+    assert np.corrcoef(J.J, bs.latest.J)[0, 1] > 0.98
