@@ -8,6 +8,7 @@ without a network.
 from __future__ import annotations
 
 import collections
+import collections.abc
 import dataclasses
 import logging
 import math
@@ -16,12 +17,28 @@ from shared.registry import Site
 from shared.schema import Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
 
 from .estimators.base import Estimator
+from .segment_store import SegmentStore
 
 log = logging.getLogger(__name__)
 
 MAX_ROUTE_OVERHANG_M = 50.0  # a segment may start at most this far beyond the route's end
 #: Rejections of a well-formed segment from its own vehicle: they still complete the pass.
 PASS_ACCOUNTED = frozenset({"beyond_route", "impossible_speed", "grid_mismatch", "implausible_ap"})
+
+
+def on_route(seg: ApSegment) -> ApSegment | None:
+    """The part of ``seg`` at chainage >= 0 (what the estimators fuse), None if there is none.
+
+    Segments may start before the route (a rail vehicle's trailing wheels when its log starts):
+    those points are kept in ``Aggregator.segments`` for re-running the pass, not fused."""
+    if seg.start_index >= 0:
+        return seg
+    k = -seg.start_index
+    if k >= seg.n:
+        return None
+    t_first = seg.t_first + (seg.t_last - seg.t_first) * k / max(seg.n - 1, 1)
+    return dataclasses.replace(seg, values_q=seg.values_q[k:], sigma_q=seg.sigma_q[k:], start_index=0,
+                               t_first=t_first)
 
 
 @dataclasses.dataclass
@@ -39,18 +56,71 @@ class PassState:
     done_payload: bytes | None = None  # the accepted pass-done, as received (the journal's compaction keeps it)
 
 
+class Held(collections.abc.MutableMapping):
+    """What the estimators hold for each slot: the stored segment itself (nothing kept twice, and
+    spilled with it) or, once replaced (chainage alignment), the replacement. A slot is briefly
+    absent between a release and what replaces it; iteration follows the store's order."""
+
+    def __init__(self, store: SegmentStore):
+        self.store = store
+        self.other: dict[tuple, ApSegment] = {}  # replacements (aligned versions), kept in memory
+        self.absent: set[tuple] = set()
+
+    def __getitem__(self, slot):
+        if slot in self.absent or slot not in self.store:
+            raise KeyError(slot)
+        other = self.other.get(slot)
+        return other if other is not None else self.store[slot]
+
+    def __setitem__(self, slot, seg) -> None:
+        self.absent.discard(slot)
+        if seg is self.store.peek(slot):
+            self.other.pop(slot, None)
+        else:
+            self.other[slot] = seg
+
+    def __delitem__(self, slot) -> None:
+        if slot in self.absent or slot not in self.store:
+            raise KeyError(slot)
+        self.other.pop(slot, None)
+        self.absent.add(slot)
+
+    def hide(self, slot) -> None:
+        """Nothing held for ``slot`` (stored or not)."""
+        self.other.pop(slot, None)
+        self.absent.add(slot)
+
+    def forget(self, slot) -> None:
+        """The store dropped the slot."""
+        self.absent.discard(slot)
+        self.other.pop(slot, None)
+
+    def __contains__(self, slot) -> bool:
+        return slot in self.store and slot not in self.absent
+
+    def __iter__(self):
+        return (sl for sl in self.store if sl not in self.absent)
+
+    def __len__(self) -> int:
+        return len(self.store) - len(self.absent)
+
+
 class Aggregator:
     """Keeps the accepted segments (latest calibration version of each) and the estimators fed."""
 
-    def __init__(self, site: Site, estimators: list[Estimator], foreign_routes: frozenset[str] = frozenset()):
+    def __init__(self, site: Site, estimators: list[Estimator], foreign_routes: frozenset[str] = frozenset(),
+                 store: SegmentStore | None = None):
         self.site = site
         self.estimators = estimators
         self.routes = {r.id: r.length_m for r in site.routes}
         self.foreign_routes = foreign_routes  # other shards' routes: their pass-dones are ignored here
         self.foreign = 0
-        self.segments: dict[tuple, ApSegment] = {}  # (vehicle, pass, route, tile, axle) → segment
+        self.vehicle_routes: dict[str, collections.Counter] = {}  # sharded: vehicle → route → passes
+        self._pass_route: dict[tuple[str, str], str] = {}
+        # (vehicle, pass, route, tile, axle) → segment; a bounded store spills the oldest to disk.
+        self.segments: SegmentStore = store if store is not None else SegmentStore()
         # What the estimators hold for each slot: the segment itself, or its chainage-aligned version.
-        self.held: dict[tuple, ApSegment] = {}
+        self.held = Held(self.segments)
         self.passes: dict[tuple[str, str], PassState] = {}
         # Acknowledged passes per (vehicle, calibration version), kept as passes change state, so a
         # status ("how many passes are current") costs O(vehicles), not O(passes), per acknowledgement.
@@ -88,18 +158,21 @@ class Aggregator:
                 return self._maybe_ack(seg.vehicle_id, seg.pass_id)
             return []
         slot = (seg.vehicle_id, seg.pass_id, seg.route_id, seg.tile, seg.axle)
-        old = self.segments.get(slot)
-        if old is not None:
-            if old.calib_version > seg.calib_version:
-                return self._reject("stale_calibration", f"{slot} v{seg.calib_version} < v{old.calib_version}")
-            if old.calib_version == seg.calib_version:
+        if slot in self.segments:
+            old_version = self.segments.calib_version(slot)  # (no read of a spilled segment)
+            if old_version > seg.calib_version:
+                return self._reject("stale_calibration", f"{slot} v{seg.calib_version} < v{old_version}")
+            if old_version == seg.calib_version:
                 self.rejected["duplicate"] += 1  # idempotent: a redelivery changes nothing
                 return self._maybe_ack(seg.vehicle_id, seg.pass_id)
             self._release(slot)
         self.segments[slot] = seg
-        self.held[slot] = seg
-        for est in self.estimators:
-            est.update(seg)
+        self.held.hide(slot)  # the estimators hold nothing of it until set here
+        held = on_route(seg)
+        if held is not None:
+            self.held[slot] = held
+            for est in self.estimators:
+                est.update(held)
         self.accepted += 1
         self.updates += 1
         ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
@@ -116,6 +189,11 @@ class Aggregator:
             done = decode_pass_done(payload)
         except DecodeError as e:
             return self._reject(e.reason, str(e))
+        if self.foreign_routes and (done.vehicle_id, done.pass_id) not in self._pass_route:
+            # A shard counts every vehicle's passes per route, its own and the others': the shard
+            # with most of a vehicle's passes calibrates it (Cloud.owns).
+            self._pass_route[(done.vehicle_id, done.pass_id)] = done.route_id
+            self.vehicle_routes.setdefault(done.vehicle_id, collections.Counter())[done.route_id] += 1
         if done.route_id in self.foreign_routes:
             self.foreign += 1
             return []
@@ -155,7 +233,7 @@ class Aggregator:
         length = self.routes.get(seg.route_id)
         if length is None:
             return "unknown_route"
-        if seg.start_index * seg.spacing_m > length + MAX_ROUTE_OVERHANG_M:
+        if not -MAX_ROUTE_OVERHANG_M <= seg.start_index * seg.spacing_m <= length + MAX_ROUTE_OVERHANG_M:
             return "beyond_route"
         if not (0.5 <= seg.speed_mps <= 100.0):
             return "impossible_speed"
@@ -177,12 +255,19 @@ class Aggregator:
             for est in self.estimators:
                 est.retract(held)
 
+    def drop_held(self, slot: tuple) -> None:
+        """The estimators stop holding ``slot`` (the raw segment stays: e.g. re-keyed off the route)."""
+        self._release(slot)
+
     def replace_held(self, slot: tuple, seg: ApSegment) -> None:
         """Give the estimators ``seg`` (e.g. the chainage-aligned version) in place of what they hold."""
         if not all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators) or \
                 seg.start_index * seg.spacing_m > self.routes.get(seg.route_id, 0.0):
             return  # moved off the route: keep what the estimators hold
+        seg = on_route(seg)
         self._release(slot)
+        if seg is None:
+            return
         self.held[slot] = seg
         for est in self.estimators:
             est.update(seg)
@@ -195,9 +280,10 @@ class Aggregator:
         self.acked[(vehicle_id, ps.calib_version)] += 1
         # The pass is complete under its newest calibration: any of its segments still held from an
         # older one (a tile the recomputation no longer produces) is superseded too.
-        for slot in [sl for sl in ps.slots if self.segments[sl].calib_version < ps.calib_version]:
+        for slot in [sl for sl in ps.slots if self.segments.calib_version(sl) < ps.calib_version]:
             self._release(slot)
             del self.segments[slot]
+            self.held.forget(slot)
             ps.slots.discard(slot)
         return [Ack(vehicle_id=vehicle_id, pass_id=pass_id, n_segments_accepted=len(ps.seqs),
                     calib_version=ps.calib_version)]
@@ -215,6 +301,7 @@ class Aggregator:
             "accepted": self.accepted,
             "rejected": dict(self.rejected),
             "segments_held": len(self.segments),
+            **self.segments.stats(),
             "passes": len(self.passes),
             "passes_complete": self.acked.total(),
             "foreign_passes": self.foreign,

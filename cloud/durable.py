@@ -1,12 +1,17 @@
 """The cloud's durable state: what goes into the journal, how a restart rebuilds from it, and compaction.
 
-Three kinds of record rebuild the whole state, because everything else is a function of them:
+These kinds of record rebuild the whole state, because everything else is a function of them:
 
 * ``ap`` — an AP payload as received (one segment or a batch),
 * ``done`` — a pass-done as received,
 * ``calib`` — a calibration the cloud itself issued (its own decisions are inputs to its future),
   journalled before it is published,
-* ``calibrator`` — the calibrator's whole state after a round (fits, step damping, round count).
+* ``calibrator`` — the calibrator's whole state after a round (fits, step damping, round count),
+  journalled before the round's calibrations are published,
+* ``epoch`` — the start of a calibration epoch (its size in completed passes and first round:
+  :meth:`Cloud.maybe_calibrate`),
+* ``alarm`` — a bridge alarm (raised or cleared) the cloud published: a restarted cloud knows which
+  alarms stand and does not raise them again.
 
 Replaying them in order through the same handlers (:meth:`Cloud.on_segment`, :meth:`Cloud.on_done`,
 the calibrator's ``restore``) gives the same aggregator state and the same exact posteriors (up to
@@ -29,7 +34,7 @@ from .journal import Journal, Record
 
 log = logging.getLogger("driveby.cloud.durable")
 
-AP, DONE, CALIB, CALIBRATOR = "ap", "done", "calib", "calibrator"
+AP, DONE, CALIB, CALIBRATOR, EPOCH, ALARM = "ap", "done", "calib", "calibrator", "epoch", "alarm"
 SNAPSHOT_EVERY_RECORDS = 200_000  # compact once the journal has grown by this many records…
 SNAPSHOT_EVERY_S = 600.0  # …or this long has passed with anything new
 
@@ -54,6 +59,20 @@ def replay(cloud, records: Iterable[Record]) -> int:
                     cloud.calibrator.load_state(json.loads(r.payload))
                 except (ValueError, KeyError, TypeError) as e:
                     log.warning("journal: calibrator state %d not restored: %s", r.seq, e)
+        elif r.kind == ALARM:
+            try:
+                cloud.restore_alarm(r.payload)
+            except (DecodeError, ValueError) as e:
+                log.warning("journal: alarm record %d not restored: %s", r.seq, e)
+        elif r.kind == EPOCH:
+            if cloud.calibrator is not None:
+                try:
+                    e = json.loads(r.payload)
+                    if "order" in e:
+                        cloud.restore_order(e["order"])
+                    cloud.start_epoch(int(e["size"]), int(e["round0"]))
+                except (ValueError, KeyError, TypeError) as e:
+                    log.warning("journal: epoch record %d not restored: %s", r.seq, e)
         else:
             log.warning("journal: unknown record kind %r (seq %d) skipped", r.kind, r.seq)
             continue
@@ -79,12 +98,19 @@ def compacted(cloud) -> Iterator[tuple[str, str, bytes]]:
     """The records that rebuild the cloud's current state, in an order replay accepts."""
     if cloud.calibrator is not None:
         yield CALIBRATOR, "", json.dumps(cloud.calibrator.state()).encode()
+        yield EPOCH, "", json.dumps(cloud.epoch_state(order=True)).encode()
+    for payload in cloud.alarms.values():
+        yield ALARM, "", payload
     agg = cloud.aggregator
     for (vehicle, pass_id, route, tile, _axle), seg in agg.segments.items():
         yield AP, keys.ap_key(cloud.net, route, tile, vehicle), seg.encode()
-    for (vehicle, pass_id), ps in agg.passes.items():
-        if ps.done_payload is not None:
-            yield DONE, keys.done_key(cloud.net, vehicle), ps.done_payload
+    # Pass-dones in the order the passes were first acknowledged (the epoch record above carries that
+    # order too, for passes being recomputed now, which are acknowledged again only later).
+    order = list(dict.fromkeys([*cloud.completion_order, *agg.passes]))
+    for key in order:
+        ps = agg.passes.get(key)
+        if ps is not None and ps.done_payload is not None:
+            yield DONE, keys.done_key(cloud.net, key[0]), ps.done_payload
 
 
 class Durability:
@@ -115,10 +141,11 @@ class Durability:
         self.journal.append(kind, key, payload)
         self.since_snapshot += 1
 
-    def record_calibrator(self) -> None:
-        """After a calibration round: the calibrator's whole state (damping, fits, round count)."""
-        if self.cloud.calibrator is not None:
-            self.record(CALIBRATOR, "", json.dumps(self.cloud.calibrator.state()).encode())
+    def record_own(self, kind: str, payload: bytes) -> None:
+        """A decision of the cloud itself (``epoch``, ``calibrator``, ``alarm``): journalled, written
+        through (the daemon sets it as ``Cloud.record``)."""
+        if self.live:
+            self.record(kind, "", payload)
 
     def before_publish(self) -> None:
         self.journal.sync()
@@ -131,6 +158,7 @@ class Durability:
         agg = self.cloud.aggregator
         meta = {"rejected": dict(agg.rejected), "accepted": agg.accepted, "written_utc": time.time()}
         self.journal.write_snapshot(compacted(self.cloud), meta)
+        agg.segments.compact()  # the spill file's garbage (replaced segments) goes with the journal's
         self.since_snapshot = 0
         self._snapshot_at = time.monotonic()
         return True

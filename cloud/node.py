@@ -22,13 +22,14 @@ import zenoh
 
 from shared import keys
 from shared.registry import RegistryError, Site, load_site
+from shared.schema import Calibration, DecodeError, decode_alarm, decode_calibration
 from shared.transport import add_zenoh_arguments, config_from_args
 
 from .aggregator import Aggregator
 from .alignment import Alignment, estimate_alignment, realign
 from .bridge.estimator import BridgeSettings
-from .durable import AP, CALIB, DONE, Durability
-from .bridges import BridgeMonitor
+from .durable import AP, CALIB, DONE, Durability, restore_calibration
+from .bridges import CLEARED, BridgeMonitor
 from .estimators.gmrf_profile import GmrfProfile
 from .estimators.long_wave import with_long_wave_band
 from .estimators.mean_profile import MeanProfile
@@ -36,6 +37,8 @@ from .journal import Journal, JournalError
 from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_table,
                      roughness_table, track_quality_table, vehicles_table, write_export)
 from .fleet_calibration import FleetCalibrator
+from .segment_store import DEFAULT_MAX_RESIDENT, SegmentStore
+from .rail import RailBatches
 
 log = logging.getLogger("driveby.cloud")
 
@@ -54,6 +57,24 @@ TRACE = struct.Struct("<d")
 TRACE_RECORDS = 100_000
 STATUS_INTERVAL_S = 0.1  # status is published at most this often (and this late) while acks stream in
 QUIET_S = 0.2  # calibration rounds run once no input has arrived for this long
+#: Calibration epochs (reproducible rounds): an epoch is a fixed prefix of the passes in the order they
+#: were first acknowledged, and its rounds see exactly those passes, each at its vehicle's current
+#: calibration. Epoch sizes are boundaries of the completed-pass count: ``EPOCH_FIRST`` (a cold start
+#: on fewer passes costs a full round budget and is soon redone), then doubling, the step capped at
+#: ``EPOCH_MAX_STEP``. So which passes a round sees is a function of the data, not
+#: of when the bus happened to be quiet. Passes beyond the last boundary join a (tail) epoch once no
+#: new pass has completed for ``EPOCH_TAIL_S``: the one timing-dependent decision, there for liveness.
+EPOCH_FIRST = 8
+EPOCH_MAX_STEP = 64
+EPOCH_TAIL_S = 1.0
+#: A pass of the epoch still at an older calibration once the bus is quiet (the edge finished it with
+#: the old parameters after the new ones arrived) is recomputed by re-issuing its vehicle's calibration
+#: under a new version, same parameters; a pass that still does not come back within this long (its
+#: raw data evicted from the edge's spool) is left out of the epoch's rounds.
+REFRESH_WAIT_S = 5.0
+#: …and only this long after the vehicle's current calibration was published: before that, the edge
+#: may simply not have started recomputing (a pass finished just before it heard the calibration).
+REISSUE_AFTER_S = 1.0
 #: While segments stream in, bridge estimates (0.2–1.5 s each) may take at most this share of the
 #: cloud's time, so the bridge view still updates pass by pass during a fast replay.
 BRIDGE_DUTY = 0.2
@@ -64,10 +85,12 @@ class Cloud:
 
     def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05,
                  calibration: str = "nominal", node_id: str = "cloud-1", align: bool = False,
-                 bridge_settings: BridgeSettings = BridgeSettings(), shard: frozenset[str] | None = None):
+                 bridge_settings: BridgeSettings = BridgeSettings(), shard: frozenset[str] | None = None,
+                 max_resident: int | None = None, spill_dir: Path | None = None):
         # A shard (``shard``: the routes this aggregator owns) sees the site as its routes and their
         # bridges only; pass-dones for the other shards' routes are not its business (counted apart).
         foreign = frozenset()
+        self.shard = shard
         if shard is not None:
             foreign = frozenset(r.id for r in site.routes) - shard
             site = dataclasses.replace(site, routes=tuple(r for r in site.routes if r.id in shard),
@@ -78,11 +101,34 @@ class Cloud:
         # The vehicle step compares against the data alone (the flat-prior limit of the posterior):
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, spacing_m)
-        self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign)
+        # At most ``max_resident`` segments decoded in memory (None: all); the rest in a spill file
+        # under ``spill_dir`` (default: the system's temporary directory), read back when needed.
+        self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign,
+                                     store=SegmentStore(max_resident, spill_dir))
+        if max_resident is not None and isinstance(getattr(self.profile, "segments", None), dict):
+            # The profile estimator keeps each segment it holds too (exact retraction, the per-pass
+            # drift assembled at snapshot time): bounded the same way.
+            self.profile.segments = SegmentStore(max_resident, spill_dir)
         self.calibrator = FleetCalibrator(site, self.consensus) if calibration == "fleet" else None
+        self.calibrations_applied = 0  # sharded: calibrations of vehicles another shard owns, applied here
+        self.calibration_conflicts = 0  # …and ones at a version this shard had issued differently
         self.align = align  # chainage alignment of passes (GNSS error); costs ~30 ms per pass per sweep
         self.align_due = False  # passes completed since the last alignment
         self.alignments: dict[tuple[str, str], Alignment] = {}
+        # Calibration epochs (see EPOCH_MAX_STEP): passes in first-acknowledgement order, the current
+        # epoch's size and the calibrator's round count when it began.
+        self.completion_order: list[tuple[str, str]] = []
+        self._ordered: set[tuple[str, str]] = set()  # the same passes, for membership
+        self.epoch_size = 0
+        self.epoch_round0 = 0
+        self.epochs_tail = 0  # epochs closed by EPOCH_TAIL_S rather than a boundary (timing-dependent)
+        self._new_pass_at = time.monotonic()
+        self._refreshed: dict[str, tuple[int, float]] = {}  # vehicle → (version re-issued, monotonic s)
+        self._issued_at: dict[str, float] = {}  # vehicle → monotonic s its current calibration was published
+        self._excluded: set[tuple[str, str]] = set()  # epoch passes that never came back (REFRESH_WAIT_S)
+        #: ``record(kind, payload)``: the daemon's journal for the cloud's own decisions (an epoch's start,
+        #: the calibrator's state after a round, journalled before its calibrations are published).
+        self.record = None
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
@@ -90,7 +136,9 @@ class Cloud:
         self.status_due = False  # acks were published since the last status
         # Bridges are fed and estimated when the bus is quiet (maybe_estimate_bridges), never per segment.
         self.bridges = BridgeMonitor(site, bridge_settings)
+        self.rail = RailBatches(site)  # carriage runs: batch calibration, re-keying (issue #6)
         self.bridge_sync_due = False  # passes were acknowledged (or re-aligned) since the last sync
+        self.alarms: dict[str, bytes] = {}  # bridge → the last alarm message published (raised or cleared)
         self._bridge_cost_s = 0.0  # how long the last bridge update took
         self._bridge_done_at = -math.inf  # monotonic s when it ended
         self._status_at = -math.inf  # monotonic s of the last status publication
@@ -141,9 +189,13 @@ class Cloud:
             first = (ack.vehicle_id, ack.pass_id) not in self.completed
             if self.calibrator is not None and ps is not None and ps.model:
                 try:
-                    self.calibrator.note_pass(ack.vehicle_id, ps.model, new=first)
+                    self.calibrator.initial(ack.vehicle_id, ps.model)  # rounds: see maybe_calibrate
                 except KeyError:  # no vehicle class for this model in the registry: not calibrated
                     pass
+            if (ack.vehicle_id, ack.pass_id) not in self._ordered:
+                self.completion_order.append((ack.vehicle_id, ack.pass_id))
+                self._ordered.add((ack.vehicle_id, ack.pass_id))
+                self._new_pass_at = time.monotonic()
             self.completed.add((ack.vehicle_id, ack.pass_id))
             v = self.vehicles[ack.vehicle_id]
             v["passes"] += first
@@ -169,10 +221,14 @@ class Cloud:
         busy = False
         if self.calibrator is not None:
             c = self.calibrator
-            busy = c.dirty and not c.exhausted and len(passes) >= c.min_passes
+            pending = len(self.completion_order) > self.epoch_size and len(self.completion_order) >= c.min_passes
+            busy = pending or not self.epoch_finished()
         busy = busy or self.align_due
         return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
-                "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0}
+                "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0,
+                "calibration_epoch_passes": self.epoch_size,
+                **({"calibrations_applied": self.calibrations_applied,
+                    "calibration_conflicts": self.calibration_conflicts} if self.shard is not None else {})}
 
     def publish_status(self) -> None:
         self.status_due = False
@@ -265,17 +321,191 @@ class Cloud:
                     agg.replace_held(sl, new)
         return moved
 
-    def maybe_calibrate(self) -> bool:
-        """Run one calibration round if one is due; publish what changed. True if a round ran."""
-        c = self.calibrator
-        if c is None or not c.ready(self.aggregator.segments):
+    # -- sharded calibration -----------------------------------------------------------------------
+    def owns(self, vehicle_id: str) -> bool:
+        """Whether this cloud calibrates the vehicle: always unsharded; a shard when the route with most
+        of the vehicle's passes (ties: the first route id) is one of its own. Every shard sees every
+        pass-done, so they agree once the same pass-dones have arrived."""
+        if self.shard is None:
+            return True
+        counts = self.aggregator.vehicle_routes.get(vehicle_id)
+        if not counts:
             return False
-        held = self.aggregator.held  # the (chainage-aligned) segments the estimators hold
+        route = min(counts, key=lambda r: (-counts[r], r))
+        return route in self.shard
+
+    def on_calibration(self, key: str, payload: bytes) -> None:
+        """A calibration on the bus (a shard: the owner's, for a vehicle another shard calibrates):
+        made this cloud's state of the vehicle, so its passes here are current at that version and
+        its bridges are fed with those parameters. Its own calibrations come back too: no change."""
+        c = self.calibrator
+        if c is None:
+            return
+        try:
+            cal = decode_calibration(payload)
+            if keys.parse_vehicle_key(key, "calib")[1] != cal.vehicle_id:
+                raise ValueError("key names another vehicle")
+        except (DecodeError, ValueError):
+            self.aggregator.rejected["bad_calibration"] += 1
+            return
+        st = c.vehicles.get(cal.vehicle_id)
+        if st is not None and cal.version <= st.version:
+            if cal.version == st.version and dict(cal.params) != st.params:
+                self.calibration_conflicts += 1  # two shards issued this version: ownership disagreed
+                log.warning("calibration of %s v%d issued differently by another shard", cal.vehicle_id, cal.version)
+            return
+        if self.owns(cal.vehicle_id):
+            self.calibration_conflicts += 1
+            log.warning("calibration of %s v%d issued by another shard, though this one owns it",
+                        cal.vehicle_id, cal.version)
+        try:
+            restore_calibration(c, cal)
+        except KeyError:  # no vehicle class for it in the registry
+            self.aggregator.rejected["bad_calibration"] += 1
+            return
+        self.calibrations_applied += 1
+        self.status_due = True
+
+    # -- calibration epochs ----------------------------------------------------------------------
+    def since_new_pass_s(self) -> float:
+        """Seconds since a pass was first acknowledged (or since start)."""
+        return time.monotonic() - self._new_pass_at
+
+    def epoch_finished(self) -> bool:
+        """The current epoch's rounds are over: one ran and moved nobody, or its budget is spent."""
+        c = self.calibrator
+        if c is None or self.epoch_size == 0:
+            return True
+        ran = c.rounds - self.epoch_round0
+        return ran > 0 and (not c.dirty or ran >= c.max_rounds)
+
+    def next_epoch_size(self, tail: bool | None) -> int | None:
+        """The size of the epoch due now (None: none due), from the completed-pass count alone, or all
+        completed passes when ``tail`` (when ``None``: at once, without boundaries)."""
+        c = self.calibrator
+        n = len(self.completion_order)
+        if c is None or n < c.min_passes or n <= self.epoch_size or not self.epoch_finished():
+            return None
+        if tail is None:
+            return n
+        boundary = self._boundary()
+        if n >= boundary:
+            return boundary
+        return n if tail else None
+
+    def _boundary(self) -> int:
+        """The completed-pass count at which the epoch after the current one is due."""
+        first = max(self.calibrator.min_passes, EPOCH_FIRST)
+        return first if self.epoch_size < first else self.epoch_size + min(self.epoch_size, EPOCH_MAX_STEP)
+
+    def start_epoch(self, size: int, round0: int) -> None:
+        """Begin (or, replaying the journal, restore) the epoch of the first ``size`` completed passes."""
+        c = self.calibrator
+        self.epoch_size, self.epoch_round0 = size, round0
+        if c is not None and c.rounds == round0:  # no round of it yet: it needs one
+            c.dirty, c.settled, c.budget_from = True, False, round0
+
+    def epoch_state(self, order: bool = False) -> dict:
+        """The epoch as journalled; with ``order`` (a snapshot) the completion order too: a pass being
+        recomputed when the snapshot is taken is acknowledged again only later, out of its place."""
+        out = {"size": self.epoch_size, "round0": self.epoch_round0}
+        if order:
+            out["order"] = [list(k) for k in self.completion_order]
+        return out
+
+    def restore_order(self, order: list) -> None:
+        """Replaying a snapshot: the passes' completion order as it was."""
+        self.completion_order = [(str(v), str(p)) for v, p in order]
+        self._ordered = set(self.completion_order)
+
+    def _epoch_segments(self, refresh: bool) -> dict | None:
+        """The epoch's held segments, pass by pass in completion order, each pass at its vehicle's
+        current calibration; None while some pass is not (yet) recomputed (then, with ``refresh``,
+        re-issue the calibration of vehicles whose edge finished a pass with older parameters)."""
+        agg, c = self.aggregator, self.calibrator
+        out: dict = {}
+        waiting = False
+        now = time.monotonic()
+        for key in self.completion_order[: self.epoch_size]:
+            ps, st = agg.passes.get(key), c.vehicles.get(key[0])
+            if ps is None or st is None or key in self._excluded:
+                continue
+            if not ps.acked or ps.calib_version != st.version:
+                if not self.owns(key[0]):  # its owner's calibration is on its way: not waited for here
+                    continue
+                waiting = True
+                if refresh and ps.acked and ps.calib_version < st.version and \
+                        now - self._issued_at.get(key[0], -math.inf) >= REISSUE_AFTER_S:
+                    version, at = self._refreshed.get(key[0], (-1, now))
+                    if version != st.version:
+                        self._reissue(key[0])
+                    elif now - at >= REFRESH_WAIT_S:
+                        log.warning("pass %s/%s not recomputed at calibration v%d: left out of the rounds",
+                                    key[0], key[1], st.version)
+                        self._excluded.add(key)
+                continue
+            for sl in sorted(ps.slots):
+                seg = agg.held.get(sl)
+                if seg is not None:
+                    out[sl] = seg
+        return None if waiting else out
+
+    def _reissue(self, vehicle_id: str) -> None:
+        """The vehicle's calibration again under a new version (same parameters): its edge recomputes
+        every spooled pass with exactly the parameters the calibrator holds."""
+        st = self.calibrator.vehicles[vehicle_id]
+        st.version += 1
+        self._refreshed[vehicle_id] = (st.version, time.monotonic())
+        self._issued_at[vehicle_id] = time.monotonic()
+        cal = Calibration(vehicle_id=vehicle_id, version=st.version, vehicle_model=st.model,
+                          params=dict(st.params), source="fleet")
+        self.publish(keys.calib_key(self.net, vehicle_id), cal.encode())
+
+    def maybe_calibrate(self, tail: bool | None = None) -> bool:
+        """Run one calibration round if one is due; publish what changed. True if a round ran.
+
+        A round is due when the current epoch has not finished and all of its passes are at their
+        vehicle's current calibration; it sees those passes only, against a consensus of them alone
+        built afresh in a fixed order, so it is a function of the data. A new epoch starts when the
+        last has finished and the completed passes reach the next boundary (or, ``tail``, whenever
+        some have completed beyond the epoch: the daemon passes ``tail`` once no new pass has
+        completed for ``EPOCH_TAIL_S``). ``tail=None`` (an in-process caller that has given all of
+        its input) skips the boundaries: one epoch of every completed pass.
+        """
+        c = self.calibrator
+        if c is None:
+            return False
+        size = self.next_epoch_size(tail)
+        if size is not None:
+            self.epochs_tail += tail is not None and size != self._boundary()
+            self.start_epoch(size, c.rounds)
+            if self.record is not None:
+                self.record("epoch", json.dumps(self.epoch_state()).encode())
+        if self.epoch_finished() or not c.dirty:
+            return False
+        segs = self._epoch_segments(refresh=True)
+        if segs is None:
+            return False
         if self.align:  # a pass not (yet) placed in chainage would teach the vehicles a shifted road
             # (Too few placed passes: the round fits nothing and waits for new data, never spins.)
-            held = {sl: s for sl, s in held.items() if (s.vehicle_id, s.pass_id) in self.alignments}
-        for cal in c.round(held):
+            segs = {sl: s for sl, s in segs.items() if (s.vehicle_id, s.pass_id) in self.alignments}
+        # The leave-one-out consensus of the round: the epoch's passes only, summed in a fixed order
+        # (the running consensus holds passes beyond the epoch and rounding from its history).
+        consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
+        for seg in segs.values():
+            consensus.update(seg)
+        if self.shard is not None:  # the others' vehicles inform the consensus; their owners calibrate them
+            segs = {sl: seg for sl, seg in segs.items() if self.owns(seg.vehicle_id)}
+        c.estimator = consensus
+        try:
+            cals = c.round(segs)
+        finally:
+            c.estimator = self.consensus
+        if self.record is not None:  # the round's outcome is on disk before any of it is published
+            self.record("calibrator", json.dumps(c.state()).encode())
+        for cal in cals:
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
+            self._issued_at[cal.vehicle_id] = time.monotonic()
         if self.view is not None:
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
@@ -312,13 +542,33 @@ class Cloud:
             return False
         alarms = self.bridges.estimate()
         for alarm in alarms:
-            self.publish(keys.alarm_key(self.net, alarm.bridge_id), alarm.encode())
+            payload = alarm.encode()
+            # The alarm state is durable: a restarted cloud does not raise a standing alarm again.
+            self.alarms[alarm.bridge_id] = payload
+            if self.record is not None:
+                self.record("alarm", payload)
+            self.publish(keys.alarm_key(self.net, alarm.bridge_id), payload)
             log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
         if self.view is not None:
             self._log_bridges(alarms)
         self._bridge_done_at = time.monotonic()
         self._bridge_cost_s = self._bridge_done_at - t0
         return True
+
+    def vehicle_rows(self) -> list[dict]:
+        """Rows of ``vehicles.parquet`` from the calibrator: a shard's own vehicles only (a vehicle it
+        calibrated before its passes elsewhere made another shard its owner is that one's now)."""
+        if self.calibrator is None:
+            return []
+        return [r for r in self.calibrator.table() if self.owns(r["vehicle_id"])]
+
+    def restore_alarm(self, payload: bytes) -> None:
+        """Replaying the journal: the bridge's alarm state as the alarm last published left it."""
+        alarm = decode_alarm(payload)
+        st = self.bridges.bridges.get(alarm.bridge_id)
+        if st is not None:
+            st.alarmed = alarm.kind != CLEARED
+            self.alarms[alarm.bridge_id] = bytes(payload)
 
     def bridges_may_run(self) -> bool:
         """Whether a bridge update now keeps bridges within ``BRIDGE_DUTY`` of the cloud's time."""
@@ -393,14 +643,16 @@ class Cloud:
         return {rid: with_long_wave_band(s, segs) for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:
+        self.rail.step(self, force=True)  # every acknowledged carriage run calibrated and re-keyed
         snaps = self.snapshot()
         tables = {"profile": profile_table(snaps)}
         rough = [roughness_table(rid, s.chainage_m, self.profile.sample(rid, 100, np.random.default_rng(0)),
                                  self.profile.spacing_m) for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
         if rough:
             tables["roughness"] = pa.concat_tables(rough)
-        if self.calibrator is not None:
-            tables["vehicles"] = vehicles_table(self.calibrator.table())
+        vehicle_rows = self.vehicle_rows() + self.rail.rows()
+        if self.calibrator is not None or vehicle_rows:
+            tables["vehicles"] = vehicles_table(vehicle_rows)
         # --- rail (issue #6): track geometry quality of routes that carriages ran on ---------------
         rail = {ps.route_id for ps in self.aggregator.passes.values() if ps.model in ("carriage", "bogie_half_car")}
         if rail:
@@ -411,6 +663,8 @@ class Cloud:
             tables["bridge_elements"] = bridge_elements_table(self.bridges.element_rows())
             tables["bridge_bearings"] = bridge_bearings_table(self.bridges.bearing_rows())
             tables["bridge_summary"] = bridge_summary_table(self.bridges.summary_rows())
+        if self.rail.bridge_rows():  # rail batches' D1/D2 (issue #6), in place of a bridge's road row
+            tables["bridge_summary"] = bridge_summary_table(self.rail.bridge_rows(self.bridges.summary_rows()))
         written = write_export(out_dir, tables)
         if self.view is not None:
             self.view.flush()
@@ -540,6 +794,10 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                 body = cloud.bridge_state(bridge_id)
             query.reply(keys.state_bridge_key(cloud.net, bridge_id), body)
 
+    if shard is not None and cloud.calibrator is not None:
+        # Each vehicle is calibrated by one shard (Cloud.owns); the others apply what it publishes.
+        decl.append(session.declare_subscriber(keys.calib_keyexpr(cloud.net),
+                                               lambda sample: apply(cloud.on_calibration, sample, CALIB)))
     for bid in cloud.bridges.bridges:  # this aggregator's bridges (a shard's: those on its routes)
         decl.append(session.declare_queryable(keys.state_bridge_key(cloud.net, bid),
                                               lambda query, bid=bid: on_bridge_state(query, bid)))
@@ -554,8 +812,9 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                         if cloud.maybe_align():
                             cloud.bridge_sync_due = True  # the passes' held segments may have moved
                         else:
-                            if cloud.maybe_calibrate() and durability is not None:
-                                durability.record_calibrator()
+                            # (A round journals the calibrator through cloud.record before publishing.)
+                            cloud.maybe_calibrate(tail=cloud.since_new_pass_s() >= EPOCH_TAIL_S)
+                            cloud.rail.step(cloud)  # carriage batches (issue #6)
                             # Bridges take passes at their vehicle's current calibration only, so a
                             # round just published leaves them as they are until recomputed.
                             cloud.maybe_estimate_bridges()
@@ -586,6 +845,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--export", type=Path, help="default export directory")
     p.add_argument("--state", type=Path, metavar="DIR",
                    help="durable state (journal + snapshots): a restarted cloud resumes from it")
+    p.add_argument("--max-resident-segments", type=int, default=DEFAULT_MAX_RESIDENT, metavar="N",
+                   help="keep at most N segments decoded in memory, the rest spilled to disk (under --state, "
+                        "else the temporary directory) and read back exactly when needed "
+                        f"(default {DEFAULT_MAX_RESIDENT}, ~4 kB each)")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
     p.add_argument("--log-level", default="WARNING")
@@ -596,6 +859,8 @@ def main(argv: list[str] | None = None) -> int:
         keys.check_id(args.net, "net")
         keys.check_id(args.id, "id")
         conf = config_from_args(args)
+        if args.max_resident_segments < 1:
+            raise ValueError(f"--max-resident-segments: expected >= 1, got {args.max_resident_segments}")
         journal = Journal(args.state) if args.state else None
         shard = None
         if args.routes:
@@ -628,11 +893,13 @@ def main(argv: list[str] | None = None) -> int:
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
             cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id,
-                          align=args.align, shard=shard)
+                          align=args.align, shard=shard, max_resident=args.max_resident_segments,
+                          spill_dir=args.state)
             if journal is not None:
                 durability = Durability(journal, cloud)
                 durability.recover()
                 durability.live = True
+                cloud.record = durability.record_own
             # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
             # process: keep it out of full garbage collections, whose pause scans every tracked object
             # (~0.1 s of them) and would land in the middle of the stream.

@@ -101,3 +101,89 @@ def test_a_tile_query_is_answered_by_its_owner(two_routes, tmp_path):
 def test_more_shards_than_routes_is_a_clear_error(two_routes, tmp_path):
     with pytest.raises(RunError, match="--shards: expected 1 to 2"):
         run(two_routes / "logs", two_routes / "site.toml", tmp_path / "x", shards=3, progress=False)
+
+
+@pytest.fixture(scope="module")
+def shared_vehicles(tmp_path_factory):
+    """Four quarter-cars on two routes of the same road (R1, R2 are copies of one road-qc route), two
+    of them on both: veh-0001 twice on R1 and once on R2, veh-0003 twice on R2 and once on R1."""
+    out = tmp_path_factory.mktemp("shared")
+    sim = out / "sim"
+    generate(SCENARIOS["road-qc"], sim, seed=11, passes=4, workers=1, progress=False)
+    logs = {read_drive_log(p).meta.vehicle_id: read_drive_log(p) for p in list_drive_logs(sim / "logs")}
+    plan = [("R1", "veh-0001", ""), ("R1", "veh-0002", ""), ("R1", "veh-0003", "-b"), ("R1", "veh-0001", "-b"),
+            ("R2", "veh-0003", ""), ("R2", "veh-0004", ""), ("R2", "veh-0001", "-c"), ("R2", "veh-0003", "-c")]
+    (out / "logs").mkdir()
+    for i, (route, vid, suffix) in enumerate(plan):
+        log = logs[vid]
+        meta = dataclasses.replace(log.meta, route_id=route, pass_id=log.meta.pass_id + suffix)
+        write_drive_log(out / "logs" / f"{i:02d}-{route}-{vid}.parquet", dataclasses.replace(log, meta=meta))
+    site = (sim / "site.toml").read_text()
+    (out / "site.toml").write_text(site.replace("[[route]]", '[[route]]\nid = "R2"\nlength_m = 200.0\n\n[[route]]', 1))
+    return out
+
+
+def test_each_vehicle_is_calibrated_by_one_shard_and_the_others_apply_it(shared_vehicles):
+    """Two shards (R1, R2) and the edge wired in memory as over Zenoh (segments to their route's
+    owner, pass-dones and calibrations to everyone): a vehicle is calibrated by the shard with most
+    of its passes only; the other applies its calibrations, so every pass ends current everywhere."""
+    import collections
+
+    from cloud.node import Cloud
+    from edge.node import Edge
+    from simfleet.replay import replay
+
+    site = load_site(shared_vehicles / "site.toml")
+    queue: collections.deque = collections.deque()
+    issued: list[tuple[str, str]] = []  # (shard, vehicle) of every calibration published
+
+    def publisher(name):
+        def publish(key, payload):
+            if "/calib/" in key:
+                issued.append((name, key.rsplit("/", 1)[-1]))
+            queue.append((key, payload))
+        return publish
+
+    clouds = {r: Cloud("t", site, publisher(r), calibration="fleet", shard=frozenset({r})) for r in ("R1", "R2")}
+    edge = Edge("t", publisher("edge"), site, "fleet")
+    for c in clouds.values():
+        c.calibrator.max_rounds = 3  # the protocol, not convergence, is under test: keep it quick
+
+    def pump():
+        while queue:
+            key, payload = queue.popleft()
+            kind = key.split("/")[2]
+            if kind == "veh":
+                edge.on_chunk(payload)
+            elif kind == "ap":
+                clouds[keys.parse_ap_key(key)[1]].on_segment(key, payload)
+            elif kind == "done":
+                for c in clouds.values():
+                    c.on_done(key, payload)
+            elif kind == "calib":
+                edge.on_calibration(payload)
+                for c in clouds.values():
+                    c.on_calibration(key, payload)
+
+    replay([read_drive_log(p) for p in list_drive_logs(shared_vehicles / "logs")], publisher("replay"), "t")
+    pump()
+    while any([c.maybe_calibrate() for c in clouds.values()]):
+        pump()
+    r1, r2 = clouds["R1"], clouds["R2"]
+    vehicles = ["veh-0001", "veh-0002", "veh-0003", "veh-0004"]
+    assert [v for v in vehicles if r1.owns(v)] == ["veh-0001", "veh-0002"]
+    assert [v for v in vehicles if r2.owns(v)] == ["veh-0003", "veh-0004"]
+    assert issued and all(clouds[shard].owns(vid) for shard, vid in issued)  # only owners calibrate
+    assert {vid for _, vid in issued} == set(vehicles)
+    # The shared vehicles: each shard holds the owner's calibration, and its passes are current at it.
+    assert r2.calibrations_applied > 0 and r1.calibrations_applied > 0
+    assert r1.calibration_conflicts == r2.calibration_conflicts == 0
+    for vid in ("veh-0001", "veh-0003"):
+        a, b = r1.calibrator.vehicles[vid], r2.calibrator.vehicles[vid]
+        assert a.version == b.version > 0 and a.params == b.params
+    for c in clouds.values():
+        st = c.status()
+        assert st["passes"] == st["passes_current"] == 4 and st["settled"]
+    # The merged vehicles table has each vehicle once, from its owner.
+    rows = [(r["vehicle_id"], r["param"]) for c in clouds.values() for r in c.vehicle_rows()]
+    assert len(rows) == len(set(rows)) and {v for v, _ in rows} == set(vehicles)
