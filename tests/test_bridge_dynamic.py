@@ -58,3 +58,38 @@ def test_dynamic_model_removes_the_quasi_static_bias():
     assert abs(dyn.effective_ratio - 1.0) < abs(qs.effective_ratio - 1.0)
     assert np.max(np.abs(dyn.stiffness_ratio - 1.0)) < np.max(np.abs(qs.stiffness_ratio - 1.0))
     assert dyn.chi2_per_point < 0.6 * qs.chi2_per_point
+
+
+def test_uncalibrated_vehicles_give_no_false_alarm_and_a_band_that_knows_it(tmp_path):
+    """8 passes of a healthy bridge computed with the class-mean parameters (no calibration; the
+    true vehicles differ by ~10 % per quantity), the calibration error carried at the class prior's
+    width: no alarm, and the effective stiffness's 95 % band covers the truth."""
+    from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
+    from cloud.bridge.passdata import group_segments
+    from cloud.bridge.vehicle_error import class_log_sd
+    from edge.node import Edge
+    from shared.drivelog import list_drive_logs, read_drive_log
+    from shared.registry import load_site
+    from shared.schema import decode_ap
+    from simfleet import sim
+    from simfleet.replay import chunks_of
+    from simfleet.scenarios import SCENARIOS
+
+    sim.generate(SCENARIOS["bridge-healthy"], tmp_path, seed=5, passes=8, nominal="class", workers=1, progress=False)
+    site = load_site(tmp_path / "site.toml")
+    segments = []
+    edge = Edge("net", lambda k, p: segments.extend(decode_ap(p)) if "/ap/" in k else None, site, "nominal")
+    logs = [read_drive_log(p) for p in list_drive_logs(tmp_path / "logs")]
+    for log in logs:
+        for chunk in chunks_of(log):
+            edge.on_chunk(chunk.encode())
+    used = {log.meta.vehicle_id: dict(log.meta.nominal_params) for log in logs}
+    assert all(u == dict(site.vehicle_class("quarter_car").mean) for u in used.values())
+    est = BridgeEstimator(site.bridges[0], class_weight_prior(site, "quarter_car"), BridgeSettings())
+    sd = class_log_sd(site, "quarter_car")
+    for (vid, _), segs in group_segments(segments).items():
+        assert est.add_segments(segs, "quarter_car", used[vid], sd)
+    e = est.estimate()
+    assert not e.assessment.alarm, e.assessment.probabilities
+    p = e.posterior
+    assert abs(p.effective_ratio - 1.0) < 1.96 * p.effective_ratio_sd, (p.effective_ratio, p.effective_ratio_sd)

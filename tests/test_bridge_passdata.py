@@ -161,3 +161,47 @@ def test_setup_window_and_basis_cover_the_span():
 
     exact = influence_line(s.beam, s.basis.x)
     assert np.max(np.abs(J - exact)) < 2e-4 * exact.max()
+
+
+def test_calibration_marginal_whitens_the_calibration_error_covariance():
+    """(I + CΣCᵀ)^(-1/2) as a rank-K correction: it maps the covariance of noise plus a Gaussian
+    calibration error to the identity, and its log-determinant is the covariance's."""
+    from cloud.bridge.vehicle_error import CalibrationMarginal
+
+    rng = np.random.default_rng(3)
+    C = rng.normal(size=(60, 4)) * np.array([5.0, 1.0, 0.2, 0.0])  # one column without effect
+    sd = np.array([0.04, 0.1, 0.3, 0.5])
+    cov = np.eye(60) + (C * sd**2) @ C.T
+    L = CalibrationMarginal.of(C, sd)
+    M = L(np.eye(60))
+    assert np.allclose(M @ cov @ M.T, np.eye(60), atol=1e-10)
+    assert abs(L.logdet - np.linalg.slogdet(cov)[1]) < 1e-9
+    v = rng.normal(size=60)
+    assert np.allclose(L(v), M @ v)
+
+
+def test_calibration_sensitivity_is_the_forward_models_change_with_the_quantity():
+    """The load columns' sensitivity to a calibration quantity (model_columns) predicts what the
+    forward model with that quantity changed by 1 % does to them (first order: within 3 %), and
+    names map to parameters as the calibration's do ('c/M' moves c, not M)."""
+    import dataclasses as dc
+
+    from cloud.bridge.static import model_columns
+    from cloud.bridge.vehicle_error import perturbed_params
+
+    segs, _, _ = _pass(21.0)
+    setup = Setup.of(BRIDGE)
+    p = extract_pass(segs, setup.window, "quarter_car", QC, params_log_sd={"c/M": 0.04, "K/M": 0.04})
+    assert perturbed_params(QC, "c/M", math.log(1.03))["c"] == pytest.approx(1.03 * QC["c"])
+    assert perturbed_params(QC, "c/M", math.log(1.03))["M"] == QC["M"]
+    _, white, (names, sd, D) = model_columns(p, setup.basis)
+    assert names == ("K/M", "c/M") and np.allclose(sd, 0.04)
+    a = setup.model().a(np.zeros(BRIDGE.n_elements))
+    nb = setup.basis.n
+    for k, name in enumerate(names):
+        moved = dc.replace(p, params=perturbed_params(QC, name, math.log(1.01)))
+        _, white_moved, _ = model_columns(dc.replace(moved, params_log_sd=None), setup.basis)
+        change = (white_moved[:, :nb] - white[:, :nb]) @ a
+        predicted = math.log(1.01) * (D[:, k, :] @ a)
+        assert np.linalg.norm(change - predicted) < 0.03 * np.linalg.norm(change), name
+        assert np.linalg.norm(change) > 1e-3 * np.linalg.norm(white[:, :nb] @ a)  # not a null effect

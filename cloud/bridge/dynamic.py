@@ -240,6 +240,10 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
     ``iterations``/``tol`` bound the bearings' alternation between level and Krot.
     """
     model = model or setup.model(prior)
+    if model.n > model.n_elements:  # bearings: Krot is read along the effective-stiffness ridge
+        from .bearings import fit_bearings_dynamic
+
+        return fit_bearings_dynamic(passes, setup, weight_prior, model, cache=cache, start=start)
     cache = {} if cache is None else cache
     qs = fit_elements(vehicle_stats(passes), model, weight_prior)
     history = [qs]

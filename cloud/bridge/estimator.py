@@ -30,8 +30,8 @@ from .hypotheses import Assessment, HypothesisSettings, Kernels, assess
 from .mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
 from .passdata import EdgeSettings, PassData, Reference, extract_pass, span_profile
 from .static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, Whitener,
-                     fit_elements, marginal_loglik_batch, model_columns, mu_basis, step_basis, vehicle_stats,
-                     whiten_pass)
+                     fit_elements, marginal_loglik_batch, model_columns, mu_basis, road_sensitivity, step_basis,
+                     vehicle_stats, whiten_pass)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +55,12 @@ class BridgeSettings:
     baseline_passes: int | None = None
     assess: bool = True
     assess_rough: bool = False
+    #: log-sd of every calibration quantity of a pass added without its own
+    #: (:meth:`BridgeEstimator.add_segments`): the calibration error integrated out of the likelihood
+    #: (:mod:`cloud.bridge.vehicle_error`). The default is the error fleet self-calibration leaves
+    #: (measured, 30 quarter-cars at 2 % noise: rms log errors 0.5–3.7 % per quantity, c/M the
+    #: worst); None: parameters taken as exact.
+    calibration_log_sd: float | None = 0.04
 
 
 def class_weight_prior(site: Site, model: str) -> WeightPrior:
@@ -109,7 +115,8 @@ class BridgeEstimate:
 @dataclasses.dataclass
 class _PassEntry:
     data: PassData
-    columns: tuple[Whitener, np.ndarray]
+    columns: tuple[Whitener, np.ndarray, tuple | None]
+    road: tuple[int, np.ndarray] | None = None  # (passes in the consensus, its road sensitivity)
 
 
 class BridgeEstimator:
@@ -127,12 +134,25 @@ class BridgeEstimator:
         self.baseline = (Baseline.declared(bridge, self.setup.basis.x) if settings.baseline_passes is None
                          else Baseline.learnt(settings.baseline_passes))
         self._scale = 1.0  # uniform stiffness ratio of the dynamic correction
+        self._linearise_at: np.ndarray | None = None  # bearing models: the last estimate's parameters
         self._cache: dict = {}  # (vehicle, pass, parameters) → dynamic excess on the window
 
     # -- data ------------------------------------------------------------------------------
-    def add_segments(self, segments: Sequence[ApSegment], model: str, params: dict) -> bool:
-        """Add one pass from its segments (all tiles, all axles); False if it does not cross the bridge."""
-        pd = extract_pass(segments, self.setup.window, model, params, edge=self.settings.edge)
+    def add_segments(self, segments: Sequence[ApSegment], model: str, params: dict,
+                     params_log_sd: dict | None = None) -> bool:
+        """Add one pass from its segments (all tiles, all axles); False if it does not cross the bridge.
+
+        ``params_log_sd``: the calibration's uncertainty, log-sd per calibration quantity
+        (:func:`~cloud.bridge.vehicle_error.fit_log_sd` of a calibrator's fit, or
+        :func:`~cloud.bridge.vehicle_error.class_log_sd` for a vehicle at its class mean); default
+        ``settings.calibration_log_sd`` on every quantity.
+        """
+        if params_log_sd is None and self.settings.calibration_log_sd:
+            from cloud.calibration import calibration_names
+
+            params_log_sd = {n: self.settings.calibration_log_sd for n in calibration_names(model)}
+        pd = extract_pass(segments, self.setup.window, model, params, edge=self.settings.edge,
+                          params_log_sd=params_log_sd)
         if pd is None:
             return False
         self.add(pd)
@@ -158,12 +178,19 @@ class BridgeEstimator:
         if len(entries) < self.settings.min_passes:
             return None
         ref = Reference.of([e.data for e in entries])
-        wps = [whiten_pass(e.data, ref, self.setup.basis, self.settings.deck, columns=e.columns) for e in entries]
+        # The calibration error is linearised at the class-mean load and the design influence line, or
+        # for bearings at the last estimate: the bearings' prior mean (Krot 1e8, nearly pinned) is far
+        # from a stiff bearing's line, and linearising there read bearing-1e10 as 1e11.3 (H4).
+        load = self.model.a(self._linearise_at if self._linearise_at is not None else self.model.prior_mean())
+        wps = [whiten_pass(e.data, ref, self.setup.basis, self.settings.deck, columns=e.columns, load=load,
+                           weight_n=self.weight_prior.mean_n, road=self._road(e, ref)) for e in entries]
         level_loglik = level = None
         if self.settings.dynamic:
             fit = fit_elements_dynamic(wps, self.setup, self.weight_prior, model=self.model, start=self._scale,
                                        cache=self._cache)
             qs, post, deltas, self._scale, level = fit.history[0], fit.posterior, fit.deltas, fit.scale, fit.level
+            if post.krot is not None:
+                self._linearise_at = np.r_[post.theta, [k[0] for k in post.krot]][: self.model.n]
             self._prune_cache(fit.linearisation, () if level is None else tuple(level.evaluations))
             if level is not None and self.kernels is not None:
                 level_loglik = self._level_loglik(wps, deltas, level)
@@ -184,6 +211,16 @@ class BridgeEstimator:
         self.baseline.offer(mril)
         indicators = damage_indicators(self.baseline.mril, mril) if self.baseline.ready else None
         return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes)
+
+    def _road(self, e: _PassEntry, ref: Reference) -> np.ndarray | None:
+        """The pass's calibration sensitivity to the consensus road, recomputed when the fleet behind
+        the consensus has grown by a quarter since (it is a nuisance's shape, not data)."""
+        if e.columns[2] is None:
+            return None
+        n = int(ref.count.max())
+        if e.road is None or n > 1.25 * e.road[0]:
+            e.road = (n, road_sensitivity(e.data, ref, e.columns[0], e.columns[2][0], self.settings.deck))
+        return e.road[1]
 
     def _level_loglik(self, wps, deltas, level: GlobalLevel):
         """What the dynamics say about the global level beyond the fixed-ε likelihood the hypotheses

@@ -22,6 +22,7 @@ probability that some element lost more than ``alarm_loss`` of its design stiffn
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Sequence
 
@@ -160,6 +161,7 @@ def _hermite(sd: float, n: int) -> tuple[np.ndarray, np.ndarray]:
     return math.sqrt(2.0) * sd * x, np.log(w / math.sqrt(math.pi))
 
 
+@functools.lru_cache(maxsize=4)  # fixed per bridge and settings: built once, not at every pass (read-only)
 def _grids(kern: Kernels, s: HypothesisSettings) -> list[Grid]:
     setup = kern.setup
     n_e = setup.bridge.n_elements

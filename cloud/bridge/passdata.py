@@ -442,6 +442,10 @@ class PassData:
     valid: np.ndarray
     load_factor: np.ndarray
     ap_sigma_m: float
+    #: log-sd of each calibration quantity (name → sd, e.g. {'k/M': 0.03}) that ``params`` carry:
+    #: the calibration's uncertainty, integrated out of the bridge likelihood
+    #: (:mod:`cloud.bridge.vehicle_error`); None or empty: the parameters are taken as exact.
+    params_log_sd: dict | None = None
 
     def system(self) -> VehicleSystem:
         from shared.vehicles import vehicle_from_params
@@ -454,7 +458,8 @@ class PassData:
 
 def extract_pass(segments: Sequence[ApSegment], window: Window, model: str, params: dict,
                  edge: EdgeSettings = EdgeSettings(), axle: int = 1, correct: bool = True,
-                 min_cover_m: float = 10.0, load_cutoff_hz: float = LOAD_CUTOFF_HZ) -> PassData | None:
+                 min_cover_m: float = 10.0, load_cutoff_hz: float = LOAD_CUTOFF_HZ,
+                 params_log_sd: dict | None = None) -> PassData | None:
     """The :class:`PassData` of one pass's segments over ``window`` (None if it does not cross it).
 
     ``model``/``params``: the vehicle model and the parameters the edge used for this pass (the
@@ -462,7 +467,8 @@ def extract_pass(segments: Sequence[ApSegment], window: Window, model: str, para
     either side of it. Every axle of the pass is assembled (the correction acts on all contacts
     together); ``axle`` chooses the one returned. The wheel-load factor is low-passed at
     ``load_cutoff_hz`` (zero phase): above it the AP is mostly noise, and the beam does not follow
-    such fast load changes anyway.
+    such fast load changes anyway. ``params_log_sd``: the calibration's uncertainty (see
+    :attr:`PassData.params_log_sd`).
     """
     from shared.vehicles import vehicle_from_params
 
@@ -514,8 +520,9 @@ def extract_pass(segments: Sequence[ApSegment], window: Window, model: str, para
     out_valid[inside] = ap.valid[j[inside]]
     out_factor[inside] = factor_pass[j[inside] - a]
     sig = float(np.median(ap.sigma[ap.valid]))
+    log_sd = None if not params_log_sd else {str(k): float(v) for k, v in params_log_sd.items() if v > 0}
     return PassData(window, ap.vehicle_id, ap.pass_id, axle, model, dict(params), ap.speed_mps, out_vals,
-                    out_valid, out_factor, sig)
+                    out_valid, out_factor, sig, log_sd or None)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -552,13 +559,20 @@ class Reference:
             return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
+def consensus_used(p: PassData, ref: Reference, smooth_deck: bool = True, leave_out: bool = True) -> np.ndarray:
+    """The consensus AP that :func:`residual` subtracts from ``p`` (m, window grid): 0 on the span
+    of a smooth deck, NaN where no other pass has data."""
+    r = ref.mean(p if leave_out else None)
+    if smooth_deck:
+        r = np.where(p.window.on_span, 0.0, r)
+    return r
+
+
 def residual(p: PassData, ref: Reference, smooth_deck: bool = True, leave_out: bool = True) -> np.ndarray:
     """AP − consensus on the window (m): the consensus is taken as 0 on the span of a smooth deck
     (the deck profile is then known; only the drift-control trend of the consensus remains, which
     the estimators carry as a smooth nuisance). Points without data are filled linearly."""
-    r = ref.mean(p if leave_out else None)
-    if smooth_deck:
-        r = np.where(p.window.on_span, 0.0, r)
+    r = consensus_used(p, ref, smooth_deck, leave_out)
     res = p.ap - r
     ok = p.valid & np.isfinite(res)
     if ok.sum() < 2:

@@ -53,7 +53,8 @@ import numpy as np
 from shared.fe.beam import Beam, compliance_kernel
 from shared.registry import Bridge
 
-from .passdata import PassData, Reference, Window, residual
+from .passdata import PassData, Reference, Window, consensus_used, residual
+from .vehicle_error import FD_STEP, CalibrationMarginal, perturbed_params
 
 #: The likelihood window starts this far before the first support (m); the noise is estimated on
 #: the approach before it, after a burn-in of the forward model.
@@ -181,6 +182,8 @@ class Whitener:
     rows: np.ndarray
     sigma: float
     steps: np.ndarray | None = None  # (n_rows, k) whitened per-pass nuisance columns, projected out
+    #: the vehicle's calibration error integrated out (:mod:`cloud.bridge.vehicle_error`), or None
+    marginal: CalibrationMarginal | None = None
 
     def project(self, v: np.ndarray) -> np.ndarray:
         """Remove the per-pass nuisance columns' span from whitened values (rows × k)."""
@@ -194,6 +197,8 @@ class Whitener:
         cols = np.asarray(cols, dtype=float)
         one = cols.ndim == 1
         out = _fir(self.ar, self.stage1(cols[:, None] if one else cols))[self.rows] / self.sigma
+        if self.marginal is not None:
+            out = self.marginal(out)
         return out[:, 0] if one else out
 
     def stage1(self, cols: np.ndarray) -> np.ndarray:
@@ -258,8 +263,11 @@ class WhitenedPass:
 def model_columns(p: PassData, basis: SpanBasis, deck: str = "smooth", band_hz: float | None = None
                   ) -> tuple[Whitener, np.ndarray]:
     """The pass's band-limited forward-model output of its model columns (load basis, μ basis, step
-    basis), (n_dec, n_b + n_mu + n_step), and the :class:`Whitener` skeleton (AR and rows not yet known). They do not
-    depend on the consensus, so a live estimator computes them once per pass."""
+    basis), (n_dec, n_b + n_mu + n_step), the :class:`Whitener` skeleton (AR and rows not yet known), and —
+    when the pass carries calibration uncertainty (:attr:`~cloud.bridge.passdata.PassData.params_log_sd`) —
+    the sensitivities of the load columns to each calibration quantity, ``(names, sd, D)`` with D
+    (n_dec, K, n_b) = ∂/∂log q_k of the band-limited forward model of the load basis (None otherwise).
+    They do not depend on the consensus, so a live estimator computes them once per pass."""
     band_hz = BAND_HZ[deck] if band_hz is None else band_hz
     w = p.window
     on = w.on_span
@@ -274,22 +282,55 @@ def model_columns(p: PassData, basis: SpanBasis, deck: str = "smooth", band_hz: 
         sos = butter(6, band_hz / (0.5 * fs), output="sos")
         step = max(1, int(fs / (2.5 * band_hz)))
     skeleton = Whitener(p, sos, step, np.ones(1), np.zeros(0, dtype=int), 1.0)
-    return skeleton, skeleton.stage1(cols)
+    white = skeleton.stage1(cols)
+    sens = None
+    if p.params_log_sd:
+        names = sorted(p.params_log_sd)
+        D = np.empty((white.shape[0], len(names), basis.n))
+        for k, name in enumerate(names):
+            moved = dataclasses.replace(skeleton, data=dataclasses.replace(
+                p, params=perturbed_params(p.params, name, FD_STEP)))
+            D[:, k, :] = (moved.stage1(load) - white[:, : basis.n]) / FD_STEP
+        sens = (tuple(names), np.array([p.params_log_sd[n] for n in names]), D)
+    return skeleton, white, sens
+
+
+def road_sensitivity(p: PassData, ref: Reference, skeleton: Whitener, names: Sequence[str], deck: str = "smooth",
+                     leave_out: bool = True) -> np.ndarray:
+    """∂/∂log q_k of the band-limited forward model of the consensus road the pass is compared with
+    (:func:`~cloud.bridge.passdata.consensus_used`), (n_dec, K): the dominant part of a calibration
+    error's effect — the vehicle's response to the road before the bridge rings on into the span."""
+    road = consensus_used(p, ref, smooth_deck=(deck == "smooth"), leave_out=leave_out)
+    ok = np.isfinite(road)
+    n = p.window.n
+    road = np.interp(np.arange(n), np.flatnonzero(ok), road[ok]) if ok.any() else np.zeros(n)
+    base = skeleton.stage1(road[:, None])[:, 0]
+    C = np.empty((base.size, len(names)))
+    for k, name in enumerate(names):
+        moved = dataclasses.replace(skeleton, data=dataclasses.replace(
+            p, params=perturbed_params(p.params, name, FD_STEP)))
+        C[:, k] = (moved.stage1(road[:, None])[:, 0] - base) / FD_STEP
+    return C
 
 
 def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smooth",
                 leave_out: bool = True, band_hz: float | None = None,
-                columns: tuple[Whitener, np.ndarray] | None = None) -> WhitenedPass:
+                columns: tuple | None = None, load: np.ndarray | None = None,
+                weight_n: float | None = None, road: np.ndarray | None = None) -> WhitenedPass:
     """The :class:`WhitenedPass` of ``p`` against the consensus ``ref``.
 
     The measured-channel residual is white only to first order (the AP was gridded in chainage,
     the edge's inverse damps high frequencies, the band limit shapes it): an AR(p) model of it on
     the approach (after a burn-in of the forward model) prewhitens data and model alike.
-    ``columns``: the pass's :func:`model_columns`, if cached.
+    ``columns``: the pass's :func:`model_columns`, if cached. If the pass carries calibration
+    uncertainty, its error is integrated out (:mod:`cloud.bridge.vehicle_error`), linearised at the
+    load-term coefficients ``load`` and the static wheel load ``weight_n`` (N); without them the
+    parameters are taken as exact. ``road``: the pass's :func:`road_sensitivity`, if cached (it
+    moves little as the consensus grows).
     """
     w = p.window
     x = w.x
-    skeleton, model_white = columns or model_columns(p, basis, deck, band_hz)
+    skeleton, model_white, sens = columns or model_columns(p, basis, deck, band_hz)
     rho = residual(p, ref, smooth_deck=(deck == "smooth"), leave_out=leave_out)
     white = np.column_stack([skeleton.stage1(rho[:, None]), model_white])
     step = skeleton.step
@@ -308,8 +349,18 @@ def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smoo
     rows = np.flatnonzero((xd >= -LEAD_M) & (idx <= last) & (xd <= w.span_m + TAIL_M))
     n_step = step_basis(w, deck).shape[1]
     wr = pre[rows] / sigma
+    marginal = None
+    if sens is not None and load is not None and weight_n is not None:
+        # The calibration error acts on everything the vehicle drove over: the road before the
+        # bridge (whose response rings on into the span — the dominant part) and the deflection.
+        names, sd, D = sens
+        C = road_sensitivity(p, ref, skeleton, names, deck, leave_out) if road is None else np.array(road)
+        C -= weight_n * (D @ np.asarray(load, dtype=float))  # deflection = −W·h
+        Cw = _fir(ar, C)[rows] / sigma
+        marginal = CalibrationMarginal.of(Cw, sd)
+        wr = marginal(wr)
     raw, steps = (wr[:, :-n_step], wr[:, -n_step:]) if n_step else (wr, None)
-    whitener = dataclasses.replace(skeleton, ar=ar, rows=rows, sigma=sigma, steps=steps)
+    whitener = dataclasses.replace(skeleton, ar=ar, rows=rows, sigma=sigma, steps=steps, marginal=marginal)
     proj = whitener.project(raw)
     nb = basis.n
     return WhitenedPass(p.vehicle_id, p.pass_id, proj[:, 0], proj[:, 1 : 1 + nb], proj[:, 1 + nb :], whitener, raw)
@@ -552,6 +603,9 @@ class BearingElementModel:
     """Per-element EI and rotational-spring bearings (thesis §4.4): parameters θ (n_e) and
     κ = log10 Krot (one shared value, or one per support). J comes from the FE beam with
     ``supports="rotational_springs"``; ∂a/∂(θ, κ) by finite differences (Gauss–Newton).
+    The passes fix only the span's effective stiffness, not its split between beam and bearings: with
+    the dynamics on, κ is read along that ridge with the as-built tolerance (:mod:`cloud.bridge.bearings`)
+    and this model's fit is conditioned on it.
     """
 
     basis: SpanBasis

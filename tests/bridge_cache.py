@@ -1,0 +1,49 @@
+"""Where bridge tests keep their simulated (and self-calibrated) passes between sessions.
+
+Keyed by the source of everything that makes them — simulator, edge, cloud, shared; not the bridge
+estimator under test (``cloud/bridge/``, ``cloud/bridges.py``), which runs every time — and by the
+Python and NumPy versions: any change to that code simulates and calibrates afresh.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def source_key() -> str:
+    h = hashlib.sha256(f"{sys.version}|{np.__version__}".encode())
+    for pkg in ("shared", "edge", "cloud", "simfleet"):
+        for p in sorted((ROOT / pkg).rglob("*.py")):
+            rel = p.relative_to(ROOT).as_posix()
+            if rel.startswith("cloud/bridge/") or rel == "cloud/bridges.py":
+                continue
+            h.update(rel.encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()[:16]
+
+
+WORK = Path(tempfile.gettempdir()) / "driveby-test-bridge" / source_key()
+
+
+def kept(name: str, make: Callable[[Path], None]) -> Path:
+    """``WORK/name``, made by ``make(dir)`` once (under a lock: sessions may run side by side);
+    a ``done`` marker is written after ``make`` returns, so a half-made directory is made again."""
+    d = WORK / name
+    d.parent.mkdir(parents=True, exist_ok=True)
+    with open(d.with_name(name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (d / "done").exists():
+            shutil.rmtree(d, ignore_errors=True)
+            d.mkdir()
+            make(d)
+            (d / "done").write_text("")
+    return d
