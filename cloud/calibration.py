@@ -462,6 +462,19 @@ def fit_fleet(model: str, vehicles: list[tuple[dict, list[PassAp]]],
 # The refinement step for quarter-cars: one vehicle against the others' consensus, in acceleration space
 
 
+def _autocorrelation_time(r: np.ndarray, max_lag: int = 200) -> float:
+    """Integrated autocorrelation time of a series, in samples (1 for white noise): 1 + 2 Σ ρ_k,
+    summed while ρ stays positive."""
+    if r.size < 4 * max_lag:
+        return 1.0
+    r = r - r.mean()
+    f = np.fft.rfft(r, 2 * r.size)
+    acf = np.fft.irfft(f * np.conj(f))[:max_lag] / max(float(r @ r), 1e-300)
+    neg = np.flatnonzero(acf < 0)
+    k = int(neg[0]) if neg.size else max_lag
+    return float(max(1.0, 1.0 + 2.0 * acf[1:k].sum()))
+
+
 def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray) -> np.ndarray:
     system = vehicle_from_params(model, params).system()
     c = newmark_constants(REMAP_DT)
@@ -515,7 +528,6 @@ def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray
     mu, sd = prior
     theta0 = np.log(np.array([to_calibration(model, params0)[n] for n in names]))
     n_res = sum(r.n * r.z.shape[1] for r in remaps)
-    n_eff = float(max(n_res, 1))  # white residuals: every sample counts
     state = {"sigma": None}
 
     def data_res(theta):
@@ -524,9 +536,18 @@ def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray
 
     r0 = data_res(theta0)
     state["sigma"] = max(float(np.sqrt(np.mean(r0**2))), 1e-9)
+    # Each sample counts as independent only if the misfit is white (sensor noise). A misfit the
+    # consensus cannot explain — lane scatter on a 3-D carpet, the others' calibration error — is
+    # smooth in time: it counts by its integrated autocorrelation time, so that it does not pull
+    # the ratios away from the class prior with the weight of white noise.
+    # (Measured at the vehicle's current calibration, where the round starts: re-measuring it at
+    # each optimum let carpet-0 move on for 12 rounds, 5.0 % profile error against 3.5 % settled in 7.)
+    taus = [_autocorrelation_time(col) for r in remaps for col in r.residual(
+        from_calibration(model, dict(zip(names, np.exp(theta0))), ref_value)).reshape(r.n, -1).T]
+    state["n_eff"] = float(max(n_res, 1)) / float(np.mean(taus))
 
     def fun(theta):
-        w = math.sqrt(n_eff / n_res) / state["sigma"]
+        w = math.sqrt(state["n_eff"] / n_res) / state["sigma"]
         return np.concatenate([w * data_res(theta), (theta - mu) / sd])
 
     for _ in range(2):  # re-estimate the misfit scale once at the optimum (empirical Bayes)

@@ -173,3 +173,59 @@ def test_a_new_pass_reopens_the_round_budget_a_recomputed_one_does_not():
     restored = FleetCalibrator(site, None, max_rounds=12)
     restored.load_state(c.state())
     assert restored.budget_from == 12 and not restored.exhausted
+
+
+def test_common_mode_relaxation_extrapolates_a_contracting_trend_and_freezes_a_runaway():
+    """The fleet's common mode under alternation: where each round's common change shrinks as
+    steps are taken, the common part is over-relaxed by ``relax``; where it does not shrink (lane
+    scatter on a 3-D carpet feeding back through the consensus: a drift of k/M by −5 % a round,
+    24.6 % profile error before), that quantity's common part is frozen."""
+    from cloud.fleet_calibration import FleetCalibrator
+    from shared.registry import Route, Site, VehicleClass
+
+    site = Site(routes=(Route("R1", 200.0),),
+                vehicle_classes=(VehicleClass("quarter_car", TABLE_4_1["mean"], TABLE_4_1["std"]),))
+    c = FleetCalibrator(site, None, relax=3.0)
+    target = np.array([0.05, 0.02, -0.04, 0.03])  # where the common mode should go (log units)
+    g_true = np.array([1 / 3, 0.25, 0.0, -0.2])  # contraction per unit step; ≤ 0: a runaway
+    taken = np.zeros(4)
+    relaxations = []
+    for _ in range(5):
+        common = np.where(g_true > 0, g_true * (target - taken), 0.03 - g_true * taken)
+        relax = c._common_relaxation("quarter_car", common)
+        step = relax * common
+        hist = c.common_trend.setdefault("quarter_car", [])
+        hist.append(((taken - 0).tolist(), common.tolist(), step.tolist()))
+        taken = taken + step
+        relaxations.append(relax)
+    assert np.allclose(relaxations[0], 1.0)  # no trend yet
+    last = relaxations[-1]
+    assert last[0] == last[1] == 3.0
+    assert last[2] == 0.0 and last[3] == 0.0  # not contracting: frozen
+    assert abs(taken[0] - target[0]) < 1e-6  # g = 1/3 with relax 3: there after the second step
+    assert abs(taken[1] - target[1]) < 0.2 * abs(target[1])
+    assert np.all(np.abs(taken[2:]) < 0.1)  # the runaways stopped after the first steps
+    # The trend survives a restart (the durable state carries it).
+    restored = FleetCalibrator(site, None, relax=3.0)
+    restored.load_state(c.state())
+    assert np.allclose(restored._common_relaxation("quarter_car", common), c._common_relaxation("quarter_car", common))
+
+
+def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
+    """road-qc on a 3-D carpet (lane drawn per pass), small: 8 vehicles, one pass each, through
+    the edge and cloud code in process. Each vehicle's channels come from its own lane, the
+    consensus is the lanes' mean: the misfit is smooth lane scatter, not white noise. Weighted as
+    white noise it pulled every vehicle away from the class prior and the fleet's common mode ran
+    away round after round (measured before: profile error 70 %, not settled in 12 rounds; now
+    4.3 %, settled in 7; the class mean without calibration gives 4.1 %)."""
+    from shared.drivelog import list_drive_logs, read_drive_log
+    from shared.registry import load_site
+    from simfleet.evaluate import score_profile
+    from simfleet.reproduce import run_in_process
+
+    truth = generate(SCENARIOS["carpet"], tmp_path / "sim", seed=0, passes=8, vehicles=8, workers=1, progress=False)
+    logs = [read_drive_log(p) for p in list_drive_logs(tmp_path / "sim" / "logs")]
+    cloud, rounds = run_in_process(logs, load_site(tmp_path / "sim" / "site.toml"), tmp_path / "out")
+    c = cloud.calibrator
+    assert c.settled and not c.exhausted, rounds  # settled by tolerance, not by the round budget
+    assert score_profile(tmp_path / "out", truth).rel_error < 0.10

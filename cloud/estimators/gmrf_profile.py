@@ -29,10 +29,20 @@ every block are NaN. Blocks are solved independently; the random walk's coupling
 longer than ``max_gap_m`` is weak and ignored. The result is cached per route until the next
 update or retract touching it.
 
-The band here is this posterior's, i.e. it believes the white (or AR(1)) error model. The passes'
-real errors are coloured (integration drift at long wavelengths, calibration error in between);
-what they add is measured from the passes' disagreement by :mod:`.long_wave`, which the cloud
-applies to the exported band.
+Per-pass drift (optional, ``drift_knot_m``)
+-------------------------------------------
+Each pass also carries its own drift (what the edge's drift control leaves of twice-integrated
+sensor noise, independent from pass to pass): a nuisance of the posterior on a lattice of knots
+every ``drift_knot_m``, marginalised exactly by eliminating the profile (:mod:`.pass_drift`), its
+level learnt by type-II maximum likelihood (or fixed by ``drift_sd_m``). It moves the mean (each
+pass's drift is estimated, not averaged in) and widens the band at wavelengths above about
+``2 · drift_knot_m`` by what the unknown drifts leave in the fused profile. Its information is
+assembled at snapshot time from the held segments, so segment updates and retractions cost what
+they did and a retraction is exact by construction.
+
+What neither covers (errors at 0.5–50 m beyond the white model's, calibration error in between)
+is measured from the passes' disagreement by :mod:`.long_wave`, which the cloud applies to the
+exported band.
 """
 
 from __future__ import annotations
@@ -48,6 +58,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 from shared.schema import SIGMA_SCALE, ApSegment
 
 from .mean_profile import ProfileSnapshot
+from .pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
 
 log = logging.getLogger(__name__)
 
@@ -211,8 +222,10 @@ class _Block:
     start: int  # first grid index
     stop: int  # one past the last
     factor: np.ndarray  # lower banded Cholesky factor of the block's precision
-    mean: np.ndarray
-    cov_band: np.ndarray  # S[d, i] = Σ[i, i + d]
+    mean: np.ndarray  # posterior mean (drift marginalised when it is modelled)
+    cov_band: np.ndarray  # S[d, i] = Σ[i, i + d] of the profile given the drifts
+    mean0: np.ndarray | None = None  # the mean given zero drifts (A_RR⁻¹ b_R)
+    drift: DriftPosterior | None = None
 
 
 @dataclass
@@ -229,6 +242,7 @@ class _Route:
         self.cover = np.zeros(n, dtype=np.int64)  # segments covering each point (any axle)
         self.passes = np.zeros(n, dtype=np.int64)  # axle-1 segments covering each point
         self.tau = tau
+        self.drift_sd = 0.0  # learnt (or given) per-pass drift sd per knot coefficient (m)
         self.posterior: _Posterior | None = None
 
 
@@ -260,11 +274,20 @@ class GmrfProfile:
         Relative tolerance on the learnt τ (each iteration is one factorisation of every block).
     max_tau_iter : int
         Iterations allowed for learning τ before settling for the last value (with a warning).
+    drift_knot_m : float or None
+        Knot spacing (m) of each pass's drift nuisance (:mod:`.pass_drift`), e.g. 25; ``None``
+        (default) leaves the drift out (the white/AR(1) model alone, the band's long-wave part then
+        comes from :mod:`.long_wave`). Off by default because its snapshot cost grows as
+        O(P · K²) with K = passes × knots per pass (a 200 m route with 30 passes: ~1 s).
+    drift_sd_m : float, optional
+        Prior sd of each drift coefficient (m); ``None`` (default) learns it per route by type-II
+        maximum likelihood at snapshot time (0 when the data show no drift).
     """
 
     def __init__(self, routes: dict[str, float], spacing_m: float = 0.05, tau: float | None = None, *,
                  order: int = 1, rho: float = 0.0, ridge: float = 1e-6, max_gap_m: float = 1.0,
-                 tau_init: float | None = None, tau_tol: float = 1e-6, max_tau_iter: int = 60):
+                 tau_init: float | None = None, tau_tol: float = 1e-6, max_tau_iter: int = 60,
+                 drift_knot_m: float | None = None, drift_sd_m: float | None = None):
         if order not in _DIFF:
             raise ValueError(f"order must be 1 or 2, got {order}")
         if not (spacing_m > 0 and math.isfinite(spacing_m)):
@@ -273,6 +296,12 @@ class GmrfProfile:
             raise ValueError(f"tau must be finite and > 0, got {tau}")
         if not (ridge > 0 and math.isfinite(ridge)):
             raise ValueError(f"ridge must be finite and > 0, got {ridge}")
+        if drift_knot_m is not None and not (drift_knot_m >= spacing_m and math.isfinite(drift_knot_m)):
+            raise ValueError(f"drift_knot_m must be finite and >= spacing_m, got {drift_knot_m}")
+        if drift_sd_m is not None and not (drift_sd_m >= 0 and math.isfinite(drift_sd_m)):
+            raise ValueError(f"drift_sd_m must be finite and >= 0, got {drift_sd_m}")
+        self.drift_knot_m = None if drift_knot_m is None else float(drift_knot_m)
+        self.drift_sd_m = None if drift_sd_m is None else float(drift_sd_m)
         self.spacing_m = float(spacing_m)
         self.order = order
         self.learn_tau = tau is None
@@ -338,6 +367,11 @@ class GmrfProfile:
         """Current prior precision per route (1/m²): the given one, or the last learnt."""
         return {rid: r.tau for rid, r in self.routes.items()}
 
+    @property
+    def drift_sd(self) -> dict[str, float]:
+        """Per-pass drift sd per knot coefficient (m) of each route's last posterior (0: none)."""
+        return {rid: r.drift_sd for rid, r in self.routes.items()}
+
     def sample(self, route_id: str, n: int, rng: np.random.Generator | int | None = None) -> np.ndarray:
         """``n`` draws from the posterior of a route's profile, shape (n, P), NaN outside covered blocks."""
         post = self._posterior(route_id)
@@ -349,7 +383,11 @@ class GmrfProfile:
             out[:, done : blk.start] = np.nan
             for r in range(n):
                 rng.standard_normal(out=out[r, blk.start : blk.stop])
-            _draw(blk.factor, blk.mean, out[:, blk.start : blk.stop])
+            if blk.drift is None:
+                _draw(blk.factor, blk.mean, out[:, blk.start : blk.stop])
+            else:  # R = A_RR⁻¹ b_R − W β + L⁻ᵀ z, β drawn from its marginal posterior
+                _draw(blk.factor, blk.mean0, out[:, blk.start : blk.stop])
+                out[:, blk.start : blk.stop] += blk.drift.draw_shift(rng.standard_normal((n, blk.drift.lam.size)))
             done = blk.stop
         out[:, done:] = np.nan
         return out
@@ -468,6 +506,33 @@ class GmrfProfile:
         log.warning("tau did not converge in %d iterations (last change %.2e)", self.max_tau_iter, h1)
         return blocks, math.exp(u1)
 
+    def _marginalise_drift(self, route_id: str, route: _Route, blocks: list[_Block]) -> list[np.ndarray]:
+        """Eliminate each block's per-pass drifts (learning their level); the drift variance per point.
+
+        τ is the one learnt without the drifts: they live at wavelengths of twice the knot spacing
+        and more, where the random walk's increments carry next to no weight.
+        """
+        zero = [np.zeros(blk.stop - blk.start) for blk in blocks]
+        if self.drift_knot_m is None or not blocks:
+            route.drift_sd = 0.0
+            return zero
+        segs = [s for s in self.segments.values() if s.route_id == route_id]
+        n = route.cover.size
+        posts = []
+        for blk in blocks:
+            system = drift_system(segs, blk.start, blk.stop, n, self.spacing_m, self.drift_knot_m,
+                                  lambda v, s: segment_information(v, s, self.rho))
+            posts.append(eliminate(blk.factor, blk.mean, system))
+        s2 = self.drift_sd_m**2 if self.drift_sd_m is not None else learn_drift_variance(posts)
+        route.drift_sd = math.sqrt(s2)
+        out = []
+        for blk, d in zip(blocks, posts):
+            d.s2 = s2
+            blk.mean0, blk.drift = blk.mean, d
+            blk.mean = blk.mean0 + d.profile_shift()
+            out.append(d.profile_variance())
+        return out
+
     def _posterior(self, route_id: str) -> _Posterior:
         route = self.routes[route_id]
         if route.posterior is not None:
@@ -478,12 +543,13 @@ class GmrfProfile:
             route.tau = tau
         else:
             blocks, _, _ = self._solve(route, spans, route.tau)
+        var_drift = self._marginalise_drift(route_id, route, blocks)
         n = route.cover.size
         mean = np.full(n, np.nan)
         sd = np.full(n, np.nan)
-        for blk in blocks:
+        for blk, vd in zip(blocks, var_drift):
             mean[blk.start : blk.stop] = blk.mean
-            sd[blk.start : blk.stop] = np.sqrt(blk.cov_band[0])
+            sd[blk.start : blk.stop] = np.sqrt(blk.cov_band[0] + vd)
         x = np.arange(n) * self.spacing_m
         snap = ProfileSnapshot(route_id, x, mean, mean - _Z95 * sd, mean + _Z95 * sd, route.passes.copy())
         route.posterior = _Posterior(route.tau, blocks, snap)

@@ -66,8 +66,13 @@ def _white_share(widths: list[int]) -> list[float]:
 
 
 def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
-                        band_edges_m: tuple[float, ...] = BAND_EDGES_M) -> np.ndarray:
-    """Variance (m²) per grid point of the fused profile's error that the white likelihood misses."""
+                        band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True) -> np.ndarray:
+    """Variance (m²) per grid point of the fused profile's error that the white likelihood misses.
+
+    ``longest``: also the band beyond the last edge (> 50 m). Pass False when the posterior
+    models those wavelengths itself (the per-pass drift nuisance of :mod:`.pass_drift`, knots at
+    ≤ 25 m), so that they are not counted twice.
+    """
     P = snap.elevation_m.size
     h = float(snap.chainage_m[1] - snap.chainage_m[0]) if P > 1 else 1.0
     widths = [max(int(round(e / h)) | 1, 1) for e in band_edges_m]  # odd: centred
@@ -117,7 +122,7 @@ def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
     eff = np.where(many, sw2 / np.where(many, sw * sw, 1.0), 0.0)  # 1 / effective number of passes
     sig2 = np.where(many, ssig / np.maximum(n, 1), 0.0)
     pool = widths[-1]
-    for j in range(nb):
+    for j in range(nb if longest else nb - 1):
         # The residual scatter about the consensus has n − 1 degrees of freedom per independent
         # stretch; it is pooled along the route over the longest band edge (the error's level
         # changes over the drift-control scale, not faster), which holds about pool / (band's
@@ -134,10 +139,10 @@ def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
     return np.where(many, var, 0.0)
 
 
-def with_pass_error_band(snap: ProfileSnapshot, segments: list[ApSegment]) -> ProfileSnapshot:
+def with_pass_error_band(snap: ProfileSnapshot, segments: list[ApSegment], longest: bool = True) -> ProfileSnapshot:
     """``snap`` with :func:`pass_error_variance` added to the variance of its 95 % band."""
     sd_post = (snap.hi95_m - snap.lo95_m) / (2 * _Z95)
-    sd = np.sqrt(sd_post**2 + pass_error_variance(snap, segments))
+    sd = np.sqrt(sd_post**2 + pass_error_variance(snap, segments, longest=longest))
     return dataclasses.replace(snap, lo95_m=snap.elevation_m - _Z95 * sd, hi95_m=snap.elevation_m + _Z95 * sd)
 
 
