@@ -20,6 +20,8 @@ REGISTRY: dict[str, str] = {
     "profile": "benchmarks.profile",
     "bridge": "benchmarks.bridge",
     "crash": "benchmarks.crash",
+    "soak": "benchmarks.soak",
+    "rail": "benchmarks.rail",
 }
 
 

@@ -24,6 +24,7 @@ import zlib
 from dataclasses import dataclass, field
 
 import zenoh
+import zenoh.ext as zx
 
 from shared import keys
 from shared.dynamics.inverse import InverseModel, build_inverse
@@ -48,6 +49,7 @@ from .pipeline import EdgeConfig, PassProcessor
 log = logging.getLogger("driveby.edge")
 
 SPOOL_PASSES = 64  # raw passes kept per vehicle for recomputation when calibration changes
+SPOOL_MAX_BYTES = 512 * 2**20  # and at most this much of them for the whole edge (a large fleet)
 AP_BATCH = 64  # segments per AP message (1: one message per segment)
 
 
@@ -98,7 +100,8 @@ class Edge:
 
     def __init__(self, net: str, publish, site: Site | None = None, calibration: str = "fleet",
                  config: EdgeConfig = EdgeConfig(), vehicles: set[str] | None = None,
-                 shard: tuple[int, int] = (0, 1), ap_batch: int = AP_BATCH, outbox: Outbox | None = None):
+                 shard: tuple[int, int] = (0, 1), ap_batch: int = AP_BATCH, outbox: Outbox | None = None,
+                 spool_max_bytes: int = SPOOL_MAX_BYTES):
         if calibration not in ("fleet", "nominal"):
             raise ValueError(f"calibration: expected 'fleet' or 'nominal', got {calibration!r}")
         if not 1 <= ap_batch <= MAX_BATCH_SEGMENTS:
@@ -117,6 +120,13 @@ class Edge:
         self.outbox = outbox
         self.cloud_present = outbox is None
         self.resent = 0  # messages sent again because an aggregator (re)appeared
+        self.restarted = 0  # passes begun again from their first chunk while in progress (a vehicle's resend)
+        # The raw passes kept for recomputation, oldest first across the fleet: without a bound over
+        # the whole edge, SPOOL_PASSES per vehicle grows with the fleet (1 000 vehicles: ~20 GB).
+        self.spool_max_bytes = spool_max_bytes
+        self._spooled: collections.OrderedDict[tuple[str, str], int] = collections.OrderedDict()
+        self.spool_bytes = 0
+        self.spool_evicted = 0  # passes dropped from the spool by the byte bound (not recomputable)
 
     # -- calibration -----------------------------------------------------------------------
     def _params_for(self, task: VehicleTask, chunk: SensorChunk) -> tuple[dict, int] | None:
@@ -169,6 +179,10 @@ class Edge:
             task.current, task.current_raw = None, []
 
     def _feed(self, task: VehicleTask, chunk: SensorChunk, raw: bytes) -> None:
+        if task.current is not None and task.current.pass_id == chunk.pass_id and chunk.seq == 0:
+            # The vehicle sends the pass again from its start (it was never acknowledged): start over.
+            self.restarted += 1
+            task.current, task.current_raw = None, []
         if task.current is None or task.current.pass_id != chunk.pass_id:
             if chunk.seq != 0:
                 self.rejected["missing_pass_start"] += 1
@@ -195,10 +209,26 @@ class Edge:
             self._publish_segments(segments)
             self._send(done.vehicle_id, done.pass_id, done.calib_version,
                        keys.done_key(self.net, chunk.vehicle_id), done.encode())
-            task.spool[chunk.pass_id] = task.current_raw
-            while len(task.spool) > SPOOL_PASSES:
-                task.spool.popitem(last=False)
+            self._spool(task, chunk.pass_id, task.current_raw)
             task.current, task.current_raw = None, []
+
+    def _spool(self, task: VehicleTask, pass_id: str, raw: list[bytes]) -> None:
+        """Keep a finished pass's raw chunks: at most SPOOL_PASSES per vehicle and ``spool_max_bytes``
+        in all, the oldest dropped first."""
+        key = (task.vehicle_id, pass_id)
+        if key in self._spooled:
+            self.spool_bytes -= self._spooled.pop(key)
+        task.spool[pass_id] = raw
+        self._spooled[key] = n = sum(len(r) for r in raw)
+        self.spool_bytes += n
+        while len(task.spool) > SPOOL_PASSES:
+            old, _ = task.spool.popitem(last=False)
+            self.spool_bytes -= self._spooled.pop((task.vehicle_id, old))
+        while self.spool_bytes > self.spool_max_bytes and len(self._spooled) > 1:
+            (vehicle, old), n = self._spooled.popitem(last=False)
+            self.tasks[vehicle].spool.pop(old, None)
+            self.spool_bytes -= n
+            self.spool_evicted += 1
 
     def _publish_segments(self, segments: list[ApSegment]) -> None:
         """Publish what one chunk released, in batches of up to ``ap_batch`` per route (one vehicle)."""
@@ -224,6 +254,9 @@ class Edge:
         """Counters for operators (``driveby/<net>/control/<id>/stats``)."""
         return {"rejected": dict(self.rejected), "segments_published": self.segments_published,
                 "vehicles": len(self.tasks), "cloud_present": self.cloud_present, "resent": self.resent,
+                "restarted": self.restarted,
+                "raw_spool": {"passes": len(self._spooled), "bytes": self.spool_bytes,
+                              "evicted": self.spool_evicted},
                 "outbox": self.outbox.stats() if self.outbox is not None else None}
 
     # -- delivery ----------------------------------------------------------------------------
@@ -334,7 +367,20 @@ def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Even
                 body = edge.stats()
             query.reply(keys.control_key(edge.net, node_id, "stats"), json.dumps(body).encode())
 
-    subs = [session.declare_subscriber(keys.imu_keyexpr(edge.net), lambda s: on_sample("imu", edge.on_chunk, s)),
+    def on_miss(miss) -> None:  # chunks a vehicle's cache no longer held: a real gap (the pass is dropped)
+        with lock:
+            edge.rejected["missed_chunks"] += miss.nb
+            log.warning("%d raw chunk(s) of %s lost beyond its publisher's cache", miss.nb, miss.source)
+
+    # Raw chunks through an advanced subscriber: chunks missed while a router was down or a link
+    # partitioned are detected (sequence numbers, the vehicles' heartbeats) and fetched from the
+    # vehicle's publication cache (simfleet.replay.ImuPublishers), delivered in order. Plain puts
+    # (publishers without a cache) are delivered as by a plain subscriber.
+    imu = zx.declare_advanced_subscriber(session, keys.imu_keyexpr(edge.net),
+                                         lambda s: on_sample("imu", edge.on_chunk, s),
+                                         recovery=zx.RecoveryConfig(periodic_queries=None, heartbeat=True))
+    misses = imu.sample_miss_listener(on_miss)
+    subs = [imu, misses,
             session.declare_queryable(keys.control_key(edge.net, node_id, "stats"), on_stats),
             session.declare_subscriber(keys.calib_keyexpr(edge.net),
                                        lambda s: on_sample("calib", edge.on_calibration, s)),
@@ -365,6 +411,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep unacknowledged passes on disk here (survives an edge restart; default: memory)")
     p.add_argument("--spool-max-mb", type=float, default=DEFAULT_MAX_BYTES / 2**20, metavar="MB",
                    help="bound of the unacknowledged store; the oldest passes are dropped (counted) beyond it")
+    p.add_argument("--raw-spool-mb", type=float, default=SPOOL_MAX_BYTES / 2**20, metavar="MB",
+                   help="bound of the raw passes kept (in memory) to recompute when a calibration changes; "
+                        f"also at most {SPOOL_PASSES} per vehicle; the oldest are dropped (counted) beyond it")
     p.add_argument("--log-level", default="WARNING")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s edge %(levelname)s %(message)s")
@@ -374,6 +423,8 @@ def main(argv: list[str] | None = None) -> int:
         shard = parse_shard(args.shard)
         if not 1 <= args.ap_batch <= MAX_BATCH_SEGMENTS:
             raise ValueError(f"--ap-batch: expected 1 to {MAX_BATCH_SEGMENTS}, got {args.ap_batch}")
+        if not args.raw_spool_mb >= 0:
+            raise ValueError(f"--raw-spool-mb: expected >= 0, got {args.raw_spool_mb}")
         conf = config_from_args(args)
         outbox = Outbox(args.spool, int(args.spool_max_mb * 2**20))
     except (RegistryError, ValueError, OSError) as e:
@@ -389,7 +440,7 @@ def main(argv: list[str] | None = None) -> int:
 
             edge = Edge(args.net, publish, site, args.calibration,
                         vehicles=set(args.vehicle) if args.vehicle else None, shard=shard, ap_batch=args.ap_batch,
-                        outbox=outbox)
+                        outbox=outbox, spool_max_bytes=int(args.raw_spool_mb * 2**20))
             # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
             # process: keep it out of full garbage collections, whose pause scans every tracked object
             # (~0.1 s of them) and would land in the middle of the stream.

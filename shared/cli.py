@@ -25,6 +25,9 @@ def _run_args(p: argparse.ArgumentParser) -> None:
                    help="align passes in chainage against the consensus (GNSS bias, odometry stretch)")
     p.add_argument("--shards", type=int, default=1, metavar="N",
                    help="split the routes among N cloud daemons behind two routers (scale-out, exercised locally)")
+    p.add_argument("--secure", nargs="?", const=True, default=False, metavar="DIR",
+                   help="TLS with mutual authentication and access control: certificates made into the export's "
+                        ".run/security, or those of security directory DIR (needed with --connect)")
 
 
 def _cmd_run(args) -> int:
@@ -35,7 +38,7 @@ def _cmd_run(args) -> int:
     try:
         res = run(Path(args.logs), Path(args.site), Path(args.export), Path(args.rrd) if args.rrd else None,
                   args.calibration, args.connect, args.net, args.viewer, rate=args.rate, align=args.align,
-                  shards=args.shards)
+                  shards=args.shards, secure=args.secure)
     except RunError as e:
         print(f"driveby run: {e}", file=sys.stderr)
         return 1

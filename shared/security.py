@@ -85,6 +85,34 @@ _VIEW = (
      ("state/**", "control/*/stats", "control/*/latency", "control/*/denials")),
     *_LIVELINESS_WATCH,
 )
+# Raw chunks go through Zenoh's advanced publisher/subscriber (simfleet.replay, edge.node): the
+# publisher's heartbeats (put) and its cache (a queryable) live under "<imu key>/@adv/...", a
+# verbatim chunk no wildcard matches, so they are granted by name.
+_ADV = "imu/@adv/**"
+
+
+def _imu_publisher(vehicles: str) -> tuple:
+    """Grants of a session publishing ``veh/<vehicles>/imu`` through an advanced publisher (its cache
+    replies with the chunks' own keys). An edge subscribes and queries by wildcard
+    (``veh/*/imu/@adv/...``, naming the publisher's zid): those must reach the publisher; they
+    carry no data, and what it may publish or answer stays its own keys."""
+    return (
+        (("put", "declare_queryable", "reply"), "ingress", (f"veh/{vehicles}/{_ADV}",)),
+        (("reply",), "ingress", (f"veh/{vehicles}/imu",)),
+        (("declare_subscriber", "query"), "egress", (f"veh/*/{_ADV}",)),
+    )
+
+
+def _imu_recovery(vehicles: str) -> tuple:
+    """Grants of an advanced subscriber of ``veh/*/imu`` recovering ``veh/<vehicles>/imu``: heartbeats
+    in, queries to the caches out, their replies back."""
+    return (
+        (("declare_subscriber", "query"), "ingress", (f"veh/*/{_ADV}",)),
+        (("put", "declare_queryable", "reply"), "egress", (f"veh/{vehicles}/{_ADV}",)),
+        (("reply",), "egress", (f"veh/{vehicles}/imu",)),
+    )
+
+
 ROLES: Mapping[str, tuple] = {
     "vehicle": (
         (("put",), "ingress", ("veh/{id}/imu", "ap/*/*/{id}", "done/{id}")),
@@ -92,6 +120,8 @@ ROLES: Mapping[str, tuple] = {
         (("declare_subscriber",), "ingress", ("veh/*/imu", "calib/*", "ack/*")),
         (("put",), "egress", ("veh/{id}/imu", "calib/{id}", "ack/{id}")),
         (("liveliness_token",), "ingress", ("alive/edge/{id}", "alive/vehicle/{id}")),
+        *_imu_publisher("{id}"),
+        *_imu_recovery("{id}"),
         *_LIVELINESS_WATCH,
         *_OWN_CONTROL,
     ),
@@ -101,12 +131,14 @@ ROLES: Mapping[str, tuple] = {
         (("put",), "ingress", ("ap/**", "done/*")),
         (("declare_subscriber",), "egress", ("ap/**", "done/*")),
         (("liveliness_token",), "ingress", ("alive/edge/{id}",)),
+        *_imu_recovery("*"),
         *_LIVELINESS_WATCH,
         *_OWN_CONTROL,
     ),
     "aggregator": (
-        (("declare_subscriber",), "ingress", ("ap/**", "done/*")),
-        (("put",), "egress", ("ap/**", "done/*")),
+        # calib/*: a route shard adopts the calibrations of the vehicles another shard owns.
+        (("declare_subscriber",), "ingress", ("ap/**", "done/*", "calib/*")),
+        (("put",), "egress", ("ap/**", "done/*", "calib/*")),
         (("put",), "ingress", ("calib/*", "ack/*", "status/{id}", "alarm/*")),
         (("declare_subscriber",), "egress", ("calib/*", "ack/*", "status/*", "alarm/*")),
         (("declare_queryable", "reply"), "ingress", ("state/**", "control/{id}/*")),
@@ -119,6 +151,7 @@ ROLES: Mapping[str, tuple] = {
         *_VIEW,
         (("put",), "ingress", ("veh/*/imu",)),
         (("declare_subscriber",), "egress", ("veh/*/imu",)),
+        *_imu_publisher("*"),
         (("query",), "ingress", ("control/**",)),
         (("reply", "declare_queryable"), "egress", ("control/**",)),
     ),

@@ -1,4 +1,15 @@
-"""Replay drive logs as live vehicle streams: sensor chunks on ``driveby/<net>/veh/<id>/imu``."""
+"""Replay drive logs as live vehicle streams: sensor chunks on ``driveby/<net>/veh/<id>/imu``.
+
+A vehicle keeps what it sent: :class:`ImuPublishers` publishes each vehicle's chunks through a
+Zenoh *advanced publisher* (``zenoh.ext``) with a bounded cache of its last ``cache_chunks``
+chunks and a periodic heartbeat carrying its last sequence number. An edge's advanced
+subscriber (``edge.node``) that missed chunks (a router restarted, a link partitioned) learns of
+the gap from the next chunk or heartbeat and fetches the missing chunks from that cache, in
+order. The cache covers an outage of ``cache_chunks × CHUNK_S`` seconds of a vehicle's data
+(60 s at the default, i.e. 60 s of wall time in real time, 60/X s replayed at X×); chunks
+older than that are gone, and the edge still sees, counts and survives the gap (``driveby run``
+then publishes the unacknowledged pass again from its log: ``simfleet.run.RESEND_S``).
+"""
 
 from __future__ import annotations
 
@@ -7,12 +18,61 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
+import zenoh
+import zenoh.ext as zx
 
 from shared import keys
 from shared.drivelog import MODEL_CHANNELS, DriveLog
 from shared.schema import SensorChunk
 
 CHUNK_S = 0.1  # a logger's typical upload granularity
+CACHE_CHUNKS = 600  # per vehicle: 60 s of its data (~3.4 KB a chunk at 500 Hz: ~2 MB)
+HEARTBEAT_S = 1.0  # how soon a subscriber learns of chunks lost at the end of a stream
+
+
+class ImuPublishers:
+    """Publish raw chunks as the vehicles' loggers would: one advanced publisher per vehicle's
+    imu key (declared on first use) keeping its last ``cache_chunks`` chunks for recovery.
+
+    Callable as ``publish(key, payload, attachment=None)``; :meth:`close` (or ``with``)
+    undeclares them. Memory is bounded by vehicles × ``cache_chunks`` × chunk size.
+    Heartbeats are periodic, not sporadic: a sporadic one announces a new last chunk only once,
+    and if that announcement falls in the outage, the lost final chunk is never asked for.
+    """
+
+    def __init__(self, session: zenoh.Session, cache_chunks: int = CACHE_CHUNKS, heartbeat_s: float = HEARTBEAT_S):
+        if cache_chunks < 1 or heartbeat_s <= 0:
+            raise ValueError(f"ImuPublishers: cache_chunks >= 1 and heartbeat_s > 0, got {cache_chunks}, "
+                             f"{heartbeat_s}")
+        self.session, self.cache_chunks, self.heartbeat_s = session, cache_chunks, heartbeat_s
+        self._pubs: dict[str, zx.AdvancedPublisher] = {}
+        self._lock = threading.Lock()
+
+    def _publisher(self, key: str) -> zx.AdvancedPublisher:
+        with self._lock:
+            pub = self._pubs.get(key)
+            if pub is None:
+                pub = zx.declare_advanced_publisher(
+                    self.session, key, congestion_control=zenoh.CongestionControl.BLOCK,
+                    cache=zx.CacheConfig(max_samples=self.cache_chunks),
+                    sample_miss_detection=zx.MissDetectionConfig(heartbeat=self.heartbeat_s, sporadic_heartbeat=None))
+                self._pubs[key] = pub
+            return pub
+
+    def __call__(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        self._publisher(key).put(payload, attachment=attachment)
+
+    def close(self) -> None:
+        with self._lock:
+            pubs, self._pubs = list(self._pubs.values()), {}
+        for pub in pubs:
+            pub.undeclare()
+
+    def __enter__(self) -> ImuPublishers:
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self.close()
 
 
 def chunks_of(log: DriveLog, chunk_s: float = CHUNK_S) -> Iterator[SensorChunk]:

@@ -1,8 +1,11 @@
 """``driveby run``: replay drive logs through edge and cloud daemons over Zenoh, then export.
 
 Everything real: a Zenoh router in its own process (unless ``--connect`` names one), the edge and
-the cloud as separate OS processes, chunks published as a logger would. Completion is by events:
-the run waits for the cloud's acknowledgement of every pass, never for a fixed time.
+the cloud as separate OS processes, chunks published as a logger would (each vehicle through an
+advanced publisher keeping its recent chunks, so an edge recovers what a router outage made it
+miss). Completion is by events: the run waits for the cloud's acknowledgement of every pass, never
+for a fixed time. ``secure``: TLS, mutual authentication and access control, every process with its
+own identity (``shared.security``).
 """
 
 from __future__ import annotations
@@ -25,15 +28,23 @@ from shared.drivelog import DriveLog, DriveLogError, list_drive_logs, read_drive
 from shared.progress import Progress
 from shared.registry import RegistryError, Site, load_site
 from shared.schema import DecodeError, decode_ack
+from shared.security import SecurityDir, SecurityError, init_ca, issue
 from shared.transport import run_router, zenoh_config
 from shared.vehicles import MODELS
 
-from .replay import replay
+from . import replay as replay_module
+from .replay import ImuPublishers, replay
 
 STARTUP_TIMEOUT_S = 120.0  # first start compiles numba kernels into the cache
 IDLE_TIMEOUT_S = 120.0  # no acknowledgement for this long → something is wrong
 SUPERVISE_S = 0.5  # how often the run checks that its daemons are alive
 MAX_RESTARTS = 5  # a daemon that dies more often than this in one run is broken, not unlucky
+# A pass still unacknowledged this long after its last chunk went out (and the replay is over) is
+# published again from its log, as a logger keeps its files until the cloud has them. The loggers'
+# publication caches recover most outages; this catches what they cannot (chunks older than the
+# cache, a recovery query that found no cache, e.g. right after a lease expiry). A resend of a pass
+# that was only slow costs duplicates, which the cloud recognises (idempotent segments).
+RESEND_S = 30.0
 
 
 class RunError(Exception):
@@ -48,6 +59,7 @@ class RunResult:
     stats: dict
     seconds: float
     calibration_rounds: int = 0
+    resent_passes: int = 0  # passes published again because they were not acknowledged (RESEND_S)
 
 
 def load_inputs(logs_dir: Path, site_path: Path) -> tuple[Site, list[DriveLog]]:
@@ -134,11 +146,59 @@ def _stop(procs: list[Daemon]) -> None:
         p.wait(max(0.1, deadline - time.monotonic()))
 
 
+RUN_ID = "run"  # the run's own session (replays the loggers, asks for the export): an operator
+
+
+def _security_dir(secure: bool | str | Path, work: Path, connect: str | None, cloud_ids: list[str],
+                  routers: int) -> SecurityDir:
+    """The run's certificates: ``secure=True`` makes a fresh CA and every identity's certificate in
+    ``<work>/security`` (at the start of each run); a path uses that security directory as it is
+    (it must hold the run's identities: routers, clouds, ``edge-1`` and ``run``)."""
+    needed = {RUN_ID: "operator", "edge-1": "edge", **{c: "aggregator" for c in cloud_ids}}
+    if connect is None:
+        needed.update({f"router-{i + 1}": "router" for i in range(routers)})
+    try:
+        if secure is True:
+            if connect is not None:
+                raise RunError("--secure with --connect: give the router's security directory (--secure DIR); "
+                               "certificates made here would not be trusted by it")
+            path = work / "security"
+            shutil.rmtree(path, ignore_errors=True)
+            sec = init_ca(path)
+            for name, role in needed.items():
+                issue(sec, name, role)
+            return sec
+        sec = SecurityDir(Path(secure))
+        have = sec.identities()
+        for name, role in needed.items():
+            if have.get(name) != role:
+                raise RunError(f"{sec.path}: identity {name!r} with role {role!r} needed "
+                               f"(`python -m shared.security issue {sec.path} {name} --role {role}`)")
+            sec.tls(name)  # its certificate and key are there
+        return sec
+    except SecurityError as e:
+        raise RunError(str(e)) from None
+
+
+def _tls_args(sec: SecurityDir | None, name: str) -> list[str]:
+    if sec is None:
+        return []
+    files = sec.tls(name)
+    return ["--tls-ca", str(files.ca), "--tls-cert", str(files.cert), "--tls-key", str(files.key)]
+
+
 def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = None, calibration: str = "fleet",
         connect: str | None = None, net: str = "net", viewer: bool = False, progress: bool | None = None,
-        rate: float | None = None, align: bool = False, shards: int = 1) -> RunResult:
+        rate: float | None = None, align: bool = False, shards: int = 1,
+        secure: bool | str | Path = False) -> RunResult:
     """Replay ``logs_dir`` through edge and cloud daemons; ``shards`` > 1 splits the routes among that
-    many cloud daemons behind two routers (as on separate machines) and merges their exports."""
+    many cloud daemons behind two routers (as on separate machines) and merges their exports.
+
+    ``secure``: the routers listen on TLS only, require certificates (mTLS) and apply the roles'
+    access control (``shared.security``); every daemon and the run's own session connect with
+    their own identity. ``True`` makes the certificates (see :func:`_security_dir`); a path names a
+    security directory to use (required with ``connect``: the router's CA must sign them).
+    """
     t0 = time.monotonic()
     site, logs = load_inputs(Path(logs_dir), Path(site_path))
     routes = sorted(r.id for r in site.routes)
@@ -148,23 +208,30 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
     export_dir.mkdir(parents=True, exist_ok=True)
     work = export_dir / ".run"
     work.mkdir(exist_ok=True)
+    cloud_ids = ["cloud-1"] if shards == 1 else [f"cloud-{i + 1}" for i in range(shards)]
+    sec = _security_dir(secure, work, connect, cloud_ids, 1 if shards == 1 else 2) if secure else None
     with contextlib.ExitStack() as stack:
         if connect is not None:
             endpoints = [connect]
         else:
-            endpoints = [stack.enter_context(run_router())]
+            def router(i: int, joins: list[str]) -> str:
+                if sec is None:
+                    return stack.enter_context(run_router(connect=joins))
+                return stack.enter_context(run_router(security=sec.path, net=net, router_id=f"router-{i}",
+                                                      connect=joins))
+
+            endpoints = [router(1, [])]
             if shards > 1:  # a second router joined to the first: shard traffic crosses routers, as between machines
-                endpoints.append(stack.enter_context(run_router(connect=endpoints[:1])))
+                endpoints.append(router(2, endpoints[:1]))
         site_arg = ["--net", net, "--site", str(Path(site_path).resolve())]
         # A run starts from nothing: state left by an earlier run into this directory is not this run's.
         for stale in work.glob("*-state"):
             shutil.rmtree(stale, ignore_errors=True)
         shutil.rmtree(work / "edge-spool", ignore_errors=True)
         clouds = []
-        for i in range(shards):
-            cid = "cloud-1" if shards == 1 else f"cloud-{i + 1}"
+        for i, cid in enumerate(cloud_ids):
             args = ["--connect", endpoints[i % len(endpoints)], *site_arg, "--id", cid, "--calibration", calibration,
-                    "--state", str(work / f"{cid}-state")]
+                    "--state", str(work / f"{cid}-state"), *_tls_args(sec, cid)]
             args += ["--align"] if align else []
             if shards > 1:
                 args += ["--routes", ",".join(routes[i::shards])]
@@ -175,11 +242,11 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
                 args += ["--viewer"]
             clouds.append(Daemon("cloud", args, work, name=cid if shards > 1 else "cloud"))
         edge = Daemon("edge", ["--connect", endpoints[0], *site_arg, "--id", "edge-1", "--calibration", calibration,
-                               "--spool", str(work / "edge-spool")], work)
+                               "--spool", str(work / "edge-spool"), *_tls_args(sec, "edge-1")], work)
         procs = [*clouds, edge]
         try:
-            cloud_ids = ["cloud-1"] if shards == 1 else [c.name for c in clouds]
-            return _drive(endpoints[0], net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids)
+            conf = zenoh_config("client", connect=[endpoints[0]], tls=None if sec is None else sec.tls(RUN_ID))
+            return _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids)
         finally:
             _stop(procs)
 
@@ -199,8 +266,8 @@ def _merge_exports(parts: list[Path], export_dir: Path) -> list[str]:
     return written
 
 
-def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids) -> RunResult:
-    with zenoh.open(zenoh_config("client", connect=[endpoint])) as session:
+def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids) -> RunResult:
+    with zenoh.open(conf) as session:
         alive: set[str] = set()
         ready = threading.Event()
         acked: set[tuple[str, str]] = set()
@@ -248,14 +315,20 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0, clo
         acks = session.declare_subscriber(keys.ack_keyexpr(net), on_ack)
         stats_subs = [session.declare_subscriber(keys.status_key(net, cid), on_status) for cid in cloud_ids]
         _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start")
-        publisher_opts = dict(congestion_control=zenoh.CongestionControl.BLOCK)
-
-        def publish(key, payload):
-            session.put(key, payload, **publisher_opts)
-
+        # The loggers keep their recent chunks (publication cache): what a router restart or a
+        # partition made the edge miss is fetched again, not lost.
+        publish = ImuPublishers(session, cache_chunks=replay_module.CACHE_CHUNKS)
         stop = threading.Event()
-        feeder = threading.Thread(target=replay, args=(logs, publish, net, rate, stop), daemon=True)
+        sent_at: dict[tuple[str, str], float] = {}  # (vehicle, pass) -> when its last chunk went out
+
+        def on_chunk(chunk):
+            if chunk.final:
+                sent_at[(chunk.vehicle_id, chunk.pass_id)] = time.monotonic()
+
+        feeder = threading.Thread(target=replay, args=(logs, publish, net, rate, stop, on_chunk), daemon=True)
         feeder.start()
+        by_pass = {(log.meta.vehicle_id, log.meta.pass_id): log for log in logs}
+        resent = 0
         with Progress(len(expected), "passes", enabled=progress) as bar:
             idle_since = time.monotonic()
             while not all_done.is_set():
@@ -269,11 +342,20 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0, clo
                     missing = sorted(p for _, p in expected - acked)
                     raise RunError(f"timed out: no pass acknowledged for {IDLE_TIMEOUT_S:.0f} s; "
                                    f"{len(missing)} pass(es) missing, e.g. {missing[:3]}")
+                if not feeder.is_alive():  # one stream per vehicle: resend only once the replay is over
+                    now = time.monotonic()
+                    late = sorted(p for p, t in sent_at.items() if now - t > RESEND_S and p not in acked)
+                    if late:
+                        feeder = threading.Thread(target=replay, daemon=True,
+                                                  args=([by_pass[p] for p in late], publish, net, rate, stop, on_chunk))
+                        feeder.start()
+                        resent += len(late)
                 bar.advance(len(acked & expected) - bar.done)
                 rounds = max(st.get("calibration_rounds", 0) for st in statuses.values())
                 if rounds:
                     bar.label = f"passes (calibration round {rounds})"
         feeder.join(timeout=10.0)
+        publish.close()
         sharded = len(cloud_ids) > 1
         bodies = []
         for cid in cloud_ids:
@@ -297,7 +379,8 @@ def _drive(endpoint, net, logs, procs, work, export_dir, progress, rate, t0, clo
         else bodies[0]["written"]
     stats = bodies[0]["stats"] if not sharded else _sum_stats([b["stats"] for b in bodies])
     rounds = max(st.get("calibration_rounds", 0) for st in statuses.values())
-    return RunResult(len(expected), len(acked & expected), written, stats, time.monotonic() - t0, int(rounds))
+    return RunResult(len(expected), len(acked & expected), written, stats, time.monotonic() - t0, int(rounds),
+                     resent)
 
 
 def _sum_stats(parts: list[dict]) -> dict:

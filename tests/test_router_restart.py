@@ -11,9 +11,12 @@ A partitioned link: the router runs in its own network namespace behind a veth p
 is taken down for 1-3 s (shorter than zenoh's 10 s lease), as a cable pulled and put back; TCP holds
 the sessions and delivers what waited, nothing is lost. Needs root (``ip netns``); skipped otherwise.
 
-What is not survived yet: raw sensor chunks published while the router is down. The simulated
-loggers (``simfleet.replay`` through ``driveby run``'s session) publish into the void and keep no
-copy, so the edge sees a sequence gap and drops the pass (``test_..._while_chunks_stream``).
+Raw sensor chunks published while the router is down are not lost either: the loggers publish
+through Zenoh advanced publishers keeping each vehicle's last chunks (``simfleet.replay.ImuPublishers``),
+the edge's advanced subscriber detects the gap (sequence numbers, heartbeats) and fetches them from
+that cache, in order (``test_..._while_chunks_stream``). Chunks older than the cache are a real gap:
+Zenoh reports the miss, the edge counts it and drops that pass, the vehicle's next pass goes through
+(``test_chunks_beyond_the_vehicles_cache_are_a_counted_gap``).
 """
 
 from __future__ import annotations
@@ -32,11 +35,13 @@ import zenoh
 
 import simfleet.run
 from shared import keys
-from shared.schema import decode_ack, decode_pass_done
+from shared.schema import decode_ack, decode_pass_done, decode_sensor_chunk
 from shared.transport import _start_router, _stop, free_port, zenoh_config
-from simfleet.run import RunError, run
+from simfleet.replay import chunks_of
+from simfleet.run import run
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
+from shared.drivelog import list_drive_logs, read_drive_log
 
 PASSES = 4
 RATE = 20.0  # × real time: passes stream for ~2 s, so an outage can fall inside the stream
@@ -66,11 +71,15 @@ def _router(endpoint: str):
     return proc
 
 
+def total_chunks(road) -> int:
+    return sum(len(list(chunks_of(read_drive_log(p)))) for p in list_drive_logs(road / "logs"))
+
+
 def _run_with_outage(road, export, kill_on: str, seed: int):
     """``driveby run`` through a router of ours, SIGKILLed at ``kill_on`` ("last_done": once the edge
-    has sent every pass's pass-done, i.e. had every raw chunk; "first_ack": after the first
-    acknowledgement, at a random moment up to 0.3 s later) and restarted on the same endpoint after
-    a random pause. Returns the run's result (or its exception) and what the outage caught."""
+    has sent every pass's pass-done, i.e. had every raw chunk; "chunks": once a random 20-70 % of
+    the raw chunks have been published, i.e. while they stream) and restarted on the same endpoint
+    after a random pause. Returns the run's result (or its exception) and what the outage caught."""
     rng = random.Random(seed)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = [_router(endpoint)]
@@ -88,8 +97,15 @@ def _run_with_outage(road, export, kill_on: str, seed: int):
 
     def on_ack(sample):
         acked.add(decode_ack(sample.payload.to_bytes()).pass_id)
-        if kill_on == "first_ack" and len(acked) == 1:
-            threading.Timer(rng.uniform(0.0, 0.3), kill).start()
+
+    seen: set[tuple[str, int]] = set()
+    kill_at = int(rng.uniform(0.2, 0.7) * total_chunks(road))
+
+    def on_imu(sample):  # a plain subscriber: what a subscriber without recovery gets
+        chunk = decode_sensor_chunk(sample.payload.to_bytes())
+        seen.add((chunk.vehicle_id, chunk.seq))
+        if kill_on == "chunks" and len(seen) == kill_at:
+            kill()
 
     def on_done(sample):
         done_passes.add(decode_pass_done(sample.payload.to_bytes()).pass_id)
@@ -106,7 +122,8 @@ def _run_with_outage(road, export, kill_on: str, seed: int):
     try:
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
             subs = [s.declare_subscriber(keys.ack_keyexpr("net"), on_ack),
-                    s.declare_subscriber(keys.done_keyexpr("net"), on_done)]
+                    s.declare_subscriber(keys.done_keyexpr("net"), on_done),
+                    s.declare_subscriber(keys.imu_keyexpr("net"), on_imu)]
             runner = threading.Thread(target=drive, daemon=True)
             runner.start()
             assert killed.wait(120.0), f"the router was never killed ({kill_on}, seed {seed})"
@@ -118,6 +135,7 @@ def _run_with_outage(road, export, kill_on: str, seed: int):
             assert not runner.is_alive(), f"run did not finish after the router restart (seed {seed})"
             for sub in subs:
                 sub.undeclare()
+            outage["chunks_seen"] = len(seen)
     finally:
         _stop(router[0])
     return result, outage
@@ -145,19 +163,28 @@ def test_a_router_killed_mid_run_is_restarted_and_nothing_is_lost(road, referenc
     assert cut.stats["accepted"] == ref.stats["accepted"]  # nothing lost, nothing counted twice
 
 
-@pytest.mark.xfail(strict=True, raises=RunError,
-                   reason="raw chunks published while the router is down are lost: the simulated loggers keep "
-                          "no copy (no outbox / AdvancedPublisher cache on the vehicle side), the edge drops the "
-                          "pass at the sequence gap and the run idles out")
 def test_a_router_killed_while_chunks_stream_loses_nothing(road, reference, tmp_path, monkeypatch):
     monkeypatch.setattr(simfleet.run, "IDLE_TIMEOUT_S", 15.0)  # a lost pass is never acknowledged: fail fast
+    # The vehicles' caches recover the chunks (the deterministic proof is in test_security and the gap test
+    # below); a resend backstops an acknowledgement lost while the run's session was reconnecting.
+    monkeypatch.setattr(simfleet.run, "RESEND_S", 5.0)
     seed = random.randrange(2**32)
-    result, outage = _run_with_outage(road, tmp_path / "cut", "first_ack", seed)
+    result, outage = _run_with_outage(road, tmp_path / "cut", "chunks", seed)
     assert outage["run_alive"] and outage["acked_before"] < PASSES, (outage, seed)
     if "error" in result:
-        raise result["error"]
-    assert result["run"].acked == PASSES
-    assert result["run"].stats["accepted"] == reference[0].stats["accepted"]
+        raise AssertionError(f"run failed after the router restart (seed {seed})") from result["error"]
+    # The outage fell while raw chunks streamed: a plain subscriber missed some of them for good ...
+    assert outage["chunks_seen"] < total_chunks(road), (outage, seed)
+    # ... the edge's advanced subscriber fetched them from the vehicles' caches: no gap, no pass lost.
+    ref, ref_dir = reference
+    cut = result["run"]
+    assert cut.acked == PASSES
+    assert cut.stats["accepted"] == ref.stats["accepted"]
+    a, b = _profile(ref_dir), _profile(tmp_path / "cut")
+    assert np.array_equal(a["n_passes"], b["n_passes"])
+    scale = np.std(a["elevation_m"])
+    for f in ("elevation_m", "lo95_m", "hi95_m"):
+        assert np.max(np.abs(a[f] - b[f])) <= 1e-9 * scale, f
 
 
 @contextlib.contextmanager
@@ -198,18 +225,32 @@ def _router_behind_veth():
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
-def test_a_partitioned_link_heals_and_nothing_is_lost(road, reference, tmp_path, monkeypatch):
-    monkeypatch.setattr(simfleet.run, "IDLE_TIMEOUT_S", 30.0)
+LEASE_S = 10.0  # zenoh's default transport lease: a link silent this long is declared dead
+
+
+def _run_with_partition(road, reference, tmp_path, during: str, seconds: tuple[float, float]):
+    """``driveby run`` through a router behind a veth pair taken down for a random stretch in
+    ``seconds``, ``during`` "acks" (after the first acknowledgement) or "chunks" (once a random
+    20-70 % of the raw chunks have been published); the export must equal the reference's."""
     ref, ref_dir = reference
     seed = random.randrange(2**32)
     rng = random.Random(seed)
-    first_ack, healed = threading.Event(), threading.Event()
+    cut_now, healed = threading.Event(), threading.Event()
     acked: set[str] = set()
+    seen: set[tuple[str, int]] = set()
+    cut_at = int(rng.uniform(0.2, 0.7) * total_chunks(road))
     result: dict = {}
     with _router_behind_veth() as (endpoint, link):
         def on_ack(sample):
             acked.add(decode_ack(sample.payload.to_bytes()).pass_id)
-            first_ack.set()
+            if during == "acks":
+                cut_now.set()
+
+        def on_imu(sample):
+            chunk = decode_sensor_chunk(sample.payload.to_bytes())
+            seen.add((chunk.vehicle_id, chunk.seq))
+            if during == "chunks" and len(seen) >= cut_at:
+                cut_now.set()
 
         def drive():
             try:
@@ -219,19 +260,21 @@ def test_a_partitioned_link_heals_and_nothing_is_lost(road, reference, tmp_path,
                 result["error"] = e
 
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
-            sub = s.declare_subscriber(keys.ack_keyexpr("net"), on_ack)
+            subs = [s.declare_subscriber(keys.ack_keyexpr("net"), on_ack),
+                    s.declare_subscriber(keys.imu_keyexpr("net"), on_imu)]
             runner = threading.Thread(target=drive, daemon=True)
             runner.start()
-            assert first_ack.wait(120.0), "no pass acknowledged before the partition"
+            assert cut_now.wait(120.0), f"the partition never began ({during}, seed {seed})"
             link(False)
             try:
                 before, alive = len(acked), runner.is_alive()
-                healed.wait(rng.uniform(1.0, 3.0))  # the partition: a timed stretch, not a wait for an event
+                healed.wait(rng.uniform(*seconds))  # the partition: a timed stretch, not a wait for an event
             finally:
                 link(True)
-            runner.join(120.0)
+            runner.join(120.0 + seconds[1])
             assert not runner.is_alive(), f"run did not finish after the link came back (seed {seed})"
-            sub.undeclare()
+            for sub in subs:
+                sub.undeclare()
     if "error" in result:
         raise AssertionError(f"run failed after the partition (seed {seed})") from result["error"]
     assert alive and before < PASSES, (before, seed)  # the partition cut the run in the middle
@@ -243,3 +286,117 @@ def test_a_partitioned_link_heals_and_nothing_is_lost(road, reference, tmp_path,
         assert np.max(np.abs(a[f] - b[f])) <= 1e-9 * scale, f
     assert cut.acked == ref.acked == PASSES
     assert cut.stats["accepted"] == ref.stats["accepted"]
+    return len(seen)
+
+
+def test_a_partitioned_link_heals_and_nothing_is_lost(road, reference, tmp_path, monkeypatch):
+    monkeypatch.setattr(simfleet.run, "IDLE_TIMEOUT_S", 30.0)
+    _run_with_partition(road, reference, tmp_path, "acks", (1.0, 3.0))  # shorter than the lease: TCP holds
+
+
+def test_a_partition_longer_than_the_lease_while_chunks_stream_loses_nothing(road, reference, tmp_path,
+                                                                             monkeypatch):
+    """Longer than the lease, every session through the link is closed and opened again when it heals:
+    the raw chunks published meanwhile come back from the vehicles' caches."""
+    monkeypatch.setattr(simfleet.run, "IDLE_TIMEOUT_S", 30.0)
+    monkeypatch.setattr(simfleet.run, "RESEND_S", 5.0)  # the backstop, if a recovery query finds no cache
+    seen = _run_with_partition(road, reference, tmp_path, "chunks", (LEASE_S + 1.0, LEASE_S + 3.0))
+    assert seen < total_chunks(road)  # a plain subscriber lost chunks for good
+
+
+def test_chunks_the_vehicles_caches_cannot_recover_are_sent_again(road, reference, tmp_path, monkeypatch):
+    """The backstop: with caches of one chunk, a router outage while chunks stream loses chunks for good
+    (Zenoh reports them missed, the edge drops the pass); the run publishes every unacknowledged pass
+    again from its log, and the export still equals the uninterrupted run's."""
+    import simfleet.replay
+
+    monkeypatch.setattr(simfleet.run, "IDLE_TIMEOUT_S", 30.0)
+    monkeypatch.setattr(simfleet.run, "RESEND_S", 3.0)
+    monkeypatch.setattr(simfleet.replay, "CACHE_CHUNKS", 1)
+    seed = random.randrange(2**32)
+    result, outage = _run_with_outage(road, tmp_path / "cut", "chunks", seed)
+    if "error" in result:
+        raise AssertionError(f"run failed after the router restart (seed {seed})") from result["error"]
+    ref, ref_dir = reference
+    cut = result["run"]
+    assert cut.resent_passes > 0, (outage, seed)
+    assert cut.acked == PASSES and cut.stats["accepted"] == ref.stats["accepted"]
+    a, b = _profile(ref_dir), _profile(tmp_path / "cut")
+    assert np.array_equal(a["n_passes"], b["n_passes"])
+    scale = np.std(a["elevation_m"])
+    for f in ("elevation_m", "lo95_m", "hi95_m"):
+        assert np.max(np.abs(a[f] - b[f])) <= 1e-9 * scale, f
+
+
+def test_chunks_beyond_the_vehicles_cache_are_a_counted_gap(road):
+    """Recovery is bounded by the vehicle's cache: chunks it no longer holds are a real gap, which
+    the edge detects (Zenoh's miss detection and its own sequence check), counts, and survives."""
+    import dataclasses
+
+    from edge.node import Edge, serve
+    from simfleet.replay import ImuPublishers
+
+    cache, before, during = 5, 10, 20  # the outage swallows 20 chunks; the vehicle keeps only the last 5
+    log = read_drive_log(list_drive_logs(road / "logs")[0])
+    chunks = list(chunks_of(log))
+    assert len(chunks) > before + during
+    vehicle = log.meta.vehicle_id
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = _router(endpoint)
+    got_before, recovered, second_done = threading.Event(), threading.Event(), threading.Event()
+    stop = threading.Event()
+    try:
+        with zenoh.open(zenoh_config("client", connect=[endpoint])) as edge_s, \
+                zenoh.open(zenoh_config("client", connect=[endpoint])) as veh_s:
+            edge = Edge("net", lambda k, p: edge_s.put(k, p), calibration="nominal")
+            feed = edge.on_chunk
+
+            def on_chunk(payload, key_vehicle=None):  # the real handler, observed
+                feed(payload, key_vehicle)
+                seq = decode_sensor_chunk(payload).seq
+                if seq == before - 1:
+                    got_before.set()
+                if edge.rejected["sequence_gap"]:
+                    recovered.set()
+
+            edge.on_chunk = on_chunk
+            done_passes: list[str] = []
+
+            def on_done(sample):
+                done_passes.append(decode_pass_done(sample.payload.to_bytes()).pass_id)
+                second_done.set()
+
+            done_sub = edge_s.declare_subscriber(keys.done_keyexpr("net"), on_done)
+            server = threading.Thread(target=serve, args=(edge_s, edge, "edge-gap", stop), daemon=True)
+            server.start()
+            edge_up = threading.Event()
+            # The edge declares its liveliness token after its subscriptions, on the same link.
+            watch = veh_s.liveliness().declare_subscriber(keys.alive_key("net", "edge", "edge-gap"),
+                                                          lambda s: edge_up.set(), history=True)
+            assert edge_up.wait(30.0), "the edge never came up"
+            watch.undeclare()
+            with ImuPublishers(veh_s, cache_chunks=cache, heartbeat_s=0.2) as publish:
+                key = keys.imu_key("net", vehicle)
+                for c in chunks[:before]:
+                    publish(key, c.encode())
+                assert got_before.wait(30.0), f"the edge did not get the first chunks: {edge.stats()}"
+                router.kill()
+                router.wait(10.0)
+                for c in chunks[before:before + during]:  # into the void: the vehicle's cache keeps the last 5
+                    publish(key, c.encode())
+                router = _router(endpoint)
+                assert recovered.wait(30.0), f"the edge never saw the gap: {edge.stats()}"
+                # The vehicle's next pass goes through whole.
+                for c in chunks:
+                    publish(key, dataclasses.replace(c, pass_id="second").encode())
+                assert second_done.wait(30.0), f"the next pass was not processed: {edge.stats()}"
+            done_sub.undeclare()
+            stop.set()
+            server.join(10.0)
+    finally:
+        stop.set()
+        _stop(router)
+    assert done_passes == ["second"]
+    assert edge.rejected["sequence_gap"] == 1
+    # What the cache no longer held, reported by Zenoh's miss detection: the outage's chunks beyond the cache.
+    assert edge.rejected["missed_chunks"] == during - cache, edge.stats()

@@ -25,7 +25,7 @@ import zenoh
 
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log
-from shared.schema import ApSegment, Calibration, decode_ap_segment, decode_calibration
+from shared.schema import ApSegment, Calibration, decode_ap_segment, decode_calibration, decode_sensor_chunk
 from shared.security import (
     ROLES,
     DenialCounter,
@@ -305,3 +305,123 @@ def test_denial_counter_attributes_each_drop_to_its_decision():
     assert [c.feed(line) for line in lines] == [None, None, None, ("V1", "put", "ingress", f"{NET}/y"), None,
                                                 None]
     assert c.snapshot()["total"] == 1
+
+
+def test_driveby_run_through_a_secured_router_is_refused_nothing(road, tmp_path):
+    """``driveby run --connect ROUTER --secure DIR``: every daemon and the run's own session connect
+    with their own identity, and the roles suffice for a whole run (raw chunks through the vehicles'
+    advanced publishers included): the router refuses nothing. A missing identity is a one-line error."""
+    from simfleet.run import RunError, run
+
+    pki = init_ca(tmp_path / "pki")
+    for name, role in {"router-1": "router", "run": "operator", "edge-1": "edge", "cloud-1": "aggregator",
+                       "viewer-1": "viewer"}.items():
+        issue(pki, name, role)
+    with run_router(security=pki.path, net=NET, router_id="router-1") as endpoint:
+        res = run(road / "logs", road / "site.toml", tmp_path / "out", calibration="nominal", progress=False,
+                  connect=endpoint, net=NET, secure=pki.path)
+        assert res.acked == res.passes == 1 and res.stats["accepted"] > 0 and not res.stats["rejected"], res
+        with _session(endpoint, pki.tls("viewer-1")) as viewer:
+            assert _denials(viewer, "run")["total"] == 0
+    (pki.path / "identities.toml").write_text('[identities]\n"run" = "operator"\n')
+    with pytest.raises(RunError, match="edge-1"):
+        run(road / "logs", road / "site.toml", tmp_path / "out2", connect="tls/127.0.0.1:1", net=NET,
+            secure=pki.path)
+
+
+def test_driveby_run_secure_makes_its_certificates_and_secures_both_routers(tmp_path, monkeypatch):
+    """``driveby run --secure --shards 2``: a CA and every identity made into the export's state, both
+    routers TLS-only with access control (the second joins the first over mutual TLS), every pass through."""
+    import dataclasses
+
+    import simfleet.run
+    from shared.drivelog import write_drive_log
+    from simfleet.run import run
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for i, route in enumerate(("R1", "R2")):  # two routes, one pass each: one per shard
+        generate(SCENARIOS["road-qc"], tmp_path / route, seed=30 + i, passes=1, workers=1, progress=False)
+        for path in list_drive_logs(tmp_path / route / "logs"):
+            log = read_drive_log(path)
+            meta = dataclasses.replace(log.meta, route_id=route, vehicle_id=f"{route}-{log.meta.vehicle_id}")
+            write_drive_log(logs / f"{route}-{path.name}", dataclasses.replace(log, meta=meta))
+    site = (tmp_path / "R1" / "site.toml").read_text()
+    (tmp_path / "site.toml").write_text(
+        site.replace("[[route]]", '[[route]]\nid = "R2"\nlength_m = 200.0\n\n[[route]]', 1))
+    routers: list[dict] = []
+    real = simfleet.run.run_router
+
+    def recorded(*args, **kw):  # the real router, its arguments noted
+        routers.append(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(simfleet.run, "run_router", recorded)
+    res = run(logs, tmp_path / "site.toml", tmp_path / "out", calibration="nominal", progress=False, shards=2,
+              secure=True)
+    assert res.acked == res.passes == 2 and res.stats["accepted"] > 0 and not res.stats["rejected"], res
+    sec = SecurityDir(tmp_path / "out" / ".run" / "security")
+    assert sec.identities() == {"run": "operator", "edge-1": "edge", "cloud-1": "aggregator",
+                                "cloud-2": "aggregator", "router-1": "router", "router-2": "router"}
+    assert [(r["security"], r["router_id"]) for r in routers] == [(sec.path, "router-1"), (sec.path, "router-2")]
+    assert len(routers[1]["connect"]) == 1 and routers[1]["connect"][0].startswith("tls/")
+
+
+def test_raw_chunks_lost_in_a_secured_router_restart_are_recovered_under_access_control(pki, road):
+    """The vehicle's advanced publisher and the edge's recovery pass the roles: chunks published while
+    the secured router was down are fetched from the vehicle's cache (queries by wildcard, replies on
+    its own keys), the pass completes, and the router refuses nothing."""
+    from edge.node import Edge, serve
+    from shared.transport import _start_router, _stop, free_port
+    from simfleet.replay import ImuPublishers, chunks_of
+
+    issue(pki, "edge-1", "edge")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    extra = ["--security", str(pki.path), "--net", NET, "--id", "router-1"]
+
+    def start():
+        proc, error = _start_router(endpoint, None, 15.0, extra)
+        assert error is None, error
+        return proc
+
+    log = read_drive_log(list_drive_logs(road / "logs")[0])
+    vehicle, chunks = log.meta.vehicle_id, list(chunks_of(log))
+    before, during = len(chunks) // 3, len(chunks) // 3
+    router = start()
+    stop, edge_up, got_before, done = threading.Event(), threading.Event(), threading.Event(), threading.Event()
+    try:
+        with _session(endpoint, pki.tls("edge-1")) as edge_s, _session(endpoint, pki.tls(vehicle)) as veh_s, \
+                _session(endpoint, pki.tls("viewer-1")) as viewer:
+            edge = Edge(NET, lambda k, p: edge_s.put(k, p), calibration="nominal")
+            feed = edge.on_chunk
+
+            def on_chunk(payload, key_vehicle=None):  # the real handler, observed
+                feed(payload, key_vehicle)
+                if decode_sensor_chunk(payload).seq == before - 1:
+                    got_before.set()
+
+            edge.on_chunk = on_chunk
+            viewer.declare_subscriber(keys.done_keyexpr(NET), lambda s: done.set())
+            threading.Thread(target=serve, args=(edge_s, edge, "edge-1", stop), daemon=True).start()
+            veh_s.liveliness().declare_subscriber(keys.alive_key(NET, "edge", "edge-1"), lambda s: edge_up.set(),
+                                                  history=True)
+            assert edge_up.wait(TIMEOUT_S), "the edge never came up"
+            with ImuPublishers(veh_s, heartbeat_s=0.2) as publish:
+                key = keys.imu_key(NET, vehicle)
+                for c in chunks[:before]:
+                    publish(key, c.encode())
+                assert got_before.wait(TIMEOUT_S), edge.stats()
+                router.kill()
+                router.wait(10.0)
+                for c in chunks[before:before + during]:
+                    publish(key, c.encode())
+                router = start()
+                for c in chunks[before + during:]:
+                    publish(key, c.encode())
+                assert done.wait(3 * TIMEOUT_S), f"the pass did not complete: {edge.stats()}"
+            assert not edge.rejected, edge.stats()
+            body = _denials(viewer, vehicle)
+            assert body["total"] == 0, body
+    finally:
+        stop.set()
+        _stop(router)

@@ -412,3 +412,46 @@ def test_run_router_reports_a_port_it_cannot_take():
         with pytest.raises(RuntimeError, match="did not start"):
             with run_router(port, timeout_s=TIMEOUT_S):
                 pass
+
+
+def test_the_edges_raw_spool_is_bounded_across_the_fleet(tmp_path):
+    """A large fleet's raw passes (kept to recompute when a calibration arrives) are bounded in bytes
+    for the whole edge, not only per vehicle: the oldest are dropped, counted, and no longer
+    recomputed; those kept still are."""
+    import dataclasses
+
+    from edge.node import Edge
+    from shared.drivelog import list_drive_logs, read_drive_log
+    from shared.schema import decode_pass_done
+    from simfleet.replay import chunks_of
+    from simfleet.scenarios import SCENARIOS
+    from simfleet.sim import generate
+
+    generate(SCENARIOS["road-qc"], tmp_path, seed=5, passes=1, workers=1, progress=False)
+    log = read_drive_log(list_drive_logs(tmp_path / "logs")[0])
+    chunks = list(chunks_of(log))
+
+    def payloads(vehicle, pass_id):
+        return [dataclasses.replace(c, vehicle_id=vehicle, pass_id=pass_id).encode() for c in chunks]
+
+    pass_bytes = sum(map(len, payloads("a", "p0")))
+    done: list[tuple[str, int]] = []
+
+    def publish(key, payload):
+        if "/done/" in key:
+            d = decode_pass_done(payload)
+            done.append((d.pass_id, d.calib_version))
+
+    edge = Edge("n", publish, calibration="nominal", spool_max_bytes=int(2.5 * pass_bytes))
+    vehicles = ("a", "b")
+    for k in range(4):  # passes p0..p3, alternating vehicles
+        for payload in payloads(vehicles[k % 2], f"p{k}"):
+            edge.on_chunk(payload)
+    assert [p for p, _ in done] == ["p0", "p1", "p2", "p3"] and not edge.rejected
+    kept = sum(map(len, payloads("a", "p2"))) + sum(map(len, payloads("b", "p3")))
+    assert edge.stats()["raw_spool"] == {"passes": 2, "bytes": kept, "evicted": 2}
+    done.clear()
+    for vehicle in vehicles:  # a new calibration: what is still spooled is recomputed under it
+        edge.on_calibration(Calibration(vehicle, 1, log.meta.vehicle_model, dict(log.meta.nominal_params),
+                                        "fleet").encode())
+    assert sorted(done) == [("p2", 1), ("p3", 1)]
