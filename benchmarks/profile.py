@@ -169,6 +169,24 @@ def drift_results(rng: np.random.Generator) -> Iterator[dict]:
            "ratio_to": {"snapshot_60_vs_1_pass": snaps[-1] / snaps[0]}}
 
 
+
+def _equal_accuracy_result(name: str, r: dict, metric: str) -> dict:
+    """One JSON line of :func:`simfleet.reproduce.time_to_equal_accuracy`'s result for ``metric``."""
+    rat = r["ratios"][metric]
+    return {"name": name, "value": rat["production"]["ratio"], "unit": "x (MCMC time / our production path's)",
+            "ratio_to": {"mcmc_vs_production": rat["production"]["ratio"],
+                         "mcmc_vs_exact_posterior": rat["exact"]["ratio"]},
+            "reached": {k: rat[k]["reached"] for k in rat},
+            "lower_bound": not rat["production"]["reached"],
+            "seconds": {"exact": r["exact"]["seconds"], "production": r["production"]["seconds"],
+                        "mcmc_to_production": rat["production"]["mcmc_seconds"],
+                        "mcmc_total": r["mcmc"]["seconds"]},
+            "rmse_mm": {"exact": 1e3 * r["exact"]["error"][metric],
+                        "production": 1e3 * r["production"]["error"][metric],
+                        "mcmc_final": 1e3 * r["mcmc"]["error"][metric], "truth": 1e3 * r["truth"][metric]},
+            "mcmc_iterations": r["mcmc"]["iterations"], "n_points": r["n_points"],
+            "n_vehicles": r["n_vehicles"], "n_samples": r["n_samples"], "target": ">= 1000x"}
+
 def thesis_chain_results() -> Iterator[dict]:
     from cloud.reference.mcmc import THESIS_N_ITER
     from simfleet.reproduce import METRICS, small_road_problem, time_to_equal_accuracy
@@ -177,21 +195,11 @@ def thesis_chain_results() -> Iterator[dict]:
     r = time_to_equal_accuracy(problem, n_iter=THESIS_N_ITER)
     for metric in METRICS:
         rat = r["ratios"][metric]
-        yield {"name": f"profile.time_to_equal_accuracy.thesis_chain.{metric}.v30_p{r['n_points']}",
-               "value": rat["production"]["ratio"], "unit": "x (MCMC time / our production path's)",
-               "ratio_to": {"mcmc_vs_production": rat["production"]["ratio"],
-                            "mcmc_vs_exact_posterior": rat["exact"]["ratio"]},
-               "reached": {k: rat[k]["reached"] for k in rat},
-               "reached_at_iteration": {k: rat[k]["iteration"] for k in rat},
-               "seconds": {"exact": r["exact"]["seconds"], "production": r["production"]["seconds"],
-                           "mcmc_to_production": rat["production"]["mcmc_seconds"],
-                           "mcmc_total": r["mcmc"]["seconds"]},
-               "rmse_mm": {"exact": 1e3 * r["exact"]["error"][metric],
-                           "production": 1e3 * r["production"]["error"][metric],
-                           "mcmc_final": 1e3 * r["mcmc"]["error"][metric], "truth": 1e3 * r["truth"][metric]},
-               "mcmc_iterations": r["mcmc"]["iterations"], "mcmc_acceptance": r["mcmc"]["acceptance"],
-               "n_points": r["n_points"], "n_vehicles": r["n_vehicles"], "n_samples": r["n_samples"],
-               "target": ">= 1000x"}
+        result = _equal_accuracy_result(f"profile.time_to_equal_accuracy.thesis_chain.{metric}.v30_p{r['n_points']}",
+                                        r, metric)
+        result["reached_at_iteration"] = {k: rat[k]["iteration"] for k in rat}
+        result["mcmc_acceptance"] = r["mcmc"]["acceptance"]
+        yield result
 
 
 def calibration_results() -> Iterator[dict]:
@@ -230,21 +238,8 @@ def accuracy_results(budget_s: float = 60.0) -> Iterator[dict]:
         problem = small_road_problem(seed=0, **size)
         r = time_to_equal_accuracy(problem, n_iter=200_000, time_budget_s=budget_s)
         for metric in METRICS:
-            rat = r["ratios"][metric]
-            yield {"name": f"profile.time_to_equal_accuracy.{metric}.v{size['n_vehicles']}_p{r['n_points']}",
-                   "value": rat["production"]["ratio"], "unit": "x (MCMC time / our production path's)",
-                   "ratio_to": {"mcmc_vs_production": rat["production"]["ratio"],
-                                "mcmc_vs_exact_posterior": rat["exact"]["ratio"]},
-                   "reached": {k: rat[k]["reached"] for k in rat},
-                   "lower_bound": not rat["production"]["reached"],
-                   "seconds": {"exact": r["exact"]["seconds"], "production": r["production"]["seconds"],
-                               "mcmc_to_production": rat["production"]["mcmc_seconds"],
-                               "mcmc_total": r["mcmc"]["seconds"]},
-                   "rmse_mm": {"exact": 1e3 * r["exact"]["error"][metric],
-                               "production": 1e3 * r["production"]["error"][metric],
-                               "mcmc_final": 1e3 * r["mcmc"]["error"][metric], "truth": 1e3 * r["truth"][metric]},
-                   "mcmc_iterations": r["mcmc"]["iterations"], "n_points": r["n_points"],
-                   "n_vehicles": r["n_vehicles"], "n_samples": r["n_samples"], "target": ">= 1000x"}
+            yield _equal_accuracy_result(f"profile.time_to_equal_accuracy.{metric}.v{size['n_vehicles']}_p{r['n_points']}",
+                                         r, metric)
 
 
 def literal_results() -> Iterator[dict]:
