@@ -90,12 +90,15 @@ class BridgeMonitor:
 
     # -- data ------------------------------------------------------------------------------
     def sync(self, passes: Mapping, held: Mapping[tuple, ApSegment],
-             params_of: Callable[[str, str, int], dict | None]) -> int:
+             params_of: Callable[[str, str, int], dict | None],
+             uncertainty_of: Callable[[str, str, int], dict | None] | None = None) -> int:
         """Bring every estimator up to date with the aggregator; returns the passes (re-)added.
 
         ``passes``: ``Aggregator.passes`` ((vehicle, pass) → PassState); ``held``: the segments the
         estimators hold per slot; ``params_of(vehicle, model, calib_version)``: the parameters the
-        edge used for that calibration version, or None if it is not the vehicle's current one.
+        edge used for that calibration version, or None if it is not the vehicle's current one;
+        ``uncertainty_of(vehicle, model, calib_version)``: the log-sd of those parameters' calibration
+        quantities (None: the estimator's default).
         """
         if not self.bridges:
             return 0
@@ -121,8 +124,10 @@ class BridgeMonitor:
                     params_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
                 if params is None:
                     continue  # a newer calibration is on its way: wait for the recomputed pass
+                sd = None if uncertainty_of is None else \
+                    uncertainty_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
                 try:
-                    crosses = st.estimator.add_segments(segs, ps.model or self.model, params)
+                    crosses = st.estimator.add_segments(segs, ps.model or self.model, params, params_log_sd=sd)
                 except (ValueError, KeyError, FloatingPointError, ArithmeticError) as e:
                     log.warning("bridge %s: pass %s/%s not usable: %s", st.bridge.id, *key, e)
                     self.skipped["unusable"] += 1

@@ -28,6 +28,7 @@ from shared.transport import add_zenoh_arguments, config_from_args
 from .aggregator import Aggregator
 from .alignment import Alignment, estimate_alignment, realign
 from .bridge.estimator import BridgeSettings
+from .bridge.vehicle_error import class_log_sd, fit_log_sd
 from .durable import AP, CALIB, DONE, Durability, restore_calibration
 from .bridges import CLEARED, BridgeMonitor
 from .estimators.gmrf_profile import GmrfProfile
@@ -511,6 +512,25 @@ class Cloud:
         self.publish_status()
         return True
 
+    def _bridge_uncertainty(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
+        """How well the parameters of a pass are known, as log-sd per calibration quantity (the bridge
+        likelihood integrates that error out): under fleet calibration, the class prior's spread for a
+        vehicle still at the class mean (version 0), else the calibrator's interval, floored at the
+        estimator's default (the interval does not see the fleet-common error); None (the default)
+        for parameters the edge brought itself (nominal calibration)."""
+        if self.calibrator is None:
+            return None
+        st = self.calibrator.vehicles.get(vehicle_id)
+        try:
+            if calib_version == 0 and (st is None or st.fit is None):
+                return class_log_sd(self.site, model)
+        except KeyError:
+            return None
+        if st is None or st.fit is None or st.version != calib_version:
+            return None
+        floor = BridgeSettings().calibration_log_sd or 0.0
+        return {n: max(v, floor) for n, v in fit_log_sd(st.fit).items()}
+
     def _bridge_params(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
         """The parameters the edge computed a pass with: its calibration ``calib_version``.
 
@@ -537,7 +557,7 @@ class Cloud:
             return False
         t0 = time.monotonic()
         self.bridge_sync_due = False
-        self.bridges.sync(self.aggregator.passes, self.aggregator.held, self._bridge_params)
+        self.bridges.sync(self.aggregator.passes, self.aggregator.held, self._bridge_params, self._bridge_uncertainty)
         if not self.bridges.due:
             return False
         alarms = self.bridges.estimate()
