@@ -500,12 +500,15 @@ class PassRemap:
         n_points, n_contacts = ap.values.shape
         x = (ap.start_index + np.arange(n_points)) * ap.spacing_m
         valid = np.all(np.isfinite(ap.values), axis=1) & np.all(np.isfinite(consensus), axis=1)
-        x0, x1 = x[valid][0], x[valid][-1]
+        # Contact i meets the road at x_cg + offsets_m[i]: the centre of gravity's track xt is where
+        # every contact is on the valid data (a half-car's rear axle reaches a bump a wheelbase later).
+        off = np.zeros(n_contacts) if offsets_m is None else np.asarray(offsets_m, dtype=float)
+        x0, x1 = x[valid][0] - off.min(), x[valid][-1] - off.max()
         xt = np.arange(x0, x1, ap.speed_mps * REMAP_DT)
         vals = np.where(np.isfinite(ap.values), ap.values, 0.0)
         cons = np.where(np.isfinite(consensus), consensus, 0.0)
-        ap_t = np.stack([np.interp(xt, x, vals[:, i]) for i in range(n_contacts)], axis=1)
-        self.profile_t = np.stack([np.interp(xt, x, cons[:, i]) for i in range(n_contacts)], axis=1)
+        ap_t = np.stack([np.interp(xt + off[i], x, vals[:, i]) for i in range(n_contacts)], axis=1)
+        self.profile_t = np.stack([np.interp(xt + off[i], x, cons[:, i]) for i in range(n_contacts)], axis=1)
         self.z = _forward_channels_at(model, params0, ap_t)
         self.skip = int(self.WARMUP_S / REMAP_DT)
         self.n = max(self.z.shape[0] - self.skip, 0)

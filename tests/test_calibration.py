@@ -229,3 +229,22 @@ def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
     c = cloud.calibrator
     assert c.settled and not c.exhausted, rounds  # settled by tolerance, not by the round budget
     assert score_profile(tmp_path / "out", truth).rel_error < 0.10
+
+
+def test_remap_drives_each_axle_over_the_road_at_its_own_position():
+    """A half-car's rear axle meets a bump a wheelbase after the front one: the remap places contact i
+    at x_cg + offsets_m[i] (it used to drive every contact at the same chainage)."""
+    from cloud.calibration import REMAP_DT, PassRemap
+    from shared.vehicles import vehicle_from_params
+    from shared.vehicles.half_car import TABLE_2_1
+
+    spacing, speed = 0.01, 20.0
+    x = np.arange(0.0, 120.0, spacing)
+    bump = 0.01 * np.exp(-0.5 * ((x - 60.0) / 0.2) ** 2)  # in road chainage, the same under both axles
+    values = np.stack([bump, bump], axis=1)
+    offsets = vehicle_from_params("half_car", TABLE_2_1).system().offsets_m
+    remap = PassRemap("half_car", TABLE_2_1, PassAp(0, spacing, values, speed), values, offsets)
+    hit = np.argmax(remap.profile_t, axis=0)  # time sample at which each contact is on the bump
+    expected = (offsets[0] - offsets[1]) / (speed * REMAP_DT)  # samples from front to rear
+    assert abs(offsets[0] - offsets[1]) > 1.0
+    assert hit[1] - hit[0] == pytest.approx(expected, abs=1.0)
