@@ -82,6 +82,21 @@ STARTUP_TIMEOUT_S = 120.0  # a cold numba cache compiles on the daemons' first s
 IDLE_TIMEOUT_S = 60.0  # no acknowledgement for this long: something is wrong
 
 
+
+def watch_alive(session: zenoh.Session, wanted: set[str], net: str = NET) -> tuple[threading.Event, set[str], object]:
+    """Watch the daemons' liveliness tokens: an event set once every key of ``wanted`` is alive, the
+    keys seen so far, and the subscriber (undeclare it when done)."""
+    seen: set[str] = set()
+    up = threading.Event()
+
+    def on_alive(sample):
+        if sample.kind == zenoh.SampleKind.PUT:
+            seen.add(str(sample.key_expr))
+        if wanted <= seen:
+            up.set()
+
+    return up, seen, session.liveliness().declare_subscriber(keys.alive_keyexpr(net), on_alive, history=True)
+
 class BenchError(RuntimeError):
     """The benchmark could not measure (a daemon died, a timeout)."""
 
@@ -114,17 +129,8 @@ class Deployment:
         self._publishers: dict[str, zenoh.Publisher] = {}
 
     def wait_up(self) -> None:
-        seen: set[str] = set()
-        up = threading.Event()
         wanted = {keys.alive_key(NET, "cloud", CLOUD_ID), *(keys.alive_key(NET, "edge", e) for e in self.edge_ids)}
-
-        def on_alive(sample):
-            if sample.kind == zenoh.SampleKind.PUT:
-                seen.add(str(sample.key_expr))
-            if wanted <= seen:
-                up.set()
-
-        sub = self.session.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
+        up, _, sub = watch_alive(self.session, wanted)
         try:
             self._wait(up, STARTUP_TIMEOUT_S, "the cloud and edge daemons to start")
         finally:

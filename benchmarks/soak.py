@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from benchmarks.bus import BenchError, _spawn, _stop
+from benchmarks.bus import BenchError, _spawn, _stop, watch_alive
 from cloud.node import TRACE
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log, write_drive_log
@@ -196,16 +196,7 @@ class Soak:
     def wait_up(self) -> None:
         wanted = {keys.alive_key(NET, "cloud", c) for c in ("cloud-1", "cloud-2")} | \
                  {keys.alive_key(NET, "edge", e) for e in ("edge-1", "edge-2")}
-        seen: set[str] = set()
-        up = threading.Event()
-
-        def on_alive(sample):
-            if sample.kind == zenoh.SampleKind.PUT:
-                seen.add(str(sample.key_expr))
-            if wanted <= seen:
-                up.set()
-
-        sub = self.session.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
+        up, seen, sub = watch_alive(self.session, wanted, NET)
         deadline = time.monotonic() + STARTUP_TIMEOUT_S
         while not up.wait(0.5):
             self.check_alive()
