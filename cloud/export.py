@@ -34,12 +34,28 @@ def profile_table(snapshots: dict[str, ProfileSnapshot]) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=schema)
 
 
+def profile_draws(profile, route_id: str, snap: ProfileSnapshot, segments: list, n: int = 100,
+                  rng: np.random.Generator | int | None = 0, longest: bool | None = None) -> np.ndarray:
+    """``n`` draws (n, P) of a route's profile carrying every error term of its exported band: the
+    posterior's own (``profile.sample``: the white/AR(1) or edge error model, and the per-pass drift
+    nuisance when it is on) plus the passes' excess error (:func:`.estimators.long_wave.pass_error_draws`),
+    so that what is computed from them (the IRI) has the band's uncertainty. ``snap`` is the
+    posterior's snapshot of the route, ``segments`` the held segments; ``longest`` as for
+    :func:`.estimators.long_wave.with_long_wave_band` (default: when the profile has no drift nuisance)."""
+    from .estimators.long_wave import pass_error_draws
+
+    if longest is None:
+        longest = getattr(profile, "drift_knot_m", None) is None
+    rng = np.random.default_rng(rng)
+    return profile.sample(route_id, n, rng) + pass_error_draws(snap, segments, n, rng, longest=longest)
+
+
 def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, spacing_m: float,
                     lengths_m: tuple[float, ...] = ROUGHNESS_SEGMENTS_M) -> pa.Table:
     """``roughness.parquet``: route_id, start_m, end_m, length_m, iri_m_per_km, iri_lo95, iri_hi95.
 
     ``samples`` (n_samples, P) are posterior draws of the route's profile (m) on ``chainage_m``
-    (e.g. ``GmrfProfile.sample``), NaN where the profile is unknown; a single profile (P,) is one
+    (:func:`profile_draws`: with every error term of the profile's band), NaN where the profile is unknown; a single profile (P,) is one
     draw. Each draw's IRI is computed per consecutive 10 m and 100 m segment
     (:func:`shared.roughness.iri_segments`); ``iri_m_per_km`` is the posterior mean of the IRI (the
     mean over draws, not the IRI of the mean profile, which is biased low because averaging

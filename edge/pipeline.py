@@ -17,6 +17,8 @@ from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
 
 from .chainage import ChainageTracker
 from .drift import drift_trend
+from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, fourth_differences,
+                          noise_sd_from_d4, unit_spectra, white_equivalent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,10 +38,20 @@ class EdgeConfig:
     # bridge-healthy (30 fleet-calibrated passes) it made the element pattern worse (max error
     # 7.6 → 14 points, a false crack alarm); not yet understood — see the session-3 note.
     antialias: bool = False
+    # The AP error model sent with each segment (edge.error_model): each channel's noise level from
+    # its data pushed through the inverse's transfer, fitted with a precision band of this order
+    # over wavelengths up to error_longest_m. Off: segments carry only the white sigma.
+    error_model: bool = True
+    error_band_order: int = BAND_ORDER
+    error_longest_m: float = LONGEST_M
 
     def __post_init__(self) -> None:
         if not (self.spacing_m > 0 and self.tile_m > 0):
             raise ValueError("EdgeConfig: tile_m and spacing_m must be positive")
+        if not (0 <= self.error_band_order <= 8):
+            raise ValueError("EdgeConfig.error_band_order: must lie in 0..8")
+        if not (self.error_longest_m > 4 * self.spacing_m):
+            raise ValueError("EdgeConfig.error_longest_m: must exceed 4 grid steps")
         ratio = self.tile_m / self.spacing_m
         if abs(ratio - round(ratio)) > 1e-9:
             raise ValueError("EdgeConfig.tile_m: must be a whole number of spacing_m steps")
@@ -370,6 +382,13 @@ class PassProcessor:
         # Time from which the inverse has forgotten its initial state; earlier points are sent
         # down-weighted (see EdgeConfig.hard_warmup_s). -inf: no such points.
         self.settled_t = math.inf if model.n_warmup * model.constants.dt > self.config.hard_warmup_s else -math.inf
+        # Fourth differences of the channels and their times, for each segment's noise levels (the
+        # samples in the segment's own time span, so the result does not depend on chunking).
+        # Rail vehicles keep the white sigma: their cloud re-runs the dynamics itself.
+        self.error_model = self.config.error_model and model_name not in RAIL_MODELS
+        self._z_tail = np.zeros((0, len(self.channel_names)))
+        self._d4 = np.zeros((0, len(self.channel_names)))
+        self._d4_t = np.zeros(0)
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         names = self.channel_names
@@ -383,6 +402,8 @@ class PassProcessor:
             ap = self.inverse.update(z)
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
             t = chunk.t
+            if self.error_model:
+                self._add_differences(z, t)
             reliable = chunk.speed >= self.config.min_speed_mps  # moving
             hard = min(self.inverse.reliable_from, int(math.ceil(self.config.hard_warmup_s / self.model.constants.dt)))
             warmup = hard - self.n_samples  # samples of this chunk still warming up
@@ -407,6 +428,49 @@ class PassProcessor:
                         vehicle_model=self.model_name)
         return segments, done
 
+    def _add_differences(self, z: np.ndarray, t: np.ndarray) -> None:
+        zz = np.concatenate([self._z_tail, z])
+        if zz.shape[0] >= 5:
+            d4 = fourth_differences(zz)
+            self._d4 = np.concatenate([self._d4, d4])
+            self._d4_t = np.concatenate([self._d4_t, t[t.size - d4.shape[0]:]])
+        self._z_tail = zz[-4:]
+
+    def _trim_differences(self) -> None:
+        """Drop the differences older than any segment still to come needs."""
+        P = self.config.tile_points
+        starts = []
+        for g in self.grids:
+            if g.base is None:
+                return
+            k = self.next_tile * P - g.base
+            if not 0 <= k < g.done:
+                return
+            starts.append(g.t[k])
+        cut = int(np.searchsorted(self._d4_t, min(starts)))
+        if cut > 0:
+            self._d4, self._d4_t = self._d4[cut:], self._d4_t[cut:]
+
+    def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
+        """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
+        (edge.error_model), or None when there is too little to measure the noise from."""
+        lo, hi = np.searchsorted(self._d4_t, [t0, t1], side="left")
+        if hi - lo < 64 or not t1 > t0:
+            return None
+        sd = noise_sd_from_d4(self._d4[lo:hi])
+        if not (np.all(np.isfinite(sd)) and np.any(sd > 0)):
+            return None
+        speed = (n_points - 1) * self.config.spacing_m / (t1 - t0)  # the segment's own chainage speed
+        omega, S = unit_spectra(self.model, speed, self.config.spacing_m, self.config.drift_points)
+        spectrum = np.tensordot(sd * sd, S[:, axle - 1], axes=1)
+        if not np.any(spectrum > 0):
+            return None
+        sd_m, band = fit_error_band(omega, spectrum, self.config.spacing_m, self.config.error_band_order,
+                                    self.config.error_longest_m, fill_ceiling=sigma_white**2)
+        # Never below what the AP's own second differences show (see edge.error_model).
+        sd_m *= max(1.0, sigma_white / white_equivalent(sd_m, band))
+        return encode_error_model(sd_m, band, sigma_white)
+
     def _emit(self, final: bool) -> list[ApSegment]:
         grids = [g for g in self.grids if g.base is not None]
         if not grids:
@@ -421,6 +485,8 @@ class PassProcessor:
         while self.next_tile < last_tile or (final and self.next_tile * P < max(g.end for g in grids)):
             out.extend(self._tile_segments(self.next_tile))
             self.next_tile += 1
+        if self.error_model:
+            self._trim_differences()
         return out
 
     def _tile_segments(self, tile: int) -> list[ApSegment]:
@@ -450,9 +516,13 @@ class PassProcessor:
             # passband that second differences see, but the white-equivalent level in the band the
             # cloud uses is unchanged.
             raw = g.linear[wa - g.base : wb - g.base]
-            sigma = np.full(seg_vals.size, ap_sigma(raw - trend if H > 0 else raw, valid))
+            sigma_white = ap_sigma(raw - trend if H > 0 else raw, valid)
+            sigma = np.full(seg_vals.size, sigma_white)
             flags = 0
             t_seg = g.t[a - g.base + first : a - g.base + last + 1]
+            error_model = None
+            if self.error_model and seg_vals.size > 1:
+                error_model = self._error_model(axle, float(t_seg[0]), float(t_seg[-1]), seg_vals.size, sigma_white)
             unsettled = t_seg < self.settled_t
             if unsettled.any():
                 sigma[unsettled] *= 100.0
@@ -466,6 +536,7 @@ class PassProcessor:
                 tile=tile, axle=axle, start_index=a + int(first), spacing_m=self.config.spacing_m,
                 calib_version=self.calib_version, speed_mps=float(np.mean(self.speeds)) if self.speeds else 0.0,
                 t_first=float(t_seg[0]), t_last=float(t_seg[-1]), seq=self.seq, flags=flags,
+                error_model=error_model,
             ))
             self.seq += 1
         return out

@@ -38,7 +38,7 @@ import re
 import struct
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, ClassVar, NoReturn
 
@@ -687,6 +687,30 @@ def quantize_sigma(sigma_m: np.ndarray) -> tuple[np.ndarray, float]:
     return q, ref
 
 
+ERROR_MODEL_NONE = np.zeros(0)
+ERROR_MODEL_NONE.setflags(write=False)
+#: Largest order p of an AP error model's precision band.
+MAX_ERROR_BAND = 8
+_ERROR_OMEGA = np.linspace(0.0, np.pi, 513)
+
+
+def _error_model(value: object) -> np.ndarray:
+    """An ApSegment.error_model: empty, or ``[r > 0, c₀, …, c_p]`` (p ≤ 8) whose symbol
+    ``c₀ + 2 Σ c_k cos kω`` is positive on [0, π] (so the precision is positive definite)."""
+    em = _array("error_model", value, np.float64)
+    if em.size == 0:
+        return ERROR_MODEL_NONE
+    if em.ndim != 1 or not 2 <= em.size <= MAX_ERROR_BAND + 2:
+        _fail("bad_shape", f"error_model has {em.size} values, expected 0 or 2..{MAX_ERROR_BAND + 2}")
+    if not (em[0] > 0 and em[0] <= 1e6):
+        _fail("bad_value", "error_model scale must lie in (0, 1e6]")
+    k = np.arange(1, em.size - 1)
+    symbol = em[1] + 2.0 * (np.cos(np.outer(_ERROR_OMEGA, k)) @ em[2:]) if k.size else np.full(1, em[1])
+    if not np.min(symbol) > 0:
+        _fail("bad_value", "error_model band is not positive definite")
+    return em
+
+
 @dataclass(frozen=True, eq=False)
 class ApSegment(_Message):
     """A segment of one pass's apparent profile on the route's global grid (edge -> cloud).
@@ -718,6 +742,11 @@ class ApSegment(_Message):
     seq: int
     n_segments_in_pass: int = -1
     flags: int = 0
+    # Optional (additive) AP error model from the edge (edge.error_model): empty, or
+    # ``[r, c₀, c₁, …, c_p]`` — the error at point i is ``r · sigma[i]`` times a stationary
+    # unit-variance process whose precision is the banded Toeplitz matrix ``c_{|i−j|}``. Empty: the
+    # cloud's own white/AR(1) model of ``sigma``.
+    error_model: np.ndarray = field(default_factory=lambda: ERROR_MODEL_NONE)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -756,6 +785,7 @@ class ApSegment(_Message):
         if self.n_segments_in_pass >= 0 and self.seq >= self.n_segments_in_pass:
             _fail("bad_value", f"seq {self.seq} >= n_segments_in_pass {self.n_segments_in_pass}")
         set_(self, "flags", _int("flags", self.flags, 0, MAX_INT32))
+        set_(self, "error_model", _error_model(self.error_model))
 
     @classmethod
     def make(
@@ -777,6 +807,7 @@ class ApSegment(_Message):
         seq: int,
         n_segments_in_pass: int = -1,
         flags: int = 0,
+        error_model: np.ndarray | None = None,
     ) -> ApSegment:
         """Quantise float AP values and sigmas (m) into a segment.
 
@@ -786,6 +817,8 @@ class ApSegment(_Message):
             Apparent profile (m, up positive), finite, ``|v| <= 1000``.
         sigma_m : array (n,)
             Per-point error scale (m), finite and positive.
+        error_model : array, optional
+            ``[r, c₀, …, c_p]`` (see the class), or None for none.
         """
         values = _array("values_m", values_m, np.float64)
         sigma = _array("sigma_m", sigma_m, np.float64)
@@ -819,6 +852,7 @@ class ApSegment(_Message):
             seq=seq,
             n_segments_in_pass=n_segments_in_pass,
             flags=flags,
+            error_model=ERROR_MODEL_NONE if error_model is None else error_model,
         )
 
     @property
@@ -890,7 +924,10 @@ _AP_COLUMNS = (
     ("seq", pa.int64()),
     ("n_segments_in_pass", pa.int64()),
     ("flags", pa.int64()),
+    ("error_model", pa.list_(pa.float64())),
 )
+#: Columns a payload may lack (written by an older edge): their default is used.
+_AP_OPTIONAL = {"error_model": ERROR_MODEL_NONE}
 _AP_NAMES = tuple(name for name, _ in _AP_COLUMNS)
 _AP_READERS = tuple(  # the _Row method reading each column, and its list value type
     ("arrays", t.value_type) if pa.types.is_list(t) else
@@ -916,7 +953,8 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
 
 def _ap_segments(r: _Row) -> list[ApSegment]:
     """Every row of an ``ap_segment`` or ``ap_batch`` batch as a validated :class:`ApSegment`."""
-    columns = [getattr(r, method)(name, value_type) if value_type is not None else getattr(r, method)(name)
+    columns = [[_AP_OPTIONAL[name]] * r.n_rows if name in _AP_OPTIONAL and name not in r.names else
+               getattr(r, method)(name, value_type) if value_type is not None else getattr(r, method)(name)
                for name, (method, value_type) in zip(_AP_NAMES, _AP_READERS)]
     return [ApSegment(**dict(zip(_AP_NAMES, row))) for row in zip(*columns)]
 

@@ -21,6 +21,10 @@ def _nonnegative(name: str, value: object) -> float:
 def add_noise(signal: np.ndarray, pct: float, rng: np.random.Generator) -> np.ndarray:
     """Signal plus white Gaussian noise whose std is ``pct`` % of the signal's std (eq. 2.34–2.35).
 
+    Note the convention: ``pct`` is a percentage of the *std*. The thesis's "1 % noise (SNR = 100)"
+    is 1 % in *power*, i.e. a noise std of 10 % of the signal's; our scenarios' 1 % is 1 % of the
+    std (a decision, kept; see the thesis notes).
+
     A 1-D ``signal`` is one channel; for an (n_samples, n_channels) array each column gets noise
     scaled by its own std, so channels of different units (m/s², rad/s) keep their own level.
     """

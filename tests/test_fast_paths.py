@@ -22,7 +22,7 @@ from edge.node import Edge, in_shard, parse_shard
 from edge.pipeline import EdgeConfig, PassProcessor, _AxleGrid
 from shared import keys, schema
 from shared.drivelog import list_drive_logs, read_drive_log
-from shared.dynamics.inverse import build_inverse
+from shared.dynamics.inverse import build_inverse, edge_gamma
 from shared.registry import load_site
 from shared.schema import (
     MAX_BATCH_SEGMENTS,
@@ -314,7 +314,8 @@ def test_growable_grid_equals_concatenation(data):
 
 def _pass_segments(log, chunk_s: float) -> list[ApSegment]:
     m = log.meta
-    model = build_inverse(vehicle_from_params(m.vehicle_model, m.nominal_params).system(), 1.0 / m.sample_rate_hz)
+    model = build_inverse(vehicle_from_params(m.vehicle_model, m.nominal_params).system(), 1.0 / m.sample_rate_hz,
+                          gamma=edge_gamma(m.vehicle_model))
     proc = PassProcessor(model, m.vehicle_id, m.pass_id, m.route_id, 0, EdgeConfig(), m.vehicle_model)
     out = []
     for chunk in chunks_of(log, chunk_s):

@@ -167,7 +167,7 @@ def test_white_errors_add_nothing_and_the_band_follows_the_error():
 def _edge_segments(logs_dir: Path, **config) -> dict[str, list[ApSegment]]:
     from edge.pipeline import EdgeConfig, PassProcessor
     from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.dynamics.inverse import build_inverse
+    from shared.dynamics.inverse import build_inverse, edge_gamma
     from shared.vehicles import vehicle_from_params
     from simfleet.replay import chunks_of
 
@@ -175,7 +175,8 @@ def _edge_segments(logs_dir: Path, **config) -> dict[str, list[ApSegment]]:
     for path in list_drive_logs(logs_dir):
         log = read_drive_log(path)
         m = log.meta
-        model = build_inverse(vehicle_from_params(m.vehicle_model, m.nominal_params).system(), 1.0 / m.sample_rate_hz)
+        model = build_inverse(vehicle_from_params(m.vehicle_model, m.nominal_params).system(), 1.0 / m.sample_rate_hz,
+                              gamma=edge_gamma(m.vehicle_model))
         pp = PassProcessor(model, m.vehicle_id, m.pass_id, m.route_id, 0, EdgeConfig(**config), m.vehicle_model)
         segs = []
         for chunk in chunks_of(log):

@@ -12,6 +12,10 @@ Model (per route, on the global grid ``x_i = i · spacing_m``)
   tridiagonal, so a segment adds a tridiagonal block ``Hᵀ R⁻¹ H`` to the precision and ``Hᵀ R⁻¹ y``
   to the information vector: O(segment length), exact, order-independent. ``retract`` recomputes
   the same contribution from the segment (a deterministic function of it) and subtracts it.
+  A segment that carries the edge's own error model (:attr:`ApSegment.error_model`, derived from the
+  inverse's noise transfer: :mod:`edge.error_model`) uses it instead: ``R⁻¹ = D⁻¹ T D⁻¹`` with ``T``
+  its banded Toeplitz precision (order p ≤ 8), so the contribution is a (p + 1)-band, still O(m p)
+  and exactly retractable. The drift nuisance below reads every segment through the same model.
 * τ: fixed when given; otherwise learnt by empirical Bayes (type-II maximum likelihood) at
   snapshot time. The score equation of the marginal likelihood is the EM fixed point
   ``τ = rank / (μᵀAμ + tr(A Σ))`` (``A`` the difference-operator precision), whose trace needs
@@ -214,6 +218,86 @@ def _accumulate(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma
             passes[i] += step
 
 
+def segment_band_information(values: np.ndarray, sigma: np.ndarray, error_model: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """A segment's ``Hᵀ R⁻¹ H`` (lower banded, (p + 1, m)) and ``Hᵀ R⁻¹ y`` under the edge's error
+    model ``[r, c₀, …, c_p]`` (:attr:`ApSegment.error_model`): ``R⁻¹ = D⁻¹ T D⁻¹`` with
+    ``D = diag(r · sigma)`` and ``T`` the banded Toeplitz matrix ``c_{|i−j|}``. The reference for
+    :func:`_accumulate_band`."""
+    inv = 1.0 / (error_model[0] * sigma)
+    band = error_model[1:]
+    m = values.size
+    q = np.zeros((band.size, m))
+    rhs = np.zeros(m)
+    for d in range(band.size):
+        if d >= m:
+            break
+        w = band[d] * inv[: m - d] * inv[d:]
+        q[d, : m - d] = w
+        rhs[: m - d] += w * values[d:]
+        if d > 0:
+            rhs[d:] += w * values[: m - d]
+    return q, rhs
+
+
+def error_band_shares(error_model: np.ndarray, widths: list[int]) -> np.ndarray:
+    """Variance, per unit ``sigma``², of each moving-average band of a segment's error (bands as
+    :mod:`.long_wave` cuts them: ``MA_{w_j} − MA_{w_{j+1}}``, the last ``MA_{w_last}``; odd widths in
+    grid points). Empty ``error_model`` (white): ``1/w_j − 1/w_{j+1}`` and ``1/w_last``. With the
+    edge's model ``[r, c₀, …]``: ``r² (1/π) ∫₀^π |H_j(ω)|² / P(ω) dω``, ``P`` the band's symbol."""
+    if error_model.size == 0:
+        out = [1.0 / a - 1.0 / b for a, b in zip(widths[:-1], widths[1:])]
+        return np.array(out + [1.0 / widths[-1]])
+    key = (error_model.tobytes(), tuple(widths))
+    hit = _SHARES.get(key)
+    if hit is not None:
+        return hit
+    if len(_SHARES) > 4096:
+        _SHARES.clear()
+    _SHARES[key] = out = _model_shares(error_model, widths)
+    return out
+
+
+_SHARES: dict = {}
+
+
+def _model_shares(error_model: np.ndarray, widths: list[int]) -> np.ndarray:
+    w = np.linspace(1e-6, math.pi, 16385)
+    sym = np.full(w.size, error_model[1])
+    for k in range(2, error_model.size):
+        sym += 2.0 * error_model[k] * np.cos((k - 1) * w)
+    ma = [np.sin(a * w / 2) / (a * np.sin(w / 2)) for a in widths]  # a centred mean of a points
+    gains = [ma[j] - ma[j + 1] for j in range(len(widths) - 1)] + [ma[-1]]
+    return np.array([error_model[0] ** 2 * np.trapezoid(g * g / sym, w) / math.pi for g in gains])
+
+
+@njit(**_FLAGS)
+def _accumulate_band(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, error_model,
+                     sign, is_pass):
+    """:func:`_accumulate` for a segment with its own error model (:func:`segment_band_information`):
+    adds ``sign`` times ``D⁻¹ T D⁻¹`` to the rows ``0..p`` of ``q`` and its product with the values to
+    ``b``, decoding the wire codes point by point. O(m p)."""
+    m = values_q.size
+    step = int(sign)
+    r = error_model[0]
+    p1 = error_model.size - 1
+    for i in range(m):
+        inv_i = 1.0 / (r * sigma_ref * sigma_scale[-np.int64(sigma_q[i])])
+        v_i = offset + scale * np.float64(values_q[i])
+        for d in range(min(p1, m - i)):
+            j = i + d
+            inv_j = 1.0 / (r * sigma_ref * sigma_scale[-np.int64(sigma_q[j])])
+            w = error_model[1 + d] * inv_i * inv_j
+            q[d, lo + i] += sign * w
+            b[lo + i] += sign * (w * (offset + scale * np.float64(values_q[j])))
+            if d > 0:
+                b[lo + j] += sign * (w * v_i)
+    for i in range(lo, lo + m):
+        cover[i] += step
+        if is_pass:
+            passes[i] += step
+
+
 # -- state ---------------------------------------------------------------------------------------
 
 
@@ -226,6 +310,7 @@ class _Block:
     cov_band: np.ndarray  # S[d, i] = Σ[i, i + d] of the profile given the drifts
     mean0: np.ndarray | None = None  # the mean given zero drifts (A_RR⁻¹ b_R)
     drift: DriftPosterior | None = None
+    precision: np.ndarray | None = None  # the block's A_RR, lower banded (what the drift eliminates)
 
 
 @dataclass
@@ -277,8 +362,9 @@ class GmrfProfile:
     drift_knot_m : float or None
         Knot spacing (m) of each pass's drift nuisance (:mod:`.pass_drift`), e.g. 25; ``None``
         (default) leaves the drift out (the white/AR(1) model alone, the band's long-wave part then
-        comes from :mod:`.long_wave`). Off by default because its snapshot cost grows as
-        O(P · K²) with K = passes × knots per pass (a 200 m route with 30 passes: ~1 s).
+        comes from :mod:`.long_wave`). Its snapshot cost is linear in the route length and grows
+        with the passes *at a point*, n, as O(P · n²) (it is eliminated chunk by chunk between the
+        knots): 10 km with 2 passes ~0.5–1 s, 200 m with 30 passes ~0.1–0.2 s on a loaded 2-core machine.
     drift_sd_m : float, optional
         Prior sd of each drift coefficient (m); ``None`` (default) learns it per route by type-II
         maximum likelihood at snapshot time (0 when the data show no drift).
@@ -352,8 +438,16 @@ class GmrfProfile:
         if hi <= lo:
             return False
         m = hi - lo
-        _accumulate(route.q, route.b, route.cover, route.passes, lo, seg.values_q[:m], seg.scale_m, seg.offset_m,
-                    seg.sigma_q[:m], seg.sigma_ref_m, SIGMA_SCALE, self.rho, sign, seg.axle == 1)
+        if seg.error_model.size:  # the edge's own (banded) error model
+            rows = seg.error_model.size - 1
+            if rows > route.q.shape[0]:  # widen the route's band (zero rows until a segment fills them)
+                route.q = np.concatenate([route.q, np.zeros((rows - route.q.shape[0], route.q.shape[1]))])
+            _accumulate_band(route.q, route.b, route.cover, route.passes, lo, seg.values_q[:m], seg.scale_m,
+                             seg.offset_m, seg.sigma_q[:m], seg.sigma_ref_m, SIGMA_SCALE, seg.error_model, sign,
+                             seg.axle == 1)
+        else:
+            _accumulate(route.q, route.b, route.cover, route.passes, lo, seg.values_q[:m], seg.scale_m, seg.offset_m,
+                        seg.sigma_q[:m], seg.sigma_ref_m, SIGMA_SCALE, self.rho, sign, seg.axle == 1)
         route.posterior = None
         return True
 
@@ -387,7 +481,7 @@ class GmrfProfile:
                 _draw(blk.factor, blk.mean, out[:, blk.start : blk.stop])
             else:  # R = A_RR⁻¹ b_R − W β + L⁻ᵀ z, β drawn from its marginal posterior
                 _draw(blk.factor, blk.mean0, out[:, blk.start : blk.stop])
-                out[:, blk.start : blk.stop] += blk.drift.draw_shift(rng.standard_normal((n, blk.drift.lam.size)))
+                out[:, blk.start : blk.stop] += blk.drift.draw_shift(rng.standard_normal((n, blk.drift.n_coefficients)))
             done = blk.stop
         out[:, done:] = np.nan
         return out
@@ -400,10 +494,10 @@ class GmrfProfile:
         route = self.routes[route_id]
         t = route.tau if tau is None else tau
         n = route.cover.size
-        u = max(1, self.order)
+        u = max(self.order, route.q.shape[0] - 1)
         ab = np.zeros((u + 1, n))
         ab[: self.order + 1] += t * difference_precision(n, self.order)
-        ab[:2] += route.q
+        ab[: route.q.shape[0]] += route.q
         ab[0] += self.ridge
         return ab, route.b.copy()
 
@@ -460,22 +554,26 @@ class GmrfProfile:
     def _solve(self, route: _Route, spans: list[tuple[int, int]], tau: float) -> tuple[list[_Block], float, int]:
         """Factorise and solve every block at ``tau``; also return the EM statistic and the rank."""
         blocks, stat, rank = [], 0.0, 0
-        u = max(1, self.order)
+        u = max(self.order, route.q.shape[0] - 1)
         for a, e in spans:
             m = e - a
             A = difference_precision(m, self.order)
             ab = np.zeros((u + 1, m))
             ab[: self.order + 1] = tau * A
             ab[0] += route.q[0, a:e] + self.ridge
-            ab[1, : m - 1] += route.q[1, a : e - 1]  # the coupling to the point after the block is not ours
+            for d in range(1, min(route.q.shape[0], m)):  # the coupling past the block is not ours
+                ab[d, : m - d] += route.q[d, a : e - d]
             cb = cholesky_banded(ab, lower=True, check_finite=False)
             mean = cho_solve_banded((cb, True), route.b[a:e], check_finite=False)
             S = _selected_inverse(cb)
-            blocks.append(_Block(a, e, cb, mean, S))
+            blocks.append(_Block(a, e, cb, mean, S, precision=ab))
             if m > self.order:
+                # Sums, not np.dot: a long BLAS dot runs multi-threaded, and on a loaded machine its
+                # thread hand-off cost ~10 ms per call whatever the length (measured; it made the
+                # snapshot look superlinear in the route length).
                 d = np.diff(mean, n=self.order)
-                tr = float(np.dot(A[0], S[0])) + 2.0 * sum(float(np.dot(A[k], S[k])) for k in range(1, self.order + 1))
-                stat += float(np.dot(d, d)) + tr
+                tr = float((A[0] * S[0]).sum()) + 2.0 * sum(float((A[k] * S[k]).sum()) for k in range(1, self.order + 1))
+                stat += float((d * d).sum()) + tr
                 rank += m - self.order
         return blocks, stat, rank
 
@@ -506,6 +604,14 @@ class GmrfProfile:
         log.warning("tau did not converge in %d iterations (last change %.2e)", self.max_tau_iter, h1)
         return blocks, math.exp(u1)
 
+    def _segment_information(self, seg: ApSegment, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """A segment's ``Hᵀ R⁻¹ H`` (lower banded: row d holds ``Q[t + d, t]``) and ``Hᵀ R⁻¹ y`` on its
+        first ``m`` points: what :meth:`_apply` adds (the edge's error model when it carries one)."""
+        if seg.error_model.size:
+            return segment_band_information(seg.values[:m], seg.sigma[:m], seg.error_model)
+        diag, off, rhs = segment_information(seg.values[:m], seg.sigma[:m], self.rho)
+        return np.stack([diag, np.append(off, 0.0)]), rhs
+
     def _marginalise_drift(self, route_id: str, route: _Route, blocks: list[_Block]) -> list[np.ndarray]:
         """Eliminate each block's per-pass drifts (learning their level); the drift variance per point.
 
@@ -521,13 +627,14 @@ class GmrfProfile:
         posts = []
         for blk in blocks:
             system = drift_system(segs, blk.start, blk.stop, n, self.spacing_m, self.drift_knot_m,
-                                  lambda v, s: segment_information(v, s, self.rho))
-            posts.append(eliminate(blk.factor, blk.mean, system))
+                                  self._segment_information)
+            posts.append(eliminate(blk.precision, blk.factor, route.b[blk.start : blk.stop], system,
+                                   self.drift_knot_m / self.spacing_m, blk.start))
         s2 = self.drift_sd_m**2 if self.drift_sd_m is not None else learn_drift_variance(posts)
         route.drift_sd = math.sqrt(s2)
         out = []
         for blk, d in zip(blocks, posts):
-            d.s2 = s2
+            d.set_level(s2)
             blk.mean0, blk.drift = blk.mean, d
             blk.mean = blk.mean0 + d.profile_shift()
             out.append(d.profile_variance())

@@ -25,6 +25,12 @@ covers), averaged over the passes, up to a constant level (:func:`simfleet.evalu
 Errors every pass shares (a calibration bias common to the fleet, the inverse's discretisation)
 do not show in the scatter and are not in this term.
 
+Draws (:func:`pass_error_draws`): whatever is computed from posterior draws (the IRI and its band)
+must carry this term too. Its variance alone does not say how it moves the IRI: a calibration error
+scales the road (first order in the IRI), sensor noise adds to it (second order). So per band the
+passes' residuals are also regressed on the consensus's band; the scatter of those gains is drawn
+as a gain on the road's band, the rest of the band's variance as band-limited noise.
+
 Cost: computed at snapshot time from the segments held, O(points held × bands); nothing is added
 to a segment update, and a retracted segment is simply not among those held.
 """
@@ -38,6 +44,7 @@ from scipy.stats import t as student_t
 
 from shared.schema import ApSegment
 
+from .gmrf_profile import error_band_shares
 from .mean_profile import ProfileSnapshot
 
 #: Band edges (m): wavelengths below the first are the white model's (the prior smooths them).
@@ -65,29 +72,15 @@ def _white_share(widths: list[int]) -> list[float]:
     return out
 
 
-def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
-                        band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True) -> np.ndarray:
-    """Variance (m²) per grid point of the fused profile's error that the white likelihood misses.
-
-    ``longest``: also the band beyond the last edge (> 50 m). Pass False when the posterior
-    models those wavelengths itself (the per-pass drift nuisance of :mod:`.pass_drift`, knots at
-    ≤ 25 m), so that they are not counted twice.
-    """
+def _pass_residuals(snap: ProfileSnapshot, segments: list[ApSegment]):
+    """Each pass's ``(lo, hi, r, ok, sigma)``: its residual ``y − μ`` on grid points ``[lo, hi)``, where
+    it counts (finite, and not flagged unreliable by the edge) and its stated sd."""
     P = snap.elevation_m.size
-    h = float(snap.chainage_m[1] - snap.chainage_m[0]) if P > 1 else 1.0
-    widths = [max(int(round(e / h)) | 1, 1) for e in band_edges_m]  # odd: centred
-    g = _white_share(widths)
-    nb = len(widths)
+    mu = snap.elevation_m
     passes: dict[tuple, list[ApSegment]] = {}
     for s in segments:
         if s.route_id == snap.route_id:
             passes.setdefault((s.vehicle_id, s.pass_id, s.axle), []).append(s)
-    ss = np.zeros((nb, P))  # Σ_p band residual²
-    n = np.zeros(P)  # passes with a residual at the point
-    sw = np.zeros(P)  # Σ_p w_p
-    sw2 = np.zeros(P)  # Σ_p w_p²
-    ssig = np.zeros(P)  # Σ_p σ_p²
-    mu = snap.elevation_m
     for segs in passes.values():
         lo = max(min(s.start_index for s in segs), 0)
         hi = min(max(s.end_index for s in segs), P)
@@ -106,6 +99,34 @@ def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
             continue
         # Points the edge flagged unreliable carry ~no weight in the posterior: not in the scatter.
         ok &= sig <= 10.0 * np.nanmin(sig)
+        yield lo, hi, r, ok, sig, segs[len(segs) // 2].error_model  # (the edge's, or empty: white)
+
+
+def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
+                        band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True) -> np.ndarray:
+    """Variance (m²) per grid point of the fused profile's error that the white likelihood misses.
+
+    ``longest``: also the band beyond the last edge (> 50 m). Pass False when the posterior
+    models those wavelengths itself (the per-pass drift nuisance of :mod:`.pass_drift`, knots at
+    ≤ 25 m), so that they are not counted twice.
+    """
+    return band_error_variances(snap, segments, band_edges_m, longest).sum(axis=0)
+
+
+def band_error_variances(snap: ProfileSnapshot, segments: list[ApSegment],
+                         band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True) -> np.ndarray:
+    """:func:`pass_error_variance` band by band: (bands, P), the band beyond the last edge last
+    (zero unless ``longest``)."""
+    P = snap.elevation_m.size
+    h = float(snap.chainage_m[1] - snap.chainage_m[0]) if P > 1 else 1.0
+    widths = [max(int(round(e / h)) | 1, 1) for e in band_edges_m]  # odd: centred
+    nb = len(widths)
+    ss = np.zeros((nb, P))  # Σ_p band residual²
+    n = np.zeros(P)  # passes with a residual at the point
+    sw = np.zeros(P)  # Σ_p w_p
+    sw2 = np.zeros(P)  # Σ_p w_p²
+    ssig = np.zeros((nb, P))  # Σ_p σ_p² × the pass's own error model's share of the band (white: g)
+    for lo, hi, r, ok, sig, em in _pass_residuals(snap, segments):
         mas = [_moving_average(r, ok, w) for w in widths]
         for j in range(nb):
             band = mas[j] - mas[j + 1] if j + 1 < nb else mas[j]
@@ -114,8 +135,8 @@ def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
         n[lo:hi] += ok
         sw[lo:hi] += w
         sw2[lo:hi] += w * w
-        ssig[lo:hi] += np.where(ok, sig * sig, 0.0)
-    var = np.zeros(P)
+        ssig[:, lo:hi] += np.where(ok, sig * sig, 0.0) * error_band_shares(em, widths)[:, None]
+    var = np.zeros((nb, P))
     many = n > 1
     if not many.any():
         return var
@@ -129,14 +150,101 @@ def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
         # longest wavelength) independent stretches of the band.
         v = np.where(many, ss[j] / np.maximum(n - 1, 1), 0.0)
         v = _moving_average(v, many, pool)
-        excess = np.maximum(v - sig2 * g[j], 0.0)
+        excess = np.maximum(v - sig2[j], 0.0)
         # An error variance estimated from ν degrees of freedom: the error is Student-t, not normal;
         # its 95 % point is reached by scaling the variance with (t_ν,0.975 / z_0.975)².
         top = widths[j + 1] if j + 1 < nb else 2 * widths[j]
         nu = np.maximum(n - 1, 1) * max(pool / top, 1.0)
         nus, inv = np.unique(nu, return_inverse=True)  # few distinct values; ppf is slow
-        var += excess * eff * ((student_t.ppf(0.975, nus) / _Z95) ** 2)[inv.reshape(nu.shape)]
-    return np.where(many, var, 0.0)
+        var[j] = np.where(many, excess * eff * ((student_t.ppf(0.975, nus) / _Z95) ** 2)[inv.reshape(nu.shape)], 0.0)
+    return var
+
+
+def _road_bands(mu: np.ndarray, widths: list[int]) -> np.ndarray:
+    """The consensus ``μ`` split into the bands (bands, P) as residuals are (0 where μ is NaN)."""
+    ok = np.isfinite(mu)
+    x = np.where(ok, mu, 0.0)
+    mas = [_moving_average(x, ok, w) for w in widths]
+    return np.array([mas[j] - mas[j + 1] if j + 1 < len(mas) else mas[j] for j in range(len(mas))]) * ok
+
+
+def band_gain_covariance(snap: ProfileSnapshot, segments: list[ApSegment],
+                         band_edges_m: tuple[float, ...] = BAND_EDGES_M) -> tuple[np.ndarray, np.ndarray]:
+    """The part of the passes' disagreement that moves with the road: per band, each pass's residual
+    regressed on the consensus's band, ``ε_p = Σ r_p m / Σ m²`` (a calibration error scales the road
+    it filters; sensor noise does not). Returns the covariance (bands, bands) of the fused profile's
+    gain errors (the ε's sample covariance over the passes — a vehicle's transfer error is smooth
+    in wavelength, so neighbouring bands' gains go together — times the effective ``1/n`` of the
+    likelihood's weights and the Student-t factor of ``n − 1`` degrees of freedom) and the
+    consensus's bands ``m`` (bands, P)."""
+    P = snap.elevation_m.size
+    h = float(snap.chainage_m[1] - snap.chainage_m[0]) if P > 1 else 1.0
+    widths = [max(int(round(e / h)) | 1, 1) for e in band_edges_m]
+    m = _road_bands(snap.elevation_m, widths)
+    eps, wts = [], []
+    for lo, hi, r, ok, sig, _ in _pass_residuals(snap, segments):
+        mas = [_moving_average(r, ok, w) for w in widths]
+        e = np.zeros(len(widths))
+        for j in range(len(widths)):
+            band = mas[j] - mas[j + 1] if j + 1 < len(widths) else mas[j]
+            mm = np.where(ok, m[j, lo:hi], 0.0)
+            den = float((mm * mm).sum())
+            e[j] = float((np.where(ok, band, 0.0) * mm).sum()) / den if den > 0 else 0.0
+        eps.append(e)
+        wts.append(float(np.mean(1.0 / sig[ok] ** 2)))
+    if len(eps) < 2:
+        return np.zeros((len(widths), len(widths))), m
+    eps, w = np.array(eps), np.array(wts)
+    k = eps.shape[0]
+    t2 = (student_t.ppf(0.975, k - 1) / _Z95) ** 2
+    return np.cov(eps, rowvar=False, ddof=1) * float((w * w).sum() / w.sum() ** 2) * t2, m
+
+
+def pass_error_draws(snap: ProfileSnapshot, segments: list[ApSegment], n: int,
+                     rng: np.random.Generator | int | None = None, band_edges_m: tuple[float, ...] = BAND_EDGES_M,
+                     longest: bool = True) -> np.ndarray:
+    """``n`` draws (n, P) of the error :func:`pass_error_variance` describes, to add to posterior
+    draws so that what is computed from them (the IRI) carries the band's every error term.
+
+    Band by band, the error's variance is split as the passes show it (:func:`band_gain_variances`):
+    the part that moves with the road is drawn as a gain on the consensus's band (one factor per
+    draw: a calibration error scales the road, and that moves the IRI to first order, where
+    independent noise of the same size hardly does); the rest as white noise filtered as the band
+    was measured (difference of centred moving averages), scaled to that variance at each point.
+    The bands are drawn independently. NaN where the snapshot has no profile.
+    """
+    rng = np.random.default_rng(rng)
+    P = snap.elevation_m.size
+    v = band_error_variances(snap, segments, band_edges_m, longest)
+    gcov, m = band_gain_covariance(snap, segments, band_edges_m)
+    gvar = np.diag(gcov)
+    sd = np.sqrt(np.where(gvar > 0, gvar, 1.0))
+    corr = gcov / np.outer(sd, sd)
+    lam, vec = np.linalg.eigh(corr)  # correlated unit gains, one set per draw
+    zg = rng.standard_normal((int(n), lam.size)) @ (vec * np.sqrt(np.clip(lam, 0.0, None))).T
+    h = float(snap.chainage_m[1] - snap.chainage_m[0]) if P > 1 else 1.0
+    widths = [max(int(round(e / h)) | 1, 1) for e in band_edges_m]
+    g = _white_share(widths)
+    out = np.zeros((int(n), P))
+    pad = widths[-1]  # noise beyond the ends, so that the filters are whole at every point
+    every = np.ones(P + 2 * pad, dtype=bool)
+    for j in range(len(widths)):
+        if not v[j].any():
+            continue
+        # The gain part: one factor per draw scaling the road's band, so the error keeps the road's
+        # shape (largest where the road is rough); its level pooled as the excess is, and at most it.
+        level = gvar[j] * _moving_average(m[j] ** 2, every[:P], widths[-1])
+        f = np.where(level > v[j], v[j] / np.where(level > 0, level, 1.0), 1.0)
+        out += zg[:, j : j + 1] * (np.sqrt(f * gvar[j]) * m[j])[None, :]
+        sd = np.sqrt(np.maximum(v[j] - f * level, 0.0) / g[j])
+        for r in range(out.shape[0]):
+            z = rng.standard_normal(P + 2 * pad)
+            band = _moving_average(z, every, widths[j])
+            if j + 1 < len(widths):
+                band -= _moving_average(z, every, widths[j + 1])
+            out[r] += sd * band[pad : pad + P]
+    out[:, ~np.isfinite(snap.elevation_m)] = np.nan
+    return out
 
 
 def with_pass_error_band(snap: ProfileSnapshot, segments: list[ApSegment], longest: bool = True) -> ProfileSnapshot:

@@ -1,4 +1,4 @@
-"""Per-pass drift as a nuisance of the profile posterior, marginalised exactly.
+"""Per-pass drift as a nuisance of the profile posterior, marginalised exactly and locally.
 
 Model
 -----
@@ -11,38 +11,48 @@ coefficients ``β_pj ~ N(0, s²)`` over the knots the pass touches (offset and d
 included). The hats resolve wavelengths down to about ``2 · knot_m``; shorter ones stay with the
 white likelihood and the excess-scatter term of :mod:`.long_wave`.
 
-Exact marginalisation (information form)
-----------------------------------------
+Joint system (information form)
+-------------------------------
 With ``A_RR`` the banded precision of the profile (prior + data), the nuisance adds the blocks
 ``A_Rβ = Σ_p H_pᵀ R_p⁻¹ B_p`` and ``A_ββ = blockdiag(B_pᵀ R_p⁻¹ B_p) + I/s²`` and the information
 ``b_β = B_pᵀ R_p⁻¹ y_p``; every term is a sum over segments, assembled here from the held segments
-(so a retracted segment is simply absent, and a segment update costs what it did). Eliminating R:
+(so a retracted segment is simply absent, and a segment update costs what it did).
 
-* ``W = A_RR⁻¹ A_Rβ`` (banded solves, one per coefficient),
-* ``C(s²) = C₀ + I/s²`` with ``C₀ = B ᵀR⁻¹B − A_βR W`` (the information the data give on β once R
-  is free), ``r = b_β − A_βR A_RR⁻¹ b_R``,
-* ``β | y ~ N(C⁻¹ r, C⁻¹)``, and ``R | y`` has mean ``A_RR⁻¹ b_R − W μ_β`` and covariance
-  ``A_RR⁻¹ + W C⁻¹ Wᵀ``: the banded posterior's band plus ``diag(W C⁻¹ Wᵀ)``.
+Local elimination (why it is cheap)
+-----------------------------------
+A knot touches the profile only within one knot spacing of itself, and the profile is a Markov
+chain of order ``u`` (its precision's bandwidth). So ``u`` profile points at each knot
+(*separators*) cut the route into chunks whose interior points couple only to the two separators
+around them and to the drift coefficients of the (at most two) knots of that chunk. Eliminating
+every chunk's interior (one banded solve per chunk with ``2u + 2·passes`` right-hand sides) is
+exact and leaves a *reduced* system on (separators, β) that is banded when ordered by position:
+bandwidth ≈ 2 · (passes at a point + u), size ≈ knots × (passes + u). Everything then follows
+from that small banded system and the chunks:
 
-With ``C₀ = V Λ Vᵀ`` (once per snapshot), every ``s²`` costs O(K): the drift level is learnt by
-type-II maximum likelihood, maximising the part of the log evidence that depends on it,
-``ℓ(s²) = ½ Σ_k ρ_k² / (λ_k + 1/s²) − ½ Σ_k log(1 + s² λ_k)``, ``ρ = Vᵀ r``. With no drift in the
-data the maximum is at ``s² = 0`` and the nuisance vanishes exactly.
+* the log evidence's dependence on ``s²`` is ``ℓ(s²) = ½ b̃ᵀÃ(s²)⁻¹b̃ − ½ log|Ã(s²)| − ½ K log s²``
+  less its ``s² → 0`` limit (the system with β removed), one banded factorisation of ``Ã`` per
+  ``s²``; the level is learnt by type-II maximum likelihood (0 when no drift beats none);
+* ``μ_β`` from ``Ã``; the profile's mean ``A_RR⁻¹ b_R − A_RR⁻¹ A_Rβ μ_β`` (one banded solve);
+* the variance the unknown drifts add: at a chunk's interior ``diag(G Σ̃_JJ Gᵀ) − diag(G_S Σ̃⁰_SS G_Sᵀ)``
+  with ``G = A_II⁻¹ A_IJ`` and ``Σ̃`` (``Σ̃⁰``: β removed) the band of the reduced system's inverse
+  (selected inverse); at a separator ``Σ̃_ss − Σ̃⁰_ss``;
+* draws: ``β`` from the reduced system, then ``R = A_RR⁻¹ b_R − A_RR⁻¹ A_Rβ β + L⁻ᵀ z``.
 
-Cost (at snapshot, per block of P points and K = Σ_p knots_p coefficients): O(P b K) for ``W``,
-O(K³) for the eigendecomposition and O(P K²) for the band: linear in the route length for a fixed
-fleet, but growing with the passes held (K ∝ passes). Segment updates and retractions do not touch
-any of it.
+Cost per snapshot, for P points and n passes at a point: O(P · n) for the chunk solves and
+O(P · n²) for the band, O(knots · n³) per ``s²`` tried: linear in the route length (the earlier
+dense elimination was O(P · K) in memory and O(P · K²) in time with K all knots of all passes).
+Segment updates and retractions do not touch any of it.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cho_solve_banded
+from numba import njit
+from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from scipy.optimize import minimize_scalar
 
 from shared.schema import ApSegment
@@ -70,8 +80,9 @@ class DriftSystem:
     """The nuisance's information for one block of grid points ``[a, e)``."""
 
     A_Rb: sp.csr_matrix  # (P_block, K)
-    A_bb: np.ndarray  # (K, K): Σ B ᵀR⁻¹B, the prior not included
+    A_bb: sp.csr_matrix  # (K, K): Σ BᵀR⁻¹B, the prior not included
     b_b: np.ndarray  # (K,)
+    knot: np.ndarray  # (K,) global knot index of each column
     passes: list[tuple]  # pass keys, in column order
     offsets: list[int]  # first column of each pass
 
@@ -80,9 +91,11 @@ def drift_system(segments: list[ApSegment], a: int, e: int, size: int, spacing_m
                  info) -> DriftSystem:
     """Assemble ``A_Rβ``, ``BᵀR⁻¹B`` and ``BᵀR⁻¹y`` over block ``[a, e)`` from the held segments.
 
-    ``info(values, sigma) -> (diag, off, rhs)`` is the likelihood's per-segment information
-    (:func:`.gmrf_profile.segment_information` at the estimator's ρ), so the nuisance sees exactly
-    the error model the profile does. Segments are clipped to the route's ``size`` points as the
+    ``info(segment, m) -> (q, rhs)`` is the likelihood's information on the segment's first ``m``
+    points, ``q[d, t] = (R⁻¹)[t + d, t]`` (lower banded) and ``rhs = R⁻¹ y``: exactly what the
+    estimator adds for the segment (its AR(1) form, or the edge's banded error model), so the
+    nuisance sees the error model the profile does — a different one would make the joint system
+    inconsistent (not even positive definite where a pass's drift and the road are confounded). Segments are clipped to the route's ``size`` points as the
     estimator clips them. Blocks are solved independently, so a pass cut by an uncovered gap
     longer than the estimator's ``max_gap_m`` has independent coefficients on either side.
     """
@@ -101,104 +114,419 @@ def drift_system(segments: list[ApSegment], a: int, e: int, size: int, spacing_m
         else:
             spans[key] = [k0, k1]
         parts.append((s, lo, hi, k, w, key))
+    P = e - a
+    if not parts:
+        return DriftSystem(sp.csr_matrix((P, 0)), sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0, np.int64), [], [])
     passes = sorted(spans)
-    offsets, K = [], 0
+    offsets, knots, K = [], [], 0
     for key in passes:
         offsets.append(K)
+        knots.append(np.arange(spans[key][0], spans[key][1] + 1))
         K += spans[key][1] - spans[key][0] + 1
     col0 = {key: off - spans[key][0] for key, off in zip(passes, offsets)}
-    # The passes' observations stacked (one row per segment point): B maps coefficients to rows,
-    # Q is block-diagonal (one tridiagonal block per segment) and row t observes grid point g[t].
-    P = e - a
-    rows, cols, vals, qrows, qcols, qvals, g, rhs_all = [], [], [], [], [], [], [], []
+    # The passes' observations stacked (one row per segment point): row t observes grid point g[t]
+    # through the hats of knots c[t], c[t] + 1 (column indices) with weights 1 − w[t], w[t]; Q is
+    # block-diagonal, one banded block per segment (rows seg_lo[t] .. seg_hi[t] − 1).
+    g, c, w, qs, rhs, seg_lo, seg_hi = [], [], [], [], [], [], []
     t0 = 0
-    for s, lo, hi, k, w, key in parts:
+    for s, lo, hi, k, wk, key in parts:
         m = hi - lo
-        diag, off, rhs = info(s.values[:m], s.sigma[:m])
-        t = t0 + np.arange(m)
-        c = k + col0[key]
-        rows += [t, t]
-        cols += [c, c + 1]
-        vals += [1.0 - w, w]
-        qrows += [t, t[:-1], t[1:]]
-        qcols += [t, t[1:], t[:-1]]
-        qvals += [diag, off, off]
+        q, rh = info(s, m)
         g.append(np.arange(lo - a, hi - a))
-        rhs_all.append(rhs)
+        c.append(k + col0[key])
+        w.append(wk)
+        qs.append(q)
+        rhs.append(rh)
+        seg_lo.append(np.full(m, t0))
+        seg_hi.append(np.full(m, t0 + m))
         t0 += m
-    if not parts:
-        return DriftSystem(sp.csr_matrix((P, 0)), np.zeros((0, 0)), np.zeros(0), [], [])
+    nq = max(q.shape[0] for q in qs)
+    q = np.zeros((nq, t0))
+    t0 = 0
+    for qq in qs:
+        q[: qq.shape[0], t0 : t0 + qq.shape[1]] = qq
+        t0 += qq.shape[1]
     cat = np.concatenate
-    B = sp.csr_matrix((cat(vals), (cat(rows), cat(cols))), shape=(t0, K))
-    Q = sp.csr_matrix((cat(qvals), (cat(qrows), cat(qcols))), shape=(t0, t0))
-    H = sp.csr_matrix((np.ones(t0), (np.arange(t0), cat(g))), shape=(t0, P))
-    QB = (Q @ B).tocsc()
-    A_Rb = (H.T @ QB).tocsr()
-    A_bb = (B.T @ QB).toarray()
-    b_b = B.T @ cat(rhs_all)
-    return DriftSystem(A_Rb, A_bb, b_b, passes, offsets)
+    r_rb, c_rb, v_rb, r_bb, c_bb, v_bb, b_b = _assemble(cat(g), cat(c), cat(w), q, cat(rhs), cat(seg_lo),
+                                                        cat(seg_hi), K)
+    A_Rb = sp.csr_matrix((v_rb, (r_rb, c_rb)), shape=(P, K))
+    A_bb = sp.csr_matrix((v_bb, (r_bb, c_bb)), shape=(K, K))
+    return DriftSystem(A_Rb, A_bb, b_b, cat(knots).astype(np.int64), passes, offsets)
+
+
+@njit(cache=True)
+def _assemble(g, c, w, q, rhs, seg_lo, seg_hi, K):
+    """``A_Rβ`` and ``BᵀQB`` (COO triplets, duplicates to be summed) and ``BᵀQy`` from the stacked rows.
+
+    ``q[d, t] = Q[t + d, t]`` within a segment. Row t of ``QB`` couples to the hats of the rows
+    within the band around it, whose left knots lie within ``Δ`` of ``c[t]``: its columns are
+    ``c[t] − Δ .. c[t] + 1 + Δ``.
+    """
+    n = g.size
+    nq = q.shape[0]
+    delta = 0
+    for t in range(n):
+        for d in range(1, nq):
+            if t + d < seg_hi[t] and q[d, t] != 0.0:
+                delta = max(delta, c[t + d] - c[t])
+    width = 2 * delta + 2
+    qb = np.zeros((n, width))
+    for t in range(n):
+        qb[t, delta] += q[0, t] * (1.0 - w[t])
+        qb[t, delta + 1] += q[0, t] * w[t]
+        for d in range(1, nq):
+            if t + d < seg_hi[t]:
+                v = q[d, t]
+                j = c[t + d] - c[t] + delta
+                qb[t, j] += v * (1.0 - w[t + d])
+                qb[t, j + 1] += v * w[t + d]
+            if t - d >= seg_lo[t]:
+                v = q[d, t - d]
+                j = c[t - d] - c[t] + delta
+                qb[t, j] += v * (1.0 - w[t - d])
+                qb[t, j + 1] += v * w[t - d]
+    nnz = 0
+    for t in range(n):
+        for j in range(width):
+            if qb[t, j] != 0.0:
+                nnz += 1
+    rows = np.empty(nnz, dtype=np.int64)
+    cols = np.empty(nnz, dtype=np.int64)
+    vals = np.empty(nnz)
+    brow = np.empty(2 * nnz, dtype=np.int64)
+    bcol = np.empty(2 * nnz, dtype=np.int64)
+    bval = np.zeros(2 * nnz)
+    b_b = np.zeros(K)
+    k = 0
+    for t in range(n):
+        for j in range(width):
+            v = qb[t, j]
+            if v == 0.0:
+                continue
+            rows[k] = g[t]
+            cols[k] = c[t] - delta + j
+            vals[k] = v
+            # BᵀQB: row t's hats (c[t] with 1 − w, c[t] + 1 with w) against QB's column
+            brow[2 * k] = c[t]
+            bcol[2 * k] = cols[k]
+            bval[2 * k] = (1.0 - w[t]) * v
+            brow[2 * k + 1] = c[t] + 1
+            bcol[2 * k + 1] = cols[k]
+            bval[2 * k + 1] = w[t] * v
+            k += 1
+        b_b[c[t]] += (1.0 - w[t]) * rhs[t]
+        b_b[c[t] + 1] += w[t] * rhs[t]
+    keep = bval != 0.0  # a structural zero between two passes would couple them in the ordering
+    return rows, cols, vals, brow[keep], bcol[keep], bval[keep], b_b
+
+
+# -- the reduced (separators, β) system ------------------------------------------------------------
+
+
+def _to_band(r: np.ndarray, c: np.ndarray, v: np.ndarray, n: int) -> np.ndarray:
+    """Lower banded storage ``band[d, j] = A[j + d, j]`` of a symmetric matrix given as full COO
+    triplets (duplicates summed); the bandwidth is the structural one, explicit zeros included."""
+    low = r >= c
+    r, c, v = r[low], c[low], v[low]
+    bw = int((r - c).max()) if r.size else 0
+    band = np.bincount((r - c) * n + c, weights=v, minlength=(bw + 1) * n).reshape(bw + 1, n)
+    return band
+
+
+def _band_block(S: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """``Σ[J, J]`` (dense) from the band ``S[d, i] = Σ[i, i + d]`` of a symmetric matrix."""
+    d = np.abs(J[:, None] - J[None, :])
+    return S[d, np.minimum(J[:, None], J[None, :])]
+
+
+@njit(cache=True)
+def _chunk_rhs(ab, indptr, indices, data, b, i0, i1, around, betas):
+    """``[A_IS, A_Iβ, b_I]`` (dense, (i1 − i0, |S| + |β| + 1)) of interior points ``[i0, i1)``:
+    ``A_IS`` from the banded ``ab`` (lower, ``ab[d, j] = A[j + d, j]``) against the separator points
+    ``around``, ``A_Iβ`` from the CSR arrays of ``A_Rβ`` against the sorted columns ``betas``."""
+    u = ab.shape[0] - 1
+    nS, nB = around.size, betas.size
+    out = np.zeros((i1 - i0, nS + nB + 1))
+    for c in range(nS):
+        j = around[c]
+        for i in range(max(i0, j - u), min(i1, j + u + 1)):
+            out[i - i0, c] = ab[abs(i - j), min(i, j)]
+    for i in range(i0, i1):
+        for q in range(indptr[i], indptr[i + 1]):
+            out[i - i0, nS + np.searchsorted(betas, indices[q])] += data[q]
+        out[i - i0, nS + nB] = b[i]
+    return out
+
+
+@njit(cache=True)
+def _band_cholesky(ab):
+    """Lower banded Cholesky factor (``cb[d, j] = L[j + d, j]``) of the lower banded ``ab``."""
+    u1, n = ab.shape
+    cb = ab.copy()
+    for j in range(n):
+        s = cb[0, j]
+        for k in range(max(0, j - u1 + 1), j):
+            s -= cb[j - k, k] * cb[j - k, k]
+        if not s > 0.0:
+            raise ValueError("matrix not positive definite")
+        ljj = math.sqrt(s)
+        cb[0, j] = ljj
+        for d in range(1, min(u1, n - j)):
+            i = j + d
+            t = cb[d, j]
+            for k in range(max(0, i - u1 + 1), j):
+                t -= cb[i - k, k] * cb[j - k, k]
+            cb[d, j] = t / ljj
+    return cb
+
+
+@njit(cache=True)
+def _band_solve(cb, M):
+    """``M ← (L Lᵀ)⁻¹ M`` in place for the banded factor ``cb`` and right-hand sides ``M`` (n, r)."""
+    u1, n = cb.shape
+    r = M.shape[1]
+    for i in range(n):  # L y = M
+        for d in range(1, min(u1, i + 1)):
+            l = cb[d, i - d]
+            for c in range(r):
+                M[i, c] -= l * M[i - d, c]
+        inv = 1.0 / cb[0, i]
+        for c in range(r):
+            M[i, c] *= inv
+    for i in range(n - 1, -1, -1):  # Lᵀ x = y
+        for d in range(1, min(u1, n - i)):
+            l = cb[d, i]
+            for c in range(r):
+                M[i, c] -= l * M[i + d, c]
+        inv = 1.0 / cb[0, i]
+        for c in range(r):
+            M[i, c] *= inv
+    return M
+
+
+@dataclass
+class _Chunk:
+    start: int  # interior points [start, stop) of the block
+    stop: int
+    factor: np.ndarray  # banded Cholesky factor of A_II
+    sep_points: np.ndarray  # block indices of the separator points around it
+    betas: np.ndarray  # columns of A_Rβ it couples to
+    J: np.ndarray  # reduced indices of (sep_points, betas)
+    J0: np.ndarray  # reduced-without-β indices of sep_points
 
 
 @dataclass
 class DriftPosterior:
     """Eliminated nuisance of one block: what the profile's mean, band and draws need."""
 
-    W: np.ndarray  # (P_block, K) = A_RR⁻¹ A_Rβ
-    lam: np.ndarray  # (K,) eigenvalues of C₀ (clipped ≥ 0)
-    V: np.ndarray  # (K, K) its eigenvectors
-    rho: np.ndarray  # (K,) Vᵀ r
+    size: int  # points of the block
+    factor_RR: np.ndarray | None = None  # banded Cholesky factor of A_RR (the block's, drift-free)
+    A_Rb: sp.csr_matrix | None = None
+    ab: np.ndarray | None = None  # A_RR, lower banded
+    b: np.ndarray | None = None  # b_R
+    red: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))  # reduced precision, no prior
+    b_red: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    beta_idx: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # reduced index of each β
+    sep_red: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # reduced index of sep points
+    sep_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # their block indices
+    chunks: list[_Chunk] = field(default_factory=list)
+    quad0: float = 0.0  # b̃_Sᵀ Ã_SS⁻¹ b̃_S (β removed)
+    logdet0: float = 0.0  # log |Ã_SS|
+    cov0: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))  # band of Ã_SS⁻¹
     s2: float = 0.0  # drift variance per coefficient (m²)
+    factor_red: np.ndarray | None = None  # at s2: banded factor of Ã(s2)
+    mean_red: np.ndarray | None = None
+
+    @property
+    def n_beta(self) -> int:
+        return int(self.beta_idx.size)
+
+    @property
+    def n_coefficients(self) -> int:
+        """Standard normals one draw of the nuisance takes (the reduced system's size)."""
+        return int(self.b_red.size)
+
+    def _factor(self, s2: float) -> np.ndarray:
+        A = self.red.copy()
+        A[0, self.beta_idx] += 1.0 / s2
+        return cholesky_banded(A, lower=True, check_finite=False)
+
+    def log_evidence(self, s2: float) -> float:
+        """The part of the block's log marginal likelihood that depends on ``s2`` (m²), 0 at 0."""
+        if s2 <= 0.0 or self.n_beta == 0:
+            return 0.0
+        try:
+            cb = self._factor(s2)
+        except LinAlgError:  # numerically singular: β and the road confounded at this level
+            return -math.inf
+        x = cho_solve_banded((cb, True), self.b_red, check_finite=False)
+        logdet = 2.0 * float(np.sum(np.log(cb[0])))
+        return (0.5 * (float(self.b_red @ x) - self.quad0) - 0.5 * (logdet - self.logdet0)
+                - 0.5 * self.n_beta * math.log(s2))
+
+    def set_level(self, s2: float) -> None:
+        """Fix the drift variance (m²): factorise the reduced system and take its mean and band."""
+        self.s2 = float(s2) if self.n_beta else 0.0
+        if self.s2 > 0.0:
+            self.factor_red = self._factor(self.s2)
+            self.mean_red = cho_solve_banded((self.factor_red, True), self.b_red, check_finite=False)
 
     def mean_beta(self) -> np.ndarray:
         if self.s2 <= 0.0:
-            return np.zeros(self.lam.size)
-        return self.V @ (self.rho / (self.lam + 1.0 / self.s2))
+            return np.zeros(self.n_beta)
+        return self.mean_red[self.beta_idx]
+
+    def _shift(self, beta: np.ndarray) -> np.ndarray:
+        """``−A_RR⁻¹ A_Rβ β`` for coefficient vectors ``beta`` (K,) or (K, n)."""
+        return -cho_solve_banded((self.factor_RR, True), self.A_Rb @ beta, check_finite=False)
 
     def profile_shift(self) -> np.ndarray:
-        """What the drift's posterior mean removes from the drift-free mean: ``−W μ_β``."""
-        return -(self.W @ self.mean_beta())
+        """What the drift's posterior mean removes from the drift-free mean: ``−A_RR⁻¹ A_Rβ μ_β``."""
+        if self.s2 <= 0.0:
+            return np.zeros(self.size)
+        return self._shift(self.mean_beta())
 
     def profile_variance(self) -> np.ndarray:
-        """``diag(W C⁻¹ Wᵀ)``: the variance the unknown drifts add to each point (m²)."""
+        """``diag(W C⁻¹ Wᵀ)`` (m²), ``W = A_RR⁻¹ A_Rβ``: the variance the unknown drifts add to each
+        point, as the joint posterior's marginal less the drift-free one, chunk by chunk."""
+        out = np.zeros(self.size)
         if self.s2 <= 0.0:
-            return np.zeros(self.W.shape[0])
-        F = self.W @ self.V
-        return (F * F) @ (1.0 / (self.lam + 1.0 / self.s2))
+            return out
+        from .gmrf_profile import _selected_inverse  # (gmrf_profile imports this module)
+
+        cov = _selected_inverse(self.factor_red)
+        out[self.sep_points] = cov[0, self.sep_red] - self.cov0[0, np.arange(self.sep_points.size)]
+        for ch in self.chunks:
+            G = self._chunk_solve(ch)[:, :-1]
+            nS = ch.sep_points.size
+            GS = G[:, :nS]
+            out[ch.start : ch.stop] = (np.einsum("ij,ij->i", G @ _band_block(cov, ch.J), G)
+                                       - np.einsum("ij,ij->i", GS @ _band_block(self.cov0, ch.J0), GS))
+        return np.maximum(out, 0.0)
 
     def draw_shift(self, z: np.ndarray) -> np.ndarray:
-        """``−W β`` for draws ``β = μ_β + V diag(1/√(λ + 1/s²)) z`` of the nuisance (rows of z)."""
+        """``−A_RR⁻¹ A_Rβ β`` for draws of β from its marginal posterior, one per row of the standard
+        normals ``z`` (n, :attr:`n_coefficients`): the reduced system is drawn whole, β taken from it."""
         if self.s2 <= 0.0:
-            return np.zeros((z.shape[0], self.W.shape[0]))
-        beta = self.mean_beta()[None, :] + (z / np.sqrt(self.lam + 1.0 / self.s2)) @ self.V.T
-        return -(beta @ self.W.T)
+            return np.zeros((z.shape[0], self.size))
+        from .gmrf_profile import _draw
+
+        x = np.array(z, dtype=np.float64, order="C")
+        _draw(self.factor_red, self.mean_red, x)
+        return self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
+
+    def _chunk_solve(self, ch: _Chunk) -> np.ndarray:
+        """``A_II⁻¹ [A_IS, A_Iβ, b_I]`` of one chunk (its last column the information's)."""
+        return _band_solve(ch.factor, self._chunk_rhs(ch))
+
+    def _chunk_rhs(self, ch: _Chunk) -> np.ndarray:
+        A = self.A_Rb
+        return _chunk_rhs(self.ab, A.indptr, A.indices, A.data, self.b, ch.start, ch.stop, ch.sep_points, ch.betas)
 
 
-def eliminate(cb: np.ndarray, mean0: np.ndarray, system: DriftSystem) -> DriftPosterior:
-    """Eliminate R from the joint system: ``W``, and ``C₀``, ``r`` in their eigenbasis."""
+def _separators(P: int, u: int, first: int, knot_pts: float) -> list[int]:
+    """Starts of the ``u``-point separators: the grid points at the knots, each chunk between two
+    keeping at least one interior point (knots closer than ``u + 1`` points are skipped)."""
+    out, nxt = [], 1
+    for k in range(math.ceil(first / knot_pts), math.floor((first + P - 1) / knot_pts) + 1):
+        s = int(round(k * knot_pts)) - first
+        if s >= nxt and s + u <= P - 1:
+            out.append(s)
+            nxt = s + u + 1
+    return out
+
+
+def eliminate(ab: np.ndarray, cb: np.ndarray, b: np.ndarray, system: DriftSystem, knot_pts: float,
+              first: int) -> DriftPosterior:
+    """Eliminate the profile chunk by chunk into the reduced (separators, β) system.
+
+    ``ab``: the block's profile precision ``A_RR`` (lower banded, prior + data), ``cb`` its banded
+    Cholesky factor, ``b`` its information vector; ``knot_pts``: the knot spacing in grid steps;
+    ``first``: the global grid index of the block's first point.
+    """
+    P = ab.shape[1]
     K = system.b_b.size
     if K == 0:
-        return DriftPosterior(np.zeros((mean0.size, 0)), np.zeros(0), np.zeros((0, 0)), np.zeros(0))
-    W = cho_solve_banded((cb, True), system.A_Rb.toarray(), check_finite=False)
-    C0 = system.A_bb - system.A_Rb.T @ W
-    r = system.b_b - system.A_Rb.T @ mean0
-    C0 = 0.5 * (C0 + C0.T)
-    lam, V = np.linalg.eigh(C0)
-    return DriftPosterior(W, np.clip(lam, 0.0, None), V, V.T @ r)
+        return DriftPosterior(P)
+    u = ab.shape[0] - 1
+    seps = _separators(P, u, first, knot_pts)
+    sep_points = np.array([s + d for s in seps for d in range(u)], dtype=np.int64)
+    bounds = [0] + [x for s in seps for x in (s, s + u)] + [P]
+    spans = [(bounds[i], bounds[i + 1]) for i in range(0, len(bounds), 2)]
+    # Reduced unknowns ordered by position (separator points, then the knots there): banded.
+    pos = np.concatenate([sep_points.astype(float), system.knot * knot_pts - first])
+    kind = np.concatenate([np.zeros(sep_points.size), np.ones(K)])
+    order = np.lexsort((np.arange(pos.size), kind, pos))
+    red_of = np.empty(pos.size, dtype=np.int64)
+    red_of[order] = np.arange(pos.size)
+    sep_red, beta_idx = red_of[: sep_points.size], red_of[sep_points.size :]
+    point_red = np.full(P, -1, dtype=np.int64)
+    point_red[sep_points] = sep_red
+    n = pos.size
+    rows, cols, vals = [], [], []
+
+    def add(J_r, J_c, M):
+        rows.append(np.repeat(J_r, J_c.size))
+        cols.append(np.tile(J_c, J_r.size))
+        vals.append(M.ravel())
+
+    b_red = np.zeros(n)
+    b_red[sep_red] = b[sep_points]
+    b_red[beta_idx] += system.b_b
+    if sep_points.size:  # direct couplings of the separators: among themselves and to β
+        for d in range(u + 1):  # A[i + d, i] between separator points (within one, or neighbours)
+            i = sep_points[sep_points + d < P]
+            i = i[point_red[i + d] >= 0]
+            for r, c in ((point_red[i + d], point_red[i]), (point_red[i], point_red[i + d]))[: 1 if d == 0 else 2]:
+                rows.append(r), cols.append(c), vals.append(ab[d, i])
+        Sb = system.A_Rb[sep_points].tocoo()
+        for r, c in ((sep_red[Sb.row], beta_idx[Sb.col]), (beta_idx[Sb.col], sep_red[Sb.row])):
+            rows.append(r), cols.append(c), vals.append(Sb.data)
+    bb = system.A_bb.tocoo()
+    rows.append(beta_idx[bb.row]), cols.append(beta_idx[bb.col]), vals.append(bb.data)
+    post = DriftPosterior(P, cb, system.A_Rb, ab, b)
+    sep_pos0 = np.full(P, -1, dtype=np.int64)  # index among the separator points (system without β)
+    sep_pos0[sep_points] = np.arange(sep_points.size)
+    for i0, i1 in spans:
+        if i1 <= i0:
+            continue
+        around = np.array([j for j in range(i0 - u, i0) if j >= 0] + [j for j in range(i1, i1 + u) if j < P],
+                          dtype=np.int64)
+        betas = np.unique(system.A_Rb.indices[system.A_Rb.indptr[i0] : system.A_Rb.indptr[i1]])
+        ch = _Chunk(i0, i1, _band_cholesky(ab[:, i0:i1]), around, betas,
+                    np.concatenate([point_red[around], beta_idx[betas]]), sep_pos0[around])
+        post.chunks.append(ch)
+        M = post._chunk_rhs(ch)
+        X = _band_solve(ch.factor, M.copy())
+        nJ = ch.J.size
+        add(ch.J, ch.J, -(M[:, :nJ].T @ X[:, :nJ]))
+        np.subtract.at(b_red, ch.J, M[:, :nJ].T @ X[:, nJ])
+    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    post.red = _to_band(r, c, v, n)
+    post.b_red, post.beta_idx, post.sep_red, post.sep_points = b_red, beta_idx, sep_red, sep_points
+    if sep_points.size:  # the same system without β: the evidence's reference and the drift-free band
+        from .gmrf_profile import _selected_inverse
+
+        keep = (r < n) & np.isin(r, sep_red) & np.isin(c, sep_red)
+        to0 = np.full(n, -1, dtype=np.int64)
+        to0[sep_red] = np.arange(sep_red.size)  # sep_red is increasing: positions keep their order
+        cb0 = cholesky_banded(_to_band(to0[r[keep]], to0[c[keep]], v[keep], sep_red.size), lower=True,
+                              check_finite=False)
+        x0 = cho_solve_banded((cb0, True), b_red[sep_red], check_finite=False)
+        post.quad0 = float(b_red[sep_red] @ x0)
+        post.logdet0 = 2.0 * float(np.sum(np.log(cb0[0])))
+        post.cov0 = _selected_inverse(cb0)
+    return post
 
 
 def log_evidence(s2: float, posts: list[DriftPosterior]) -> float:
     """The part of the log marginal likelihood that depends on the drift variance ``s2`` (m²)."""
-    if s2 <= 0.0:
-        return 0.0
-    out = 0.0
-    for d in posts:
-        out += 0.5 * float(np.sum(d.rho**2 / (d.lam + 1.0 / s2))) - 0.5 * float(np.sum(np.log1p(s2 * d.lam)))
-    return out
+    return sum(d.log_evidence(s2) for d in posts)
 
 
 def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M) -> float:
     """Type-II ML drift variance (m²) over all blocks of a route; 0 when the lower bound wins."""
-    if not any(d.lam.size for d in posts):
+    if not any(d.n_beta for d in posts):
         return 0.0
     lo, hi = 2.0 * math.log(bounds_m[0]), 2.0 * math.log(bounds_m[1])
     grid = np.linspace(lo, hi, 25)  # ℓ can have a flat shoulder: bracket on a grid, then refine
