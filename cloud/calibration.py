@@ -47,8 +47,8 @@ from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
 from shared.dynamics.forward import measured_channels, trapezoid_rate
-from shared.dynamics.inverse import InverseStream, build_inverse
-from shared.dynamics.newmark import DEFAULT_GAMMA, integrate, newmark_constants
+from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
+from shared.dynamics.newmark import integrate, newmark_constants
 from shared.vehicles import MODELS, vehicle_from_params
 
 log = logging.getLogger(__name__)
@@ -140,11 +140,11 @@ def _band(spacing_m: float):
     return butter(2, [1.0 / hi, 1.0 / lo], btype="band", fs=1.0 / spacing_m, output="sos")
 
 
-def _forward_channels(system, ap_t: np.ndarray, dt: float, u0=None, v0=None) -> np.ndarray:
+def _forward_channels(system, ap_t: np.ndarray, dt: float, gamma: float, u0=None, v0=None) -> np.ndarray:
     """The logger's channels of ``system`` driven by ``ap_t`` (n, n_contacts) from the state (u0, v0)
     (default: static equilibrium on the first input), integrated with the Newmark constants the
-    inverse uses (so the round trip is exact)."""
-    c = newmark_constants(dt, DEFAULT_GAMMA)
+    edge's inverse uses (``gamma``: so the round trip is exact)."""
+    c = newmark_constants(dt, gamma)
     force = (ap_t * system.kc) @ system.G.T
     if np.any(system.cc):
         force += (trapezoid_rate(ap_t, np.zeros(ap_t.shape[1]), dt) * system.cc) @ system.G.T
@@ -189,7 +189,7 @@ class PassChannels:
         self.x_cg = xc0 + ap.speed_mps * np.arange(0.0, (xc1 - xc0) / ap.speed_mps, dt)
         ap_t = np.stack([np.interp(self.x_cg + off0[i], x[ok[:, i]], values[ok[:, i], i])
                          for i in range(self.n_contacts)], axis=1)
-        self.z = _forward_channels(system0, ap_t, dt)
+        self.z = _forward_channels(system0, ap_t, dt, edge_gamma(model))
         # Free responses: displacement scale twice the AP's spread (lengths over the contacts'
         # lever arm for rotations), velocity scale that times the DOF's own natural frequency.
         amp = 2.0 * float(np.std(ap_t)) + 1e-6
@@ -203,7 +203,7 @@ class PassChannels:
             for kind in ("u", "v"):
                 e = np.zeros(n_dof)
                 e[d] = u_scale if kind == "u" else u_scale * omega
-                free = _forward_channels(system0, zero, dt, u0=e if kind == "u" else np.zeros(n_dof),
+                free = _forward_channels(system0, zero, dt, edge_gamma(model), u0=e if kind == "u" else np.zeros(n_dof),
                                          v0=e if kind == "v" else None)
                 self.free.append(free)
         # Holes inside the pass (refused segments): their neighbourhood is never compared.
@@ -477,7 +477,7 @@ def _autocorrelation_time(r: np.ndarray, max_lag: int = 200) -> float:
 
 def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray) -> np.ndarray:
     system = vehicle_from_params(model, params).system()
-    c = newmark_constants(REMAP_DT)
+    c = newmark_constants(REMAP_DT, edge_gamma(model))  # the edge's: the round trip is exact
     force = (ap_t * system.kc) @ system.G.T
     u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
     return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))

@@ -27,7 +27,7 @@ import zenoh
 import zenoh.ext as zx
 
 from shared import keys
-from shared.dynamics.inverse import InverseModel, build_inverse
+from shared.dynamics.inverse import InverseModel, build_inverse, edge_gamma
 from shared.registry import RegistryError, Site, load_site
 from shared.schema import (
     MAX_BATCH_SEGMENTS,
@@ -147,7 +147,7 @@ class Edge:
         key = (model_name, tuple(sorted(params.items())), dt)
         m = self._models.get(key)
         if m is None:
-            m = build_inverse(vehicle_from_params(model_name, params).system(), dt)
+            m = build_inverse(vehicle_from_params(model_name, params).system(), dt, gamma=edge_gamma(model_name))
             if len(self._models) > 4096:
                 self._models.clear()
             self._models[key] = m

@@ -442,7 +442,7 @@ def vehicle_step_landscape(vehicle: int = 1, ratios=None, seed: int = 4) -> tupl
     """
     from cloud.calibration import REMAP_GAMMA, PassAp, PassChannels
     from shared.dynamics.forward import simulate_on_profile
-    from shared.dynamics.inverse import InverseStream, build_inverse
+    from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
     from shared.profiles import iso8608_profile, tyre_filter
     from shared.vehicles import SprungMass
 
@@ -450,7 +450,7 @@ def vehicle_step_landscape(vehicle: int = 1, ratios=None, seed: int = 4) -> tupl
     m, k = TABLE_2_2[vehicle]
     start = {"m": float(np.mean([v[0] for v in TABLE_2_2])), "k": float(np.mean([v[1] for v in TABLE_2_2]))}
     r = simulate_on_profile(SprungMass(m=m, k=k).system(), profile.at, profile.slope, 5.0, 20.0, 8.0, 0.002)
-    ap = InverseStream(build_inverse(SprungMass(**start).system(), 0.002),
+    ap = InverseStream(build_inverse(SprungMass(**start).system(), 0.002, gamma=edge_gamma("sprung_mass")),
                        r.initial_inverse_state()).update(r.channels)[:, 0]
     grid = np.arange(200, 3000)
     item = PassAp(200, 0.05, np.interp(grid * 0.05, r.x_cg, ap)[:, None], 20.0)
@@ -864,6 +864,8 @@ def _arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--out", default="driveby-reproduce", help="output directory (default ./driveby-reproduce)")
     p.add_argument("--quick", action="store_true", help="smaller fleets, fewer noise levels and iterations")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--large", action="store_true", help="bridge: also the 300-pass cracks, fleet-large and the "
+                   "rough decks at 30/100/300 passes (hours on a loaded machine)")
     return p
 
 
@@ -878,7 +880,7 @@ def run_reproduce(args) -> int:
     if getattr(args, "what", "road") == "bridge":
         from .reproduce_bridge import reproduce_bridge
 
-        report = reproduce_bridge(args.out, quick=args.quick, seed=args.seed)
+        report = reproduce_bridge(args.out, quick=args.quick, seed=args.seed, large=getattr(args, "large", False))
     elif getattr(args, "what", "road") == "rail":
         from .reproduce_rail import reproduce_rail
 

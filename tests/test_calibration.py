@@ -12,11 +12,13 @@ import pytest
 from cloud.calibration import (PassAp, PassChannels, calibration_names, class_prior, fit_fleet, fit_vehicle,
                                from_calibration, to_calibration)
 from shared.dynamics.forward import simulate_on_profile
-from shared.dynamics.inverse import InverseStream, build_inverse
+from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
 from shared.profiles import iso8608_profile, tyre_filter
 from shared.vehicles import QuarterCar
 from simfleet.scenarios import SCENARIOS, TABLE_4_1
 from simfleet.sim import generate
+
+EDGE_QC = edge_gamma("quarter_car")  # the edge's inverse (cloud.calibration reconstructs with it)
 
 QC = dict(M=4450.0, m=420.0, K=5.0e5, k=1.95e6, c=2.0e4)
 
@@ -35,8 +37,9 @@ def test_ratios_round_trip_and_names():
 def _pass_ap(params, profile, speed=20.0):
     """One noise-free pass of a quarter-car: its AP on a 0.05 m grid under ``params``."""
     truth = QuarterCar(**QC)
-    r = simulate_on_profile(truth.system(), profile.at, profile.slope, 5.0, speed, 8.0, 0.002)
-    ap = InverseStream(build_inverse(QuarterCar(**params).system(), 0.002),
+    # the vehicle step's algebra, in its own model (the physics' bias: test_fleet_calibration_model.py)
+    r = simulate_on_profile(truth.system(), profile.at, profile.slope, 5.0, speed, 8.0, 0.002, gamma=EDGE_QC)
+    ap = InverseStream(build_inverse(QuarterCar(**params).system(), 0.002, gamma=EDGE_QC),
                        r.initial_inverse_state()).update(r.channels)[:, 0]
     grid = np.arange(200, 3000)
     vals = np.interp(grid * 0.05, r.x_cg, ap)
@@ -48,7 +51,7 @@ def test_remap_reproduces_the_ap_it_was_made_from():
     wrong = {**QC, "K": 5.5e5, "k": 1.8e6, "c": 2.3e4, "m": 450.0}
     ap, _ = _pass_ap(wrong, profile)
     pc = PassChannels("quarter_car", wrong, ap)
-    inverse = build_inverse(QuarterCar(**wrong).system(), pc.dt)
+    inverse = build_inverse(QuarterCar(**wrong).system(), pc.dt, gamma=EDGE_QC)
     remapped = pc.aps(inverse, [pc.z])[0][:, 0]
     direct = pc.band_like(ap.values, inverse)[:, 0]  # the AP itself, band-passed the same way
     ok = np.isfinite(remapped)
@@ -57,7 +60,7 @@ def test_remap_reproduces_the_ap_it_was_made_from():
     assert np.std(remapped[ok] - direct[ok]) < 5e-3 * np.std(direct[ok])
     # Under other parameters the AP changes (and a free response of the start state maps to an AP
     # only then: at the AP's own parameters it vanishes).
-    other = build_inverse(QuarterCar(**QC).system(), pc.dt)
+    other = build_inverse(QuarterCar(**QC).system(), pc.dt, gamma=EDGE_QC)
     assert np.std(pc.aps(other, [pc.z])[0][ok, 0] - direct[ok]) > 0.01 * np.std(direct[ok])
     free = pc.aps(inverse, pc.free)
     assert max(np.nanstd(f) for f in free) < 1e-3 * np.std(direct[ok])
@@ -90,7 +93,8 @@ def test_sprung_mass_fleet_found_jointly_from_the_class_mean(tmp_path):
     truth = write_sprung_mass_fleet(tmp_path, seed=0, noise_pct=0.0)
     cls = load_site(tmp_path / "site.toml").vehicle_class("sprung_mass")
     start = dict(cls.mean)
-    inverse = build_inverse(vehicle_from_params("sprung_mass", start).system(), 0.002)
+    inverse = build_inverse(vehicle_from_params("sprung_mass", start).system(), 0.002,
+                            gamma=edge_gamma("sprung_mass"))
     vehicles, ids = [], []
     for path in list_drive_logs(tmp_path / "logs"):
         lg = read_drive_log(path)

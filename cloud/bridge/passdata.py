@@ -6,8 +6,8 @@ removed). This module turns a pass's segments into what the bridge estimators ne
 
 1. :func:`assemble_pass` — the pass's AP for one axle on the global grid, with a validity mask.
 2. :func:`correct_aps` — undo the edge inverse's time-discretisation error. The edge integrates with
-   Newmark-β (γ = 0.8, first-order accurate); at the body's bounce frequency its AP is off by ~1 %
-   in amplitude and a few mrad in phase. That is negligible for a road, but not on a bridge: a
+   Newmark-β (γ > ½, first-order accurate: ``edge_gamma``); at the body's bounce frequency its AP is
+   off by ~1 % in amplitude and a few mrad in phase. That is negligible for a road, but not on a bridge: a
    9 mm approach ramp then leaves 20–100 µm of error on the span, half the deflection (measured:
    ``tests/test_bridge_passdata.py``). The AP the edge would have produced with a continuous-time
    model is ``T⁻¹(ω) H(ω) · AP``, with ``H`` the edge's discrete Newmark forward transfer and
@@ -37,6 +37,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 from numba import njit
 
+from shared.dynamics.inverse import edge_gamma
 from shared.registry import Bridge
 from shared.schema import ApSegment
 from shared.vehicles.base import VehicleSystem
@@ -61,7 +62,7 @@ class EdgeSettings:
     """
 
     sample_rate_hz: float = 500.0
-    gamma: float = 0.8
+    gamma: float | None = None  # None: the edge's for the vehicle model (shared.dynamics.inverse.edge_gamma)
     beta: float | None = None
     correction_cutoff_hz: float = 30.0
 
@@ -473,6 +474,8 @@ def extract_pass(segments: Sequence[ApSegment], window: Window, model: str, para
     from shared.vehicles import vehicle_from_params
 
     system = vehicle_from_params(model, dict(params)).system()
+    if edge.gamma is None:
+        edge = dataclasses.replace(edge, gamma=edge_gamma(model))
     aps = {}
     for a in range(1, system.n_contacts + 1):
         ap = assemble_pass(segments, a)
