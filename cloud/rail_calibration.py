@@ -32,6 +32,13 @@ decreasing shortest wavelength; σ² is re-estimated from the residual with its 
 correlation; the Gauss–Newton Hessian at the optimum gives Laplace 95 % intervals, with the global
 properties' uncertainty marginalised.
 
+Cost (the thesis's CE needs thousands of batch evaluations; this needs tens): the early stages see
+no short waves, so their channels are decimated to ~20 samples per period of the stage's cut-off
+and compared on a coarser grid; the finite-difference Jacobian (9 inverses per run) is refreshed
+every third accepted step, with chord steps (1 inverse per run) in between; samples past what the
+window needs are not inverted; and every trial of every run is one compiled inverse call
+(:func:`carriage_aps_runs`) and one interpolation (:meth:`_Mapper.map_runs`).
+
 Pure functions on arrays: no I/O, no transport.
 """
 
@@ -43,6 +50,7 @@ import time
 from typing import Sequence
 
 import numpy as np
+from numba import njit
 from scipy.signal import butter, sosfiltfilt
 
 from shared.vehicles.carriage import Carriage
@@ -55,8 +63,17 @@ FIXED = ("mw", "Lb", "Lv")
 #: Shortest wavelength compared in each stage, m (continuation: long waves first, where the misfit is
 #: smooth in every property, then sharper). Below 2 m there is mostly noise and sleeper-scale detail.
 STAGES_M = (16.0, 6.0, 2.0)
+#: A stage's comparison grid has about this many points per its shortest wavelength (a stage
+#: without short waves needs fewer), at a multiple of GRID_M.
+POINTS_PER_WAVELENGTH = 20
+#: A stage's channels are decimated (after its low-pass) to at least this many samples per period of
+#: its cut-off v/λ_min: the early stages need no 500 Hz inverse. The last stage keeps the logger's rate
+#: unless :func:`calibrate_batch` is told otherwise.
+SAMPLES_PER_CUTOFF = 20
 MAX_WAVELENGTH_M = 60.0
-GRID_M = 0.1  # comparison grid spacing, m
+GRID_M = 0.1  # finest comparison grid spacing, m
+SPEED_SEARCH_M = 6.0  # shortest wavelength of the speed's grid search (:func:`_speed_from_wheels`), m
+SPEED_STEP = 0.01  # its step in log speed
 EDGE_M = 1.5  # margin kept from the wheels' coverage (trial speeds move it), m
 FD_LOG_STEP = 1e-3
 Z95 = 1.959963984540054
@@ -143,43 +160,178 @@ class _Mapper:
     def detrend(self, a: np.ndarray) -> np.ndarray:
         return a - (a @ self.basis) @ self.basis.T
 
-    def map(self, ap: np.ndarray, dt: float, x0: float, v: float, offsets: np.ndarray) -> np.ndarray:
-        t = np.arange(len(ap)) * dt
-        out = np.empty((4, self.grid.size))
-        ti = (self.grid[None, :] - x0 - offsets[:, None]) / v  # when wheel i passes each grid point
-        for i in range(4):
-            out[i] = np.interp(ti[i], t, ap[:, i])
+    def map_runs(self, aps: np.ndarray, dts: np.ndarray, x0: np.ndarray, speeds: np.ndarray, lengths: np.ndarray,
+                 offsets: np.ndarray) -> np.ndarray:
+        """(R, T, N, 4) APs of R runs (the first ``lengths[r]`` samples at step ``dts[r]``, from
+        ``x0[r]``), each mapped at each of its run's speeds ``speeds`` (R, S): (R, T, S, 4, K), in
+        one interpolation (records laid end to end in time, each query clipped to its record)."""
+        R, T, N, nw = aps.shape
+        span = N * float(np.max(dts)) + 1.0
+        ti = (self.grid - x0[:, None, None, None] - offsets[None, None, :, None]) / speeds[:, :, None, None]
+        ti = np.clip(ti, 0.0, ((np.asarray(lengths) - 1) * dts)[:, None, None, None])  # (R, S, 4, K)
+        rec = span * ((np.arange(R)[:, None, None] * T + np.arange(T)[None, :, None]) * nw + np.arange(nw))  # (R, T, 4)
+        xp = (np.arange(N)[None, :] * dts[:, None])[:, None, None, :] + rec[..., None]  # (R, T, 4, N)
+        out = np.interp(ti[:, None] + rec[:, :, None, :, None], xp.ravel(),
+                        np.ascontiguousarray(aps.transpose(0, 1, 3, 2)).ravel())
         return self.detrend(out)
 
 
-def _aps(base: dict[str, float], trials: Sequence[dict[str, float]], z: np.ndarray, dt: float) -> np.ndarray:
-    """APs (T, n, 4) of one run's channels under each trial (the inverse of
-    :mod:`shared.dynamics.inverse`, batched over trials)."""
-    from .reference.cross_entropy import population_aps
-
-    return population_aps("carriage", [{**base, **t} for t in trials], z, dt)[0]
+#: The carriage's parameters the inverse depends on, in the order of :func:`carriage_aps`' columns.
+INVERSE_NAMES = ("mv", "Iv", "mb", "Ib", "kp", "cp", "ks", "cs")
+INVERSE_GAMMA = 0.8  # the edge's inverse (shared.dynamics.inverse; cloud.reference.cross_entropy)
 
 
-def _speed_from_wheels(run: RailRun, z: np.ndarray, params: dict[str, float], offsets: np.ndarray,
-                       mapper: "_Mapper", slack: float) -> float:
-    """log(v / reported v) at which the run's own four wheels agree best (global grid search).
+@njit(cache=True)
+def _inverse_runs(Sinv, M, C, K, kp, cp, run_of, z, lengths, dts, gamma, beta, out):
+    """:func:`cloud.reference.cross_entropy._inverse_batch` (the inverse Newmark-β step of
+    :mod:`shared.dynamics.inverse`) for a carriage, trial t on run ``run_of[t]``'s channels
+    ``z[run_of[t], :lengths[run_of[t]]]`` at step ``dts[run_of[t]]``: one compiled call for a whole
+    batch. DOFs 2..5 (the bogies) are measured — acceleration, pitch rate, acceleration, pitch
+    rate — and 0, 1 (the body) are free; the four contacts are the primary suspensions (kp, cp).
+    ``out`` (T, 4, N): the AP under each contact, wheel-major (beyond a run's length: untouched)."""
+    T = M.shape[0]
+    n = 6
+    nf = 2
+    u = np.zeros(n)
+    v = np.zeros(n)
+    a = np.zeros(n)
+    up = np.zeros(n)
+    vp = np.zeros(n)
+    known = np.zeros(n)
+    y = np.zeros(4)
+    yd = np.zeros(4)
+    for t in range(T):
+        r = run_of[t]
+        dt = dts[r]
+        bdt2 = beta * dt * dt
+        gdt = gamma * dt
+        for i in range(n):
+            u[i] = 0.0
+            v[i] = 0.0
+            a[i] = 0.0
+        for c in range(4):
+            y[c] = 0.0
+            yd[c] = 0.0
+            out[t, c, 0] = 0.0
+        a[2] = z[r, 0, 0]
+        v[3] = z[r, 0, 1]
+        a[4] = z[r, 0, 2]
+        v[5] = z[r, 0, 3]
+        for k in range(1, lengths[r]):
+            for i in range(n):
+                up[i] = u[i] + dt * v[i] + dt * dt * (0.5 - beta) * a[i]
+                vp[i] = v[i] + dt * (1.0 - gamma) * a[i]
+            for m in range(4):
+                i = 2 + m
+                if m % 2 == 0:
+                    a[i] = z[r, k, m]
+                else:  # a measured rate: the acceleration Newmark's velocity update implies
+                    a[i] = (z[r, k, m] - vp[i]) / gdt
+                u[i] = up[i] + bdt2 * a[i]
+                v[i] = vp[i] + gdt * a[i]
+            for row in range(n):
+                s = 0.0
+                for i in range(2, n):
+                    s += M[t, row, i] * a[i] + C[t, row, i] * v[i] + K[t, row, i] * u[i]
+                for i in range(nf):
+                    s += C[t, row, i] * vp[i] + K[t, row, i] * up[i]
+                known[row] = s
+            for q in range(nf + 4):
+                s = 0.0
+                for row in range(n):
+                    s -= Sinv[t, q, row] * known[row]
+                if q < nf:
+                    a[q] = s
+                    u[q] = up[q] + bdt2 * s
+                    v[q] = vp[q] + gdt * s
+                else:
+                    c = q - nf
+                    if cp[t] == 0.0:
+                        y[c] = s / kp[t]
+                    else:  # kc·y + cc·ẏ = g by the trapezoidal rule
+                        ynew = (s + cp[t] * (2.0 * y[c] / dt + yd[c])) / (kp[t] + 2.0 * cp[t] / dt)
+                        yd[c] = 2.0 * (ynew - y[c]) / dt - yd[c]
+                        y[c] = ynew
+                    out[t, c, k] = y[c]
+
+
+def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: float, z: np.ndarray,
+                      lengths: np.ndarray, dts: np.ndarray) -> np.ndarray:
+    """APs (T, N, 4) under T parameter sets ``theta`` (T, 8) in :data:`INVERSE_NAMES` order, trial t
+    on run ``run_of[t]``'s channels ``z`` (R, N, 4) (the first ``lengths[r]`` samples, step
+    ``dts[r]``; the rest of its AP is zero). Same result as :func:`cloud.reference.cross_entropy.
+    population_aps` per run; the carriage's matrices are assembled in array form — M, C, K are
+    linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`) — and the whole
+    batch is one compiled call, instead of a ``Carriage`` per trial and a call per run."""
+    from shared.dynamics.newmark import newmark_constants
+
+    theta = np.asarray(theta, dtype=float)
+    run_of = np.asarray(run_of, dtype=np.int64)
+    dts = np.asarray(dts, dtype=float)
+    T = len(theta)
+    mv, Iv, mb, Ib, kp, cp, ks, cs = theta.T
+    s1 = np.array([1.0, Lv, -1.0, 0.0, 0.0, 0.0])
+    s2 = np.array([1.0, -Lv, 0.0, 0.0, -1.0, 0.0])
+    sec = np.outer(s1, s1) + np.outer(s2, s2)
+    G = np.zeros((6, 4))
+    G[2, 0], G[3, 0], G[2, 1], G[3, 1] = 1.0, Lb, 1.0, -Lb
+    G[4, 2], G[5, 2], G[4, 3], G[5, 3] = 1.0, Lb, 1.0, -Lb
+    prim = G @ G.T
+    K = ks[:, None, None] * sec + kp[:, None, None] * prim
+    C = cs[:, None, None] * sec + cp[:, None, None] * prim
+    M = np.zeros((T, 6, 6))
+    for j, m in enumerate((mv, Iv, mb, Ib, mb, Ib)):
+        M[:, j, j] = m
+    c = newmark_constants(float(dts.min()), INVERSE_GAMMA)
+    dt = dts[run_of][:, None, None]
+    S = np.concatenate([M[:, :, :2] + c.gamma * dt * C[:, :, :2] + c.beta * dt * dt * K[:, :, :2],
+                        np.broadcast_to(-G, (T, 6, 4))], axis=2)
+    out = np.zeros((T, 4, z.shape[1]))  # wheel-major: what the mapping reads in one piece
+    _inverse_runs(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.ascontiguousarray(kp), np.ascontiguousarray(cp),
+                  run_of, np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts,
+                  c.gamma, c.beta, out)
+    return out.transpose(0, 2, 1)
+
+
+def carriage_aps(theta: np.ndarray, Lb: float, Lv: float, z: np.ndarray, dt: float) -> np.ndarray:
+    """APs (T, n, 4) of one run's channels ``z`` (n, 4) under T parameter sets (:func:`carriage_aps_runs`)."""
+    z = np.asarray(z, dtype=float)
+    return carriage_aps_runs(theta, np.zeros(len(theta), dtype=np.int64), Lb, Lv, z[None], np.array([len(z)]),
+                             np.array([dt]))
+
+
+def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, fixed: dict[str, float],
+                       offsets: np.ndarray, mapper: "_Mapper", slack: float) -> np.ndarray:
+    """log(v / reported v) of each run at which its own four wheels agree best (global grid search).
 
     A bump reaches wheel 3 2·Lv/v after wheel 1: the run's speed follows from its own data,
     whatever the class parameters' errors (which affect the wheels alike). A cheap global search
-    (mapping only, no inverse per step) that starts Gauss–Newton in the right basin whatever the
-    GNSS error (the misfit in a speed is oscillatory beyond a shift of a short wavelength).
+    (one inverse per run, then mapping only) that starts Gauss–Newton in the right basin whatever
+    the GNSS error (the misfit in a speed is oscillatory beyond a shift of a short wavelength).
+    ``stage``: the runs' channels low-passed to :data:`SPEED_SEARCH_M` (``calibrate_batch``).
+
+    A wrong speed s moves wheel 3's AP against wheel 1's by ~2·Lv·s (~19 m·s), so the misfit's
+    shortest period in s is ~λ_min/19 m (~0.3 at 6 m): steps of 0.01 resolve it, and the stages
+    of Gauss–Newton refine from there (the first, at 16 m, has a basin of ~±0.2).
     """
-    ap = _aps(params, [{"mv": params["mv"], "Iv": params["Iv"], "v": run.speed_mps}], z, run.dt)[0]
-    steps = np.linspace(-slack, slack, int(round(2 * slack / 2.5e-4)) + 1)
-    cost = []
-    for s in steps:
-        A = mapper.map(ap, run.dt, run.x0_m, run.speed_mps * math.exp(s), offsets)
-        cost.append(float(((A - A.mean(axis=0)) ** 2).sum()))
-    return float(steps[int(np.argmin(cost))])
+    n = len(runs)
+    aps = carriage_aps_runs(np.repeat(theta[None], n, axis=0), np.arange(n), fixed["Lb"], fixed["Lv"],
+                            stage["z"], stage["lengths"], stage["dts"])[:, None]
+    steps = np.linspace(-slack, slack, int(round(2 * slack / SPEED_STEP)) + 1)
+    v = np.array([r.speed_mps for r in runs])
+    A = mapper.map_runs(aps, stage["dts"], np.array([r.x0_m for r in runs]), v[:, None] * np.exp(steps),
+                        stage["lengths"], offsets)[:, 0]  # (n, S, 4, K)
+    cost = ((A - A.mean(axis=2, keepdims=True)) ** 2).sum(axis=(2, 3))
+    return steps[np.argmin(cost, axis=1)]
 
 
-def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol):
-    """Levenberg-damped Gauss–Newton on ‖e(x)‖²/(2σ²) + ½‖x − μ‖²_P, σ² re-estimated each step."""
+def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1):
+    """Levenberg-damped Gauss–Newton on ‖e(x)‖²/(2σ²) + ½‖x − μ‖²_P, σ² re-estimated each step.
+
+    ``jacobian_every``: the Jacobian (finite differences: 9 inverses per run) is refreshed after
+    every so many accepted steps and reused in between (chord steps: one inverse per run each,
+    the damping's descent test unchanged), ending on a refreshed one whenever the loop stops early.
+    """
     e, D, A = evaluate(x, True)
     lam = 1e-3
     kappa = _correlation_factor(e)
@@ -194,9 +346,10 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol):
         H = JtJ / sigma2 + np.diag(P)
         grad = Jte / sigma2 + (x - mu) * P
         f0 = neglogpost(e, x)
+        e_new = A_new = None
         while True:
             step = np.clip(np.linalg.solve(H + lam * np.diag(np.diag(H)), -grad), -0.2, 0.2)
-            e_new, _, _ = evaluate(x + step, False)
+            e_new, _, A_new = evaluate(x + step, False)
             if neglogpost(e_new, x + step) <= f0:
                 lam = max(lam / 3, 1e-7)
                 break
@@ -205,10 +358,14 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol):
                 step = np.zeros_like(step)
                 break
         x = x + step
-        e, D, A = evaluate(x, True)
+        done = np.abs(step).max() < tol or lam > 1e6 or it == max_iter
+        if it % jacobian_every == 0 or done:
+            e, D, A = evaluate(x, True)
+        elif lam <= 1e6:
+            e, A = e_new, A_new
         kappa = _correlation_factor(e)
         sigma2 = float((e**2).mean()) * kappa
-        if np.abs(step).max() < tol or lam > 1e6:
+        if done:
             break
     return x, e, D, A, sigma2, kappa, it
 
@@ -217,6 +374,7 @@ def _correlation_factor(e: np.ndarray) -> float:
     """1 + 2 Σ ρ_k of the residual along the grid (up to its first zero): grid points per
     independent piece of information."""
     flat = e.reshape(-1, e.shape[-1])
+    flat = flat[:: max(1, len(flat) // 64)]  # ~64 rows estimate it as well as all, at a fraction of the FFTs
     f = np.fft.rfft(flat, 2 * flat.shape[1], axis=1)
     ac = np.fft.irfft(np.abs(f) ** 2, axis=1)[:, : flat.shape[1]].sum(axis=0)
     rho = ac / ac[0]
@@ -232,6 +390,9 @@ def calibrate_batch(
     window_m: tuple[float, float] | None = None,
     max_iter: int = 30,
     tol: float = 1e-5,
+    jacobian_every: int = 3,
+    final_decimation: int = 1,
+    stages_m: Sequence[float] = STAGES_M,
 ) -> BatchFit:
     """Run properties of every run of a batch, and the carriage's global properties (module docstring).
 
@@ -239,6 +400,11 @@ def calibrate_batch(
     not used: each run's reported speed is its prior, with relative sd ``speed_rel_sd``).
     ``window_m``: restrict the comparison to this chainage range (e.g. off a bridge). Returns the
     run estimates with 95 % intervals (the global properties' uncertainty marginalised).
+    ``jacobian_every``: refresh the finite-difference Jacobian after every so many accepted steps
+    (:func:`_gauss_newton`); ``final_decimation``: the last stage's channels at every so many
+    samples (1: the logger's rate; at 2 the inverse's own discretisation error grew enough to move
+    mv by ~1.4 points on a 4-run, 100 m batch);
+    ``stages_m``: the stages' shortest wavelengths (m).
     """
     t_start = time.perf_counter()
     runs = list(runs)
@@ -250,9 +416,13 @@ def calibrate_batch(
             raise ValueError(f"calibrate_batch: the class needs a positive mean and an sd of {k}")
     fixed = {k: float(prior_mean[k]) for k in FIXED}
     offsets = Carriage(**fixed, **{k: prior_mean[k] for k in GLOBAL_FIT}, mv=1.0, Iv=1.0, v=1.0).wheel_offsets_m()
-    grid = _window(runs, offsets, window_m, speed_slack=4 * speed_rel_sd)
-    mapper = _Mapper(grid)
-    zs: list[np.ndarray] = []
+    slack = 4 * speed_rel_sd
+    grid = _window(runs, offsets, window_m, speed_slack=slack)
+    # Samples past the last the window can need (trailing wheel, slowest trial speed) are not
+    # inverted: the inverse is causal, and the low-pass is applied to the whole record first.
+    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min())
+                                              / (r.speed_mps * (1 - slack)) / r.dt)) + 2) for r in runs]
+    mapper = stage = None
     n_g = len(GLOBAL_FIT)
     mu_loc = np.array([[math.log(prior_mean["mv"]), math.log(prior_mean["Iv"]), math.log(r.speed_mps)] for r in runs])
     s_loc = np.array([prior_sd["mv"] / prior_mean["mv"], prior_sd["Iv"] / prior_mean["Iv"], speed_rel_sd])
@@ -266,36 +436,32 @@ def calibrate_batch(
     def unpack(x):
         return x[: 3 * n].reshape(n, 3), x[3 * n:]
 
-    def run_model(r, loc, glob, with_jac):
-        mv, iv, v = np.exp(loc)
-        base = {**fixed, **dict(zip(GLOBAL_FIT, np.exp(glob)))}
-        trials = [{"mv": mv, "Iv": iv, "v": v}]
-        if with_jac:
-            h = math.exp(FD_LOG_STEP)
-            trials += [{"mv": mv * h, "Iv": iv, "v": v}, {"mv": mv, "Iv": iv * h, "v": v}]
-            for k in GLOBAL_FIT:  # a global's step, with the others at base
-                trials.append({"mv": mv, "Iv": iv, "v": v, k: base[k] * h})
-        run = runs[r]
-        aps = _aps(base, trials, zs[r], run.dt)
-        A = mapper.map(aps[0], run.dt, run.x0_m, v, offsets)
-        if not with_jac:
-            return A, None
-        h = math.exp(FD_LOG_STEP)
-        D = np.empty((3 + n_g,) + A.shape)
-        D[0] = (mapper.map(aps[1], run.dt, run.x0_m, v, offsets) - A) / FD_LOG_STEP
-        D[1] = (mapper.map(aps[2], run.dt, run.x0_m, v, offsets) - A) / FD_LOG_STEP
-        D[2] = (mapper.map(aps[0], run.dt, run.x0_m, v * h, offsets) - A) / FD_LOG_STEP
-        for j, k in enumerate(GLOBAL_FIT):
-            D[3 + j] = (mapper.map(aps[3 + j], run.dt, run.x0_m, v, offsets) - A) / FD_LOG_STEP
-        return A, D
+    x0s = np.array([r.x0_m for r in runs])
+    h = math.exp(FD_LOG_STEP)
 
     def evaluate(x, with_jac):
+        """Residual e (n, 4, K), Jacobian blocks D (n, 3 + n_g, 4, K) and the mapped APs A."""
         loc, glob = unpack(x)
-        out = [run_model(r, loc[r], glob, with_jac) for r in range(n)]
-        A = np.stack([o[0] for o in out])  # (n, 4, K)
+        p = np.exp(loc)  # (n, 3): mv, Iv, v
+        theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob), (n, n_g))])  # INVERSE_NAMES order
+        T = 1
+        if with_jac:  # trial 0 as is, then each of mv, Iv and the globals stepped in turn
+            T = 1 + theta.shape[1]
+            theta = np.repeat(theta[:, None], T, axis=1)
+            theta[:, 1:] *= 1.0 + (h - 1.0) * np.eye(T - 1)
+        aps = carriage_aps_runs(theta.reshape(n * T, -1), np.repeat(np.arange(n), T), fixed["Lb"], fixed["Lv"],
+                                stage["z"], stage["lengths"], stage["dts"]).reshape(n, T, -1, 4)
+        mapped = mapper.map_runs(aps, stage["dts"], x0s, p[:, 2:3], stage["lengths"], offsets)[:, :, 0]
+        A = mapped[:, 0]  # (n, 4, K)
         e = A - A.mean(axis=(0, 1))
-        D = np.stack([o[1] for o in out]) if with_jac else None  # (n, 3 + n_g, 4, K)
-        return e, D, A
+        if not with_jac:
+            return e, None, A
+        faster = mapper.map_runs(aps[:, :1], stage["dts"], x0s, p[:, 2:3] * h, stage["lengths"], offsets)[:, 0, 0]
+        D = np.empty((n, 3 + n_g) + A.shape[1:])
+        D[:, :2] = mapped[:, 1:3] - A[:, None]
+        D[:, 2] = faster - A
+        D[:, 3:] = mapped[:, 3:] - A[:, None]
+        return e, D / FD_LOG_STEP, A
 
     def normal_equations(e, D):
         """JᵀJ and Jᵀe of the profiled consensus residual (J = ∂e/∂x), from the per-run blocks."""
@@ -314,15 +480,33 @@ def calibrate_batch(
         Jte = np.concatenate([np.einsum("rjik,rik->rj", Dl, e).ravel(), np.einsum("rjik,rik->j", Dg, e)])
         return JtJ, Jte
 
+    def stage_channels(min_wavelength, decimation=None):
+        """The runs' channels low-passed for a stage, trimmed and decimated, stacked (R, N, 4) with
+        their lengths and steps."""
+        chans = []
+        for r, k in zip(runs, keep):
+            q = decimation or max(1, int(1.0 / (r.dt * SAMPLES_PER_CUTOFF * r.speed_mps / min_wavelength)))
+            chans.append((_lowpass(r, min_wavelength)[:k:q], r.dt * q))
+        lengths = np.array([len(c[0]) for c in chans])
+        z = np.zeros((n, lengths.max(), 4))
+        for r, c in enumerate(chans):
+            z[r, : lengths[r]] = c[0]
+        return {"z": z, "lengths": lengths, "dts": np.array([c[1] for c in chans])}
+
+    def mapper_for(min_wavelength):
+        return _Mapper(grid[:: max(1, int(round(min_wavelength / POINTS_PER_WAVELENGTH / GRID_M)))])
+
     x = mu.copy()
-    x[2: 3 * n: 3] += [_speed_from_wheels(r, z, {**fixed, **{k: prior_mean[k] for k in GLOBAL_FIT + ("mv", "Iv")}},
-                                          offsets, mapper, 4 * speed_rel_sd)
-                       for r, z in zip(runs, (_lowpass(r, STAGES_M[-1]) for r in runs))]
+    theta0 = np.array([prior_mean[k] for k in INVERSE_NAMES])
+    x[2: 3 * n: 3] += _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
+                                         mapper_for(SPEED_SEARCH_M), slack)
     it = 0
-    for stage, min_wavelength in enumerate(STAGES_M):
-        zs[:] = [_lowpass(r, min_wavelength) for r in runs]
+    for i_stage, min_wavelength in enumerate(stages_m):
+        last = i_stage == len(stages_m) - 1
+        mapper = mapper_for(min_wavelength)
+        stage = stage_channels(min_wavelength, final_decimation if last else None)
         x, e, D, A, sigma2, kappa, n_it = _gauss_newton(evaluate, normal_equations, x, mu, P,
-                                                         max_iter if stage == len(STAGES_M) - 1 else 8, tol)
+                                                         max_iter if last else 8, tol, jacobian_every)
         it += n_it
     JtJ, _ = normal_equations(e, D)
     sd = np.sqrt(np.diag(np.linalg.inv(JtJ / sigma2 + np.diag(P))))
@@ -338,7 +522,7 @@ def calibrate_batch(
         hi = {k: float(math.exp(loc[r, j] + Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         estimates.append(RunEstimate(run.pass_id, mean, lo, hi))
     globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT)}
-    return BatchFit(estimates, globals_fit, grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
+    return BatchFit(estimates, globals_fit, mapper.grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
                     time.perf_counter() - t_start)
 
 
@@ -390,9 +574,14 @@ def cross_entropy_batch(
         raise ValueError("cross_entropy_batch: a batch needs at least two runs")
     base = {k: float(prior_mean[k]) for k in GLOBAL_FIT + FIXED}
     offsets = Carriage(**base, mv=1.0, Iv=1.0, v=1.0).wheel_offsets_m()
-    grid = _window(runs, offsets, window_m, speed_slack=4 * speed_rel_sd)
+    slack = 4 * speed_rel_sd
+    grid = _window(runs, offsets, window_m, speed_slack=slack)
     mapper = _Mapper(grid)
-    zs = [_lowpass(r, STAGES_M[-1]) for r in runs]
+    # The same primitives as ours: channels trimmed to what the window needs, every trial of a run
+    # inverted in one compiled call and mapped in one interpolation.
+    zs = [_lowpass(r, STAGES_M[-1])[: int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min())
+                                                     / (r.speed_mps * (1 - slack)) / r.dt)) + 2] for r in runs]
+    theta_g = np.array([base[k] for k in INVERSE_NAMES[2:]])
     mu0 = np.array([[prior_mean["mv"], prior_mean["Iv"], r.speed_mps] for r in runs])
     sd0 = np.array([[prior_sd["mv"], prior_sd["Iv"], speed_rel_sd * r.speed_mps] for r in runs])
     floor = 0.2 * mu0
@@ -401,10 +590,11 @@ def cross_entropy_batch(
         T = len(thetas)
         A = np.empty((T, n, 4, grid.size))
         for r, run in enumerate(runs):
-            trials = [{"mv": th[r, 0], "Iv": th[r, 1], "v": th[r, 2]} for th in thetas]
-            aps = _aps(base, trials, zs[r], run.dt)
-            for t in range(T):
-                A[t, r] = mapper.map(aps[t], run.dt, run.x0_m, thetas[t, r, 2], offsets)
+            theta = np.column_stack([thetas[:, r, :2], np.broadcast_to(theta_g, (T, len(theta_g)))])
+            aps = carriage_aps(theta, base["Lb"], base["Lv"], zs[r], run.dt)
+            m = len(zs[r])
+            A[:, r] = mapper.map_runs(aps[:, None], np.full(T, run.dt), np.full(T, run.x0_m), thetas[:, r, 2:3],
+                                      np.full(T, m), offsets)[:, 0, 0]
         dev = A - A.mean(axis=1, keepdims=True)  # eq. (3.12): the batch mean under each axle
         return np.einsum("trik,trik->t", dev, dev)
 

@@ -10,15 +10,17 @@ D1 and D2 of eq. 3.24 against the healthy batch of the same profile — the dama
 directly, ``D = 100·(1 − IL_H / IL_D)``, with no calibration line fitted to the states. Ours is
 :func:`cloud.rail_bridge.damage_from_batch_means` (the change of the batch-mean AP per unit load,
 the healthy batch's load regression for the scale); the per-batch regression lines, the
-wheel-difference (J⁰) forms and the thesis's unseparated reading are reported beside it, and an
-independent-halves check compares different runs (our states share one seed's runs). Both the
+wheel-difference (J⁰) forms and the thesis's unseparated reading are reported beside it. Each
+state's batch is 50 different journeys (``RailScenario.batch``), as the thesis's: no run is shared
+between the healthy and a damaged batch, and each batch is calibrated on its own. Both the
 carriage inverse (App. B.2) and the 2-DOF bogie half-car (App. A.3, Table 3.5) are used; the wheel
 loads are the calibrated ones in both (the thesis's half-car used the class mean ``mv``).
 
 The truth (``truth.json``) is read here only, to score: the nominal global loss (the thesis's
-"true damage level") and, because every damaged span also has 5 % per-element E·I scatter, the
-realised span's effective loss — D1/D2 of its own static influence line against the healthy
-span's — which is what an exact method would find.
+"true damage level"). The span's 5 % per-element E·I scatter is the bridge's own, the same in
+every state (:mod:`simfleet.rail`), so the nominal loss is exactly the level D1/D2 find against
+the healthy span (checked per row: ``true_D1_pct``/``true_D2_pct``); the realised span's loss
+against the design drawings (the ``effective`` level, scatter included) is reported beside it.
 
 Also: the batch calibration's accuracy (ours, the thesis's Cross-Entropy reference on the same
 batch, and the GNSS speed) and Fig. 3.10's data (calibrated vs true run properties, profile 1,
@@ -60,7 +62,8 @@ MODELS = ("carriage", "bogie_half_car")
 #: mean AP per unit load (profile left in).
 VARIANTS = ("batch_means", "batch_means_difference", "mril", "difference", "unseparated")
 VARIANT_NAME = {
-    "batch_means": "change of the batch-mean AP per unit load over the healthy regression line (ours)",
+    "batch_means": "change of the batch-mean AP (registered on the approaches) per mean load, the healthy "
+                   "regression line for the scale (ours)",
     "batch_means_difference": "the same on the wheels' time-synchronous difference (J⁰, matrix method)",
     "mril": "regression over wheel loads, per batch",
     "difference": "regression on the wheels' difference, matrix method, per batch",
@@ -69,6 +72,10 @@ VARIANT_NAME = {
 HEALTHY_STATE = 7
 #: The issue's bounds on |ours − true| in points, per model (thesis: ~2 and ~4).
 BOUND_PTS = {"carriage": 2.0, "bogie_half_car": 3.0}
+#: Our reading per model. The half-car's own load regression is biased (the body's force on the
+#: bogie, which it does not model, grows with the body mass: cloud.rail_bridge), so its scale comes
+#: from the wheels' difference (J⁰), free of that force.
+OURS = {"carriage": "batch_means", "bogie_half_car": "batch_means_difference"}
 CALIBRATION_MARGIN_M = 2.0  # the calibration window ends this far before the span, m
 
 # ---------------------------------------------------------------------------------------------
@@ -127,19 +134,32 @@ class BatchResult:
     calib_seconds: float
 
 
-def analyse_batch(d: Path, state: int, profile: int) -> BatchResult:
-    """Calibrate the batch off the bridge and compute both models' influence on the span (cached)."""
-    from cloud.rail_bridge import bogie_influence
-    from cloud.rail_calibration import calibrate_batch
+def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str, float] | None = None) -> BatchResult:
+    """Calibrate the batch off the bridge and compute both models' influence on the span (cached).
 
-    cached = d / "fit.pkl"  # the calibration is the slow part; the influences are recomputed
+    ``carriage_globals``: the carriage's global properties as the healthy batch calibrated them,
+    held for this batch. One carriage makes every batch, and the thesis's UCD team used one set of
+    global values for all of them. Refitting them per batch moves each batch's common mass scale
+    (the inverse is invariant to scaling all masses, stiffnesses and dampings together, so only the
+    priors pin that scale) by ~1–2 %, independently per batch. That moves W̄ and so D by a point or
+    two (measured, profile 1: the batch-common mv errors +2.5/+1.3/+1.5/−0.8/+2.8 % for states
+    7/1/2/3/4 matched the D errors).
+    """
+    from cloud.rail_bridge import bogie_influence
+    from cloud.rail_calibration import GLOBAL_FIT, calibrate_batch
+
+    # The calibration is the slow part, cached; the influences are recomputed.
+    cached = d / ("fit.pkl" if carriage_globals is None else "fit-healthy-globals.pkl")
     runs, cls, bridge = load_runs(d)
     if cached.exists():
         with open(cached, "rb") as f:
             fit = pickle.load(f)
     else:
-        fit = calibrate_batch(runs, cls.mean, cls.std,
-                              window_m=(0.0, bridge.start_chainage_m - CALIBRATION_MARGIN_M))
+        mean, std = dict(cls.mean), dict(cls.std)
+        if carriage_globals is not None:
+            mean.update({k: carriage_globals[k] for k in GLOBAL_FIT})
+            std.update({k: 0.0 for k in GLOBAL_FIT})  # held (calibrate_batch floors the sd at 1e-4 relative)
+        fit = calibrate_batch(runs, mean, std, window_m=(0.0, bridge.start_chainage_m - CALIBRATION_MARGIN_M))
         with open(cached, "wb") as f:
             pickle.dump(fit, f)
         log.info("calibrated %s in %.0f s", d.name, fit.seconds)
@@ -147,26 +167,15 @@ def analyse_batch(d: Path, state: int, profile: int) -> BatchResult:
     return BatchResult(state, profile, fit, infl, fit.seconds)
 
 
-def half_influences(d: Path, fit, model: str = "carriage") -> tuple:
-    """The batch's first and second halves of runs analysed as separate batches (same calibration)."""
-    from cloud.rail_bridge import bogie_influence
-
-    runs, cls, bridge = load_runs(d)
-    n = len(runs) // 2
-    out = []
-    for sl in (slice(0, n), slice(n, 2 * n)):
-        sub = dataclasses.replace(fit, runs=fit.runs[sl])
-        out.append(bogie_influence(runs[sl], sub, cls.mean, bridge.start_chainage_m, bridge.span_m, model=model))
-    return tuple(out)
-
-
 # ---------------------------------------------------------------------------------------------
 # Scoring against the truth
 
 
-def true_effective_levels(truth: dict, x_m: np.ndarray) -> tuple[float, float]:
+def true_effective_levels(truth: dict, x_m: np.ndarray, against_healthy: bool = False) -> tuple[float, float]:
     """D1, D2 (%) of the realised span's own static influence line against the design span's (the
-    damage level an exact method finds; differs from the nominal loss by the per-element scatter)."""
+    loss against the drawings, per-element scatter included), or with ``against_healthy`` against
+    the same bridge's healthy span (``EI_healthy`` in the truth: the level an exact method finds
+    from a healthy and a damaged batch; the nominal loss when the states differ only by it)."""
     from cloud.bridge.mril import MrIl, damage_indicators
     from shared.fe.beam import influence_line
     from shared.track import BridgeSpan
@@ -178,7 +187,8 @@ def true_effective_levels(truth: dict, x_m: np.ndarray) -> tuple[float, float]:
     ei = np.asarray(b["EI"], float)
     span = BridgeSpan(0.0, b["span_m"], spec.E_pa, spec.I_m4, spec.mass_per_m, ei_factor=ei / (spec.E_pa * spec.I_m4))
     real = span.beam(SLEEPER_M)
-    design = dataclasses.replace(real, ei_factor=None)
+    design = dataclasses.replace(real, ei_factor=None if not against_healthy else
+                                 np.asarray(b["EI_healthy"], float) / (spec.E_pa * spec.I_m4))
     d = damage_indicators(MrIl(x_m, influence_line(design, x_m), 0), MrIl(x_m, influence_line(real, x_m), 0))
     return d.D1_pct, d.D2_pct
 
@@ -242,7 +252,8 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
     for profile in profiles:
         for state in states:
             d = simulate_batch(state, profile, cache, passes, seed, quick)
-            batches[state, profile] = analyse_batch(d, state, profile)
+            healthy = batches[HEALTHY_STATE, profile].fit.globals_ if state != HEALTHY_STATE else None
+            batches[state, profile] = analyse_batch(d, state, profile, healthy)
             truths[state, profile] = json.loads((d / "truth.json").read_text())
     from cloud.bridge.mril import damage_indicators
     from cloud.rail_bridge import damage_from_batch_means
@@ -253,7 +264,9 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
             b = batches[state, profile]
             x = b.influence["carriage"].mril.x_m
             eff = true_effective_levels(truths[state, profile], x)
+            true = true_effective_levels(truths[state, profile], x, against_healthy=True)
             row = {"state": state, "profile": profile, "nominal_pct": 100 * truths[state, profile]["bridge"]["global_loss"],
+                   "true_D1_pct": true[0], "true_D2_pct": true[1],
                    "effective_D1_pct": eff[0], "effective_D2_pct": eff[1]}
             for m in MODELS:
                 for variant in VARIANTS:
@@ -264,26 +277,6 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
                         d = damage_indicators(getattr(healthy.influence[m], variant), getattr(b.influence[m], variant))
                     row[f"{m}_{variant}_D1_pct"], row[f"{m}_{variant}_D2_pct"] = d.D1_pct, d.D2_pct
             rows.append(row)
-    # Independent batches: the healthy batch's first half against each damaged batch's second half
-    # and the other way round (different runs, as the thesis's batches were).
-    halves = []
-    for profile in profiles:
-        hh = half_influences(batch_dir(cache, HEALTHY_STATE, profile, passes, seed, quick),
-                             batches[HEALTHY_STATE, profile].fit)
-        for state in states:
-            if state == HEALTHY_STATE:
-                continue
-            dh = half_influences(batch_dir(cache, state, profile, passes, seed, quick), batches[state, profile].fit)
-            row = next(q for q in rows if (q["state"], q["profile"]) == (state, profile))
-            for i, (h, c) in enumerate(((hh[0], dh[1]), (hh[1], dh[0]))):
-                q = {"state": state, "profile": profile, "pairing": ("H1-D2", "H2-D1")[i],
-                     "effective_D1_pct": row["effective_D1_pct"], "effective_D2_pct": row["effective_D2_pct"],
-                     "nominal_pct": row["nominal_pct"]}
-                for variant in ("batch_means", "batch_means_difference", "mril"):
-                    dd = (damage_indicators(h.mril, c.mril) if variant == "mril" else
-                          damage_from_batch_means(h, c, fundamental=variant == "batch_means_difference"))
-                    q[f"{variant}_D1_pct"], q[f"{variant}_D2_pct"] = dd.D1_pct, dd.D2_pct
-                halves.append(q)
     calib = []
     for (state, profile), b in sorted(batches.items(), key=lambda kv: (kv[0][1], kv[0][0])):
         calib.append({"state": state, "profile": profile, "seconds": b.calib_seconds,
@@ -293,7 +286,7 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
     ce = ce_reference(ref_dir, seed, quick)["result"] if cross_entropy or (ref_dir / "cross_entropy.pkl").exists() else None
     ce_err = calibration_errors(ce, truths[ref_key]) if ce is not None else {}
     fig = _fig_3_10(batches[ref_key].fit, ce, truths[ref_key])
-    results = {"quick": quick, "seed": seed, "passes": passes, "rows": rows, "halves": halves, "calibration": calib,
+    results = {"quick": quick, "seed": seed, "passes": passes, "rows": rows, "calibration": calib,
                "reference_profile": ref_key[1],
                "cross_entropy": None if ce is None else {
                    "seconds": ce.seconds, "evaluations": ce.evaluations, "generations": ce.generations,
@@ -336,25 +329,51 @@ def _report(r: dict) -> str:
          "from each run's inverse under its calibrated properties (carriage: App. B.2; bogie half-car: App. A.3 "
          "from the leading bogie's two channels), the leading bogie's influence per unit wheel load, D1/D2 of "
          "eq. 3.24 against the healthy batch (state 7) of the same profile. The influence is read five ways "
-         "(`cloud.rail_bridge`): **batch_means** (ours) — the change of the batch-mean AP per unit load between "
-         "the healthy and the current batch (the unloaded profile, common to both, cancels) over the healthy "
-         "batch's regression line (each wheel's AP, relative to its chord between the supports, regressed over "
+         "(`cloud.rail_bridge`): **batch_means** (ours) — J_D = (Ȳ_D − Ȳ_H)/W̄_D + J_H·W̄_H/W̄_D: the change "
+         "of the batch-mean AP between the healthy and the current batch (the unloaded profile, common to both, "
+         "cancels; the current batch's chainage first registered to the healthy one's on the approaches) per "
+         "mean wheel load, with the healthy batch's regression line (each wheel's AP, relative to its chord between the supports, regressed over "
          "the runs' calibrated wheel loads: the slope is the deflection per unit load, profile separated), which "
          "only sets the scale; **batch_means_difference** — the same on the two wheels' time-synchronous AP "
          "difference with the matrix method (eq. 3.16–3.23, equal loads) for the fundamental J⁰: a force at the "
          "bogie's centre (the body's, which the bogie half-car does not model) cancels, so both models give the "
          "same line; **mril** / **difference** — the regression lines of each batch compared directly; "
          "**unseparated** — the mean AP per unit load with the profile left in, as the thesis reads it. "
-         "Our run-to-run variation is the same across states (one seed: same carriage, runs and track for "
-         "every state of a profile), unlike the thesis's independent batches — the independent-halves check "
-         "below compares different runs.", ""]
+         "Every state's batch is 50 different journeys of the same carriage over the same track (other run "
+         "properties and sensor noise; no run shared with the healthy batch), calibrated on its own, as the "
+         "thesis's independent batches. The span's 5 % per-element E·I scatter is the bridge's (as built, as "
+         "corroded), the same in every state: the states differ only by the global loss.", ""]
     if quick:
         L += ["**--quick**: profile 1, states 7/2/4 only, 16 runs over a 40 m approach — a smoke run, not the "
               "blind test's statistics (run without --quick for the 14 batches of 50).", ""]
+    damaged = sorted((q for q in rows if q["state"] != HEALTHY_STATE), key=lambda q: (q["profile"], q["state"]))
+    if damaged:
+        L += ["## Summary — ours against the nominal level, per state (points)", "",
+              "Ours: " + "; ".join(f"{m} — {VARIANT_NAME[v]} (`{v}`)" for m, v in OURS.items()) + ". Each state's "
+              "batch is calibrated on its own with the carriage's global properties as the healthy batch calibrated "
+              "them (one carriage, one set of globals, as the thesis's UCD team used).", "",
+              "| profile | state | nominal | carriage D1 / D2 | error | thesis carriage D1 / D2 | bogie half-car D1 / D2 "
+              "| error | thesis half-car D1 / D2 |", "|---|---|---|---|---|---|---|---|---|"]
+        for q in damaged:
+            p_, s_ = q["profile"], q["state"]
+            cells = []
+            for m, v in OURS.items():
+                d1, d2 = q[f"{m}_{v}_D1_pct"], q[f"{m}_{v}_D2_pct"]
+                cells += [f"{_f(d1)} / {_f(d2)}", f"{_f(d1 - q['nominal_pct'])} / {_f(d2 - q['nominal_pct'])}",
+                          f"{TABLE_3_6[m, p_, 'D1'][s_ - 1]} / {TABLE_3_6[m, p_, 'D2'][s_ - 1]}"]
+            L.append(f"| {p_} | {s_} | {q['nominal_pct']:.0f} | " + " | ".join(cells) + " |")
+        L.append("")
+        for m, v in OURS.items():
+            worst = max(abs(q[f"{m}_{v}_D{i}_pct"] - q["nominal_pct"]) for q in damaged for i in (1, 2))
+            L.append(f"- {m}: largest |error| {worst:.1f} points over {len(damaged)} damaged states × D1/D2 — "
+                     f"bound ±{BOUND_PTS[m]:.0f}: {'holds' if worst <= BOUND_PTS[m] else 'does not hold'}.")
+        L.append("")
     L += ["## Table 3.6 — damage level (%), ours beside the thesis's", "",
-          "`nominal` is the global E·I loss (the thesis's \"true damage level\"); `effective` is what the realised "
-          "span (with its 5 % per-element scatter) gives by D1/D2 of its own static influence line: the level an "
-          "exact method finds. Errors are ours − nominal (and ours − effective) in points.", ""]
+          "`nominal` is the global E·I loss (the thesis's \"true damage level\"): with the scatter the bridge's own, "
+          "it is exactly what D1/D2 of the realised span's static influence line give against the healthy span's "
+          f"(largest difference over the rows: {max(abs(q[f'true_D{i}_pct'] - q['nominal_pct']) for q in rows for i in (1, 2)):.1e} "
+          "points). `effective` is the realised span's loss against the design drawings (scatter included), for "
+          "reference. Errors are ours − nominal (and ours − effective) in points.", ""]
     for m in MODELS:
         title = "4-axle railway carriage model" if m == "carriage" else "2-axle bogie half-car (App. A.3)"
         for variant in VARIANTS:
@@ -384,25 +403,6 @@ def _report(r: dict) -> str:
                       f"{np.mean(err_nom):.1f} (nominal) / {np.mean(err_eff):.1f} (effective), thesis "
                       f"{np.mean(thesis_err):.1f}."]
             L.append("")
-    halves = r.get("halves") or []
-    if halves:
-        L += ["## Independent batches (carriage model): half the runs against the other half", "",
-              f"The healthy batch's first {r['passes'] // 2} runs against each damaged batch's last "
-              f"{r['passes'] // 2} (H1-D2) and the other way round (H2-D1): different runs, as the thesis's "
-              "independent batches, and half as many.", "",
-              "| profile | state | pairing | effective D1/D2 | batch_means D1/D2 | batch_means_difference D1/D2 | "
-              "mril D1/D2 |", "|---|---|---|---|---|---|---|"]
-        for q in halves:
-            L.append(f"| {q['profile']} | {q['state']} | {q['pairing']} | {_f(q['effective_D1_pct'])} / "
-                     f"{_f(q['effective_D2_pct'])} | " + " | ".join(
-                         f"{_f(q[f'{v}_D1_pct'])} / {_f(q[f'{v}_D2_pct'])}"
-                         for v in ("batch_means", "batch_means_difference", "mril")) + " |")
-        for v in ("batch_means", "batch_means_difference", "mril"):
-            e_eff = [abs(q[f"{v}_D{i}_pct"] - q[f"effective_D{i}_pct"]) for q in halves for i in (1, 2)]
-            e_nom = [abs(q[f"{v}_D{i}_pct"] - q["nominal_pct"]) for q in halves for i in (1, 2)]
-            L.append(f"\n{v}: largest |error| {max(e_eff):.1f} points against the effective level, "
-                     f"{max(e_nom):.1f} against the nominal; mean {np.mean(e_eff):.1f} / {np.mean(e_nom):.1f}.")
-        L.append("")
     c = r["calibration"]
     ce = r["cross_entropy"]
     ours = r["ours_reference_batch"]

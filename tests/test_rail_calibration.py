@@ -120,3 +120,47 @@ def test_calibration_rejects_bad_input(batch):
         calibrate_batch(runs[:2], cls.mean, cls.std, window_m=(20.0, 30.0))
     with pytest.raises(ValueError, match="channels"):
         RailRun("x", np.zeros((100, 3)), 0.002, 30.0)
+
+
+def test_blind_test_states_differ_only_by_the_global_loss_and_the_journeys():
+    """The span's per-element scatter is the bridge's (drawn once per profile and seed): every state's
+    E·I is (1 − loss) times the healthy span's, element by element, so the nominal loss is the true
+    level against the healthy state; each state is a different set of journeys of the same carriage."""
+    from simfleet.rail import STATE_LOSS, bridge_span, draw_carriage, draw_runs
+
+    for profile in (1, 2):
+        healthy = SCENARIOS[f"rail-bridge-state7-profile{profile}"]
+        ei_h = bridge_span(healthy, 0).ei_factor
+        assert np.std(ei_h) > 0.01  # the healthy span has its scatter too
+        runs_h = draw_runs(healthy, 5, 0)
+        for state, loss in enumerate(STATE_LOSS, start=1):
+            s = SCENARIOS[f"rail-bridge-state{state}-profile{profile}"]
+            np.testing.assert_allclose(bridge_span(s, 0).ei_factor, (1 - loss) * ei_h, rtol=1e-12)
+            assert draw_carriage(s, 0) == draw_carriage(healthy, 0)
+            if state != 7:
+                assert all(a["mv"] != b["mv"] for a, b in zip(draw_runs(s, 5, 0), runs_h))
+    p1, p2 = (bridge_span(SCENARIOS[f"rail-bridge-state7-profile{p}"], 0).ei_factor for p in (1, 2))
+    assert not np.allclose(p1, p2)  # another profile, another bridge realisation
+
+
+def test_batched_inverse_is_the_reference_inverse():
+    """carriage_aps_runs (all trials of all runs in one compiled call) gives the AP of the per-trial
+    reference inverse (cloud.reference.cross_entropy.population_aps) exactly, runs of different
+    lengths and steps included."""
+    from cloud.rail_calibration import INVERSE_NAMES, carriage_aps_runs
+    from cloud.reference.cross_entropy import population_aps
+    from shared.vehicles.carriage import TABLE_3_1
+
+    rng = np.random.default_rng(1)
+    z = [rng.standard_normal((n, 4)) * [1.0, 0.01, 1.0, 0.01] for n in (700, 450)]
+    dts = np.array([0.002, 0.004])
+    trials = [dict(TABLE_3_1, mv=30e3 * (1 + 0.1 * i), Iv=1.8e6, ks=0.8e6 + 1e5 * i, cp=6e3 + 500 * i) for i in range(3)]
+    Z = np.zeros((2, 700, 4))
+    Z[0], Z[1, :450] = z
+    theta = np.array([[t[k] for k in INVERSE_NAMES] for t in trials * 2])
+    run_of = np.repeat([0, 1], 3)
+    got = carriage_aps_runs(theta, run_of, TABLE_3_1["Lb"], TABLE_3_1["Lv"], Z, np.array([700, 450]), dts)
+    for r in (0, 1):
+        ref = population_aps("carriage", trials, z[r], float(dts[r]))[0]
+        n = len(z[r])
+        assert np.abs(got[3 * r:3 * r + 3, :n] - ref).max() <= 1e-12 * np.abs(ref).max()
