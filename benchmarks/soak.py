@@ -30,10 +30,21 @@ Measured:
 * ``soak.latency_p50|p99``: raw chunk published (stamped into the zenoh attachment) → segment applied
   by its cloud, over every traced segment, and the p99 of each tenth of the run (drift shows there).
 * ``soak.rss_slope.<process>``: each process's resident memory (``/proc/<pid>/status`` VmRSS) sampled
-  every ``SAMPLE_S``; the slope (least squares, MB per hour) over the steady state: from the end of
-  the first cycle (``vehicles / passes_per_s`` s, by when every vehicle has driven once: the fleet's
-  publication caches, bounded by vehicles × ``CACHE_CHUNKS`` chunks, and the edges' per-vehicle
-  tasks exist) or the run's middle, whichever is later (the whole series is in ``soak.summary``).
+  every ``SAMPLE_S``; the slope (least squares, MB per hour, with its standard error) over the steady
+  state: from the end of the first cycle (``vehicles / passes_per_s`` s, by when every vehicle has
+  driven once: the fleet's publication caches, bounded by vehicles × ``CACHE_CHUNKS`` chunks, and the
+  edges' per-vehicle tasks exist) or the run's middle, whichever is later (the whole series is in
+  ``soak.summary``), and the growth it projects over 24 h.
+* ``soak.memory_flat``: the verdict, per process and overall. A process is **flat** when its slope is
+  at most ``FLAT_MB_PER_H`` (so at most ``24 × FLAT_MB_PER_H`` MB a day); **growing** when even the
+  slope minus two standard errors exceeds it; otherwise **unresolved** (RSS noise of a few MB over a
+  short window cannot tell: run longer). Overall flat: every process of the deployment (routers,
+  clouds, edges) flat; the fleet (this process, the load generator) is reported, not judged.
+
+Bounded state is bounded only once its bound is reached, so the soak sets the bounds low enough to be
+reached in the first minutes, as with the edges' raw spool: each cloud keeps ``CLOUD_RESIDENT_SEGMENTS``
+segments and ``CLOUD_RESIDENT_PASSES`` passes' bookkeeping in memory (the rest on disk, exact); at the
+daemon's defaults (20 000 and 5 000) this load reaches them after ~40 min, and memory rises until then.
 
 Before the clock starts, one warm-up pass per base log is published and acknowledged (counted in the
 totals, not in the latency).
@@ -81,6 +92,11 @@ SAMPLE_S = 10.0
 # The edges' raw passes kept for recomputation: bounded so that the bound is reached in the first
 # minutes (~130 passes of ~120 KB per edge); at the default 512 MB it would take ~70 min at this load.
 EDGE_RAW_SPOOL_MB = 16.0
+# Each cloud's in-memory window (``--max-resident-segments``/``--max-resident-passes``): at ~8 segments
+# and ~2 passes per second per cloud, reached after ~2 min.
+CLOUD_RESIDENT_SEGMENTS = 1000
+CLOUD_RESIDENT_PASSES = 250
+FLAT_MB_PER_H = 20.0  # the flat criterion: at most this slope (≤ 480 MB over 24 h)
 STARTUP_TIMEOUT_S = 180.0
 DRAIN_TIMEOUT_S = 300.0
 
@@ -137,11 +153,25 @@ def rss_mb(pid: int) -> float | None:
     return None
 
 
-def slope_mb_per_h(t_s: np.ndarray, mb: np.ndarray) -> float:
-    """Least-squares slope of a memory series, MB per hour (nan with fewer than 3 points)."""
+def slope_mb_per_h(t_s: np.ndarray, mb: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of a memory series and its standard error, MB per hour (nan with fewer
+    than 3 points)."""
     if len(t_s) < 3:
-        return float("nan")
-    return float(np.polyfit(t_s, mb, 1)[0] * 3600.0)
+        return float("nan"), float("nan")
+    t = np.asarray(t_s, float) - np.mean(t_s)
+    slope = float(np.dot(t, mb) / np.dot(t, t))
+    resid = mb - np.mean(mb) - slope * t
+    se = float(np.sqrt(np.dot(resid, resid) / (len(t) - 2) / np.dot(t, t)))
+    return slope * 3600.0, se * 3600.0
+
+
+def memory_verdict(slope: float, se: float, limit: float = FLAT_MB_PER_H) -> str:
+    """``flat`` (slope ≤ limit), ``growing`` (slope − 2 se > limit) or ``unresolved``."""
+    if not np.isfinite(slope):
+        return "unresolved"
+    if slope <= limit:
+        return "flat"
+    return "growing" if slope - 2.0 * (se if np.isfinite(se) else 0.0) > limit else "unresolved"
 
 
 class Soak:
@@ -166,7 +196,9 @@ class Soak:
         for cid, route, ep in (("cloud-1", "R1", a), ("cloud-2", "R2", b)):
             self.procs[cid] = _spawn([sys.executable, "-m", "cloud", "--connect", ep, *common, "--id", cid,
                                       "--routes", route, "--calibration", "nominal",
-                                      "--state", str(work / f"{cid}-state")], work / f"{cid}.log")
+                                      "--state", str(work / f"{cid}-state"),
+                                      "--max-resident-segments", str(CLOUD_RESIDENT_SEGMENTS),
+                                      "--max-resident-passes", str(CLOUD_RESIDENT_PASSES)], work / f"{cid}.log")
         for i, ep in enumerate((a, b)):
             eid = f"edge-{i + 1}"
             self.procs[eid] = _spawn([sys.executable, "-m", "edge", "--connect", ep, *common, "--id", eid,
@@ -340,7 +372,8 @@ def _drive(dep: Soak, fleet: Fleet, plan, duration_s, speedup, vehicles, passes_
         lat_t.append(sent - since)
 
     edges = {e: dep.query(e, "stats") for e in ("edge-1", "edge-2")}
-    clouds = {c: dep.query(c, "stats")["stats"] for c in ("cloud-1", "cloud-2")}
+    cloud_bodies = {c: dep.query(c, "stats") for c in ("cloud-1", "cloud-2")}
+    clouds = {c: b["stats"] for c, b in cloud_bodies.items()}
     seg_published = sum(e["segments_published"] for e in edges.values())
     accepted = sum(c.get("accepted", 0) for c in clouds.values())
     duplicates = sum(c.get("rejected", {}).get("duplicate", 0) for c in clouds.values())
@@ -355,11 +388,13 @@ def _drive(dep: Soak, fleet: Fleet, plan, duration_s, speedup, vehicles, passes_
     if np.count_nonzero(t >= steady_from) < 3:
         steady_from = t[-1] / 2  # too short a run for a whole cycle: its second half
     steady = t >= steady_from
-    slopes, final = {}, {}
+    slopes, slope_se, verdict, final = {}, {}, {}, {}
     for name in samples[-1]["rss_mb"]:
         mb = np.asarray([np.nan if s["rss_mb"].get(name) is None else s["rss_mb"][name] for s in samples])
         ok = steady & np.isfinite(mb)
-        slopes[name] = round(slope_mb_per_h(t[ok], mb[ok]), 2)
+        slope, se = slope_mb_per_h(t[ok], mb[ok])
+        slopes[name], slope_se[name] = round(slope, 2), round(se, 2)
+        verdict[name] = memory_verdict(slope, se)
         final[name] = samples[-1]["rss_mb"][name]
     return {
         "vehicles": vehicles, "duration_s": duration_s, "passes_per_s": passes_per_s, "speedup": speedup,
@@ -375,7 +410,14 @@ def _drive(dep: Soak, fleet: Fleet, plan, duration_s, speedup, vehicles, passes_
         "latency_ms": {"n": int(lat.size), "p50": round(float(np.percentile(lat, 50)), 1) if lat.size else None,
                        "p99": round(float(np.percentile(lat, 99)), 1) if lat.size else None,
                        "p99_by_tenth": windows},
-        "rss_slope_mb_per_h": slopes, "rss_slope_from_s": round(float(steady_from), 1), "rss_mb_final": final,
+        "rss_slope_mb_per_h": slopes, "rss_slope_se_mb_per_h": slope_se,
+        "rss_slope_from_s": round(float(steady_from), 1),
+        "rss_mb_final": final, "memory_verdict": verdict,
+        # The deployment's processes; the fleet is this harness (its publication caches fill in a cycle).
+        "memory_flat": all(v == "flat" for k, v in verdict.items() if k != "fleet"),
+        "flat_mb_per_h": FLAT_MB_PER_H,
+        "cloud_resident": {"segments": CLOUD_RESIDENT_SEGMENTS, "passes": CLOUD_RESIDENT_PASSES},
+        "cloud_stats": clouds, "cloud_durability": {c: b.get("durability") for c, b in cloud_bodies.items()},
         "seconds_publishing": round(t_published, 1), "seconds_total": round(t_end, 1),
         "samples": samples,
     }
@@ -393,8 +435,15 @@ def run() -> Iterator[dict]:
         yield {"name": f"soak.latency_{q}", "value": s["latency_ms"][q], "unit": "ms", "n": s["latency_ms"]["n"],
                **({"p99_by_tenth": s["latency_ms"]["p99_by_tenth"]} if q == "p99" else {}), **common}
     for name, v in s["rss_slope_mb_per_h"].items():
-        yield {"name": f"soak.rss_slope.{name}", "value": v, "unit": "MB/h", "final_mb": s["rss_mb_final"][name],
-               "from_s": s["rss_slope_from_s"], **common}
+        se = s["rss_slope_se_mb_per_h"][name]
+        yield {"name": f"soak.rss_slope.{name}", "value": v, "unit": "MB/h", "se": se,
+               "projected_24h_mb": round(24.0 * v, 1), "verdict": s["memory_verdict"][name],
+               "final_mb": s["rss_mb_final"][name], "from_s": s["rss_slope_from_s"], **common}
+    yield {"name": "soak.memory_flat", "value": s["memory_flat"], "unit": "bool",
+           "criterion": f"per process: RSS slope over the steady state <= {s['flat_mb_per_h']:g} MB/h "
+                        f"(<= {24 * s['flat_mb_per_h']:g} MB per 24 h); growing if slope - 2 se exceeds it, "
+                        "else unresolved; the deployment's processes (not the fleet, the load generator)",
+           "verdict": s["memory_verdict"], "snapshots": s["cloud_durability"], **common}
     yield {"name": "soak.summary", "value": s["seconds_total"], "unit": "s", **s}
 
 

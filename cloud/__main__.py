@@ -1,5 +1,9 @@
 import sys
 
-from .node import main
+from shared.cli import single_threaded_blas
+
+single_threaded_blas()  # before numpy loads BLAS (OPENBLAS_NUM_THREADS etc. set by the user win)
+
+from .node import main  # noqa: E402
 
 sys.exit(main())

@@ -12,18 +12,25 @@ import collections.abc
 import dataclasses
 import logging
 import math
+import pickle
+from pathlib import Path
 
 from shared.registry import Site
 from shared.schema import Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
 
 from .estimators.base import Estimator
 from .segment_store import SegmentStore
+from .spill import SpillMap
 
 log = logging.getLogger(__name__)
 
 MAX_ROUTE_OVERHANG_M = 50.0  # a segment may start at most this far beyond the route's end
 #: Rejections of a well-formed segment from its own vehicle: they still complete the pass.
 PASS_ACCOUNTED = frozenset({"beyond_route", "impossible_speed", "grid_mismatch", "implausible_ap"})
+#: Passes whose bookkeeping stays in memory (the daemon's default; a few kB each), and the least
+#: allowed: a pass being updated must not be spilled while its caller still holds it.
+DEFAULT_MAX_RESIDENT_PASSES = 5_000
+MIN_RESIDENT_PASSES = 2
 
 
 def on_route(seg: ApSegment) -> ApSegment | None:
@@ -54,6 +61,11 @@ class PassState:
     refused: set = dataclasses.field(default_factory=set)  # seqs rejected as implausible (still counted)
     params: dict | None = None  # the vehicle parameters the edge computed the pass with (its pass-done says)
     done_payload: bytes | None = None  # the accepted pass-done, as received (the journal's compaction keeps it)
+    times_acked: int = 0  # acknowledgements so far (1: its first; more: recomputed under new calibrations)
+
+
+def _pickle(ps: PassState) -> bytes:
+    return pickle.dumps(ps, protocol=pickle.HIGHEST_PROTOCOL)
 
 
 class Held(collections.abc.MutableMapping):
@@ -109,19 +121,30 @@ class Aggregator:
     """Keeps the accepted segments (latest calibration version of each) and the estimators fed."""
 
     def __init__(self, site: Site, estimators: list[Estimator], foreign_routes: frozenset[str] = frozenset(),
-                 store: SegmentStore | None = None):
+                 store: SegmentStore | None = None, max_resident_passes: int | None = None,
+                 spill_dir: str | Path | None = None):
         self.site = site
         self.estimators = estimators
         self.routes = {r.id: r.length_m for r in site.routes}
         self.foreign_routes = foreign_routes  # other shards' routes: their pass-dones are ignored here
         self.foreign = 0
         self.vehicle_routes: dict[str, collections.Counter] = {}  # sharded: vehicle → route → passes
-        self._pass_route: dict[tuple[str, str], str] = {}
+        # Sharded: every pass-done seen, own routes' and others' ((vehicle, pass) → route), so that a
+        # repeated one is not counted twice; on disk beyond the window, as the passes below.
+        self._pass_route = SpillMap(max_resident_passes, spill_dir, str.encode, bytes.decode, prefix="routes-")
         # (vehicle, pass, route, tile, axle) → segment; a bounded store spills the oldest to disk.
         self.segments: SegmentStore = store if store is not None else SegmentStore()
         # What the estimators hold for each slot: the segment itself, or its chainage-aligned version.
         self.held = Held(self.segments)
-        self.passes: dict[tuple[str, str], PassState] = {}
+        # (vehicle, pass) → its state, for every pass ever seen (idempotence, exact retraction on a
+        # recalibration): at most ``max_resident_passes`` in memory (the most recently used; a read
+        # brings a pass back), the rest on disk, so memory does not grow with the passes.
+        if max_resident_passes is not None and max_resident_passes < MIN_RESIDENT_PASSES:
+            raise ValueError(f"max_resident_passes: expected >= {MIN_RESIDENT_PASSES} or None, "
+                             f"got {max_resident_passes}")
+        self.passes: SpillMap = SpillMap(max_resident_passes, spill_dir, _pickle, pickle.loads, promote=True,
+                                         prefix="passes-")
+        self.models: set[str] = set()  # vehicle models of the passes (e.g. whether any is a rail run)
         # Acknowledged passes per (vehicle, calibration version), kept as passes change state, so a
         # status ("how many passes are current") costs O(vehicles), not O(passes), per acknowledgement.
         self.acked: collections.Counter[tuple[str, int]] = collections.Counter()
@@ -207,6 +230,7 @@ class Aggregator:
             ps.calib_version, ps.seqs, ps.refused = done.calib_version, set(), set()
         ps.expected = done.n_segments
         ps.model = done.vehicle_model or ps.model
+        self.models.add(ps.model)
         ps.done_payload = bytes(payload)
         ps.params = dict(done.params) if done.params is not None else None
         return self._maybe_ack(done.vehicle_id, done.pass_id)
@@ -277,6 +301,7 @@ class Aggregator:
         if ps is None or ps.acked or ps.expected is None or len(ps.seqs | ps.refused) < ps.expected:
             return []
         ps.acked = True
+        ps.times_acked += 1
         self.acked[(vehicle_id, ps.calib_version)] += 1
         # The pass is complete under its newest calibration: any of its segments still held from an
         # older one (a tile the recomputation no longer produces) is superseded too.

@@ -35,8 +35,15 @@ from .journal import Journal, Record
 log = logging.getLogger("driveby.cloud.durable")
 
 AP, DONE, CALIB, CALIBRATOR, EPOCH, ALARM = "ap", "done", "calib", "calibrator", "epoch", "alarm"
-SNAPSHOT_EVERY_RECORDS = 200_000  # compact once the journal has grown by this many records…
-SNAPSHOT_EVERY_S = 600.0  # …or this long has passed with anything new
+#: Compaction policy. A snapshot rewrites the whole live state (every held segment), holding the
+#: serve loop for ~0.1 ms a record, and only pays where records have become garbage (superseded
+#: segments, rejected or duplicate input). So the daemon compacts when the records on disk (the last
+#: snapshot's and the journal since) reach ``COMPACT_RATIO`` × the live state and at least
+#: ``SNAPSHOT_MIN_RECORDS`` came since the last: restart replays at most that many times the live
+#: state, disk holds at most that, and the pauses cost O(1) per record. (A time trigger rewrote the
+#: same live state every 10 min for nothing when nothing is superseded.)
+COMPACT_RATIO = 2.0
+SNAPSHOT_MIN_RECORDS = 10_000
 
 
 def replay(cloud, records: Iterable[Record]) -> int:
@@ -102,14 +109,20 @@ def compacted(cloud) -> Iterator[tuple[str, str, bytes]]:
     for payload in cloud.alarms.values():
         yield ALARM, "", payload
     agg = cloud.aggregator
-    for (vehicle, pass_id, route, tile, _axle), seg in agg.segments.items():
-        yield AP, keys.ap_key(cloud.net, route, tile, vehicle), seg.encode()
-    # Pass-dones in the order the passes were first acknowledged (the epoch record above carries that
-    # order too, for passes being recomputed now, which are acknowledged again only later).
-    order = list(dict.fromkeys([*cloud.completion_order, *agg.passes]))
-    for key in order:
+    # Streamed: spilled segments go out as the wire payloads they are stored as (no decoding), and
+    # nothing here holds more than one record at a time.
+    for (vehicle, pass_id, route, tile, _axle), payload in agg.segments.encoded():
+        yield AP, keys.ap_key(cloud.net, route, tile, vehicle), payload
+    # Pass-dones in the order the passes were first acknowledged (fleet calibration: the epoch record
+    # above carries that order too, for passes being recomputed now, which are acknowledged again only
+    # later), then the others in the order they were first seen.
+    for key in cloud.completion_order:
         ps = agg.passes.get(key)
         if ps is not None and ps.done_payload is not None:
+            yield DONE, keys.done_key(cloud.net, key[0]), ps.done_payload
+    ordered = cloud._ordered
+    for key, ps in agg.passes.items():
+        if key not in ordered and ps.done_payload is not None:
             yield DONE, keys.done_key(cloud.net, key[0]), ps.done_payload
 
 
@@ -119,20 +132,26 @@ class Durability:
     def __init__(self, journal: Journal, cloud):
         self.journal, self.cloud = journal, cloud
         self.live = False  # False while recovering: replayed input is not journalled again
-        self.since_snapshot = 0
+        self.since_snapshot = 0  # records journalled since the last snapshot (replayed ones included)
+        self.snapshot_records = 0  # records the last snapshot holds
         self._snapshot_at = time.monotonic()
+        self.snapshots = 0
+        self.snapshot_s_last = self.snapshot_s_max = 0.0  # how long the serve loop was held by one
 
     def recover(self) -> int:
         meta, records = self.journal.recover()
         first_tail = int(meta.get("next_seq", 0))  # records before it are the snapshot's
         agg = self.cloud.aggregator
         n = replay(self.cloud, (r for r in records if r.seq < first_tail))
+        self.snapshot_records = n
         if meta:
             # Counters are state too, and compaction keeps only what is held: restore them as they were.
             agg.rejected.clear()
             agg.rejected.update(meta.get("rejected", {}))
             agg.accepted = int(meta.get("accepted", agg.accepted))
-        n += replay(self.cloud, (r for r in records if r.seq >= first_tail))
+        tail = replay(self.cloud, (r for r in records if r.seq >= first_tail))
+        self.since_snapshot = tail  # still on disk: they count towards the next compaction
+        n += tail
         if n:
             log.warning("recovered %d journal records (%d passes complete)", n, self.cloud.passes_complete)
         return n
@@ -151,17 +170,33 @@ class Durability:
         self.journal.sync()
 
     def maybe_snapshot(self, force: bool = False) -> bool:
-        due = self.since_snapshot >= SNAPSHOT_EVERY_RECORDS or (
-            self.since_snapshot and time.monotonic() - self._snapshot_at >= SNAPSHOT_EVERY_S)
+        due = self.since_snapshot >= SNAPSHOT_MIN_RECORDS and \
+            self.snapshot_records + self.since_snapshot >= COMPACT_RATIO * self.live_records()
         if not (force or due):
             return False
+        t0 = time.monotonic()
         agg = self.cloud.aggregator
         meta = {"rejected": dict(agg.rejected), "accepted": agg.accepted, "written_utc": time.time()}
+        seq0 = self.journal.next_seq
         self.journal.write_snapshot(compacted(self.cloud), meta)
-        agg.segments.compact()  # the spill file's garbage (replaced segments) goes with the journal's
+        self.snapshot_records = self.journal.next_seq - seq0
         self.since_snapshot = 0
         self._snapshot_at = time.monotonic()
+        self.snapshots += 1
+        self.snapshot_s_last = self._snapshot_at - t0
+        self.snapshot_s_max = max(self.snapshot_s_max, self.snapshot_s_last)
+        log.info("snapshot %d written in %.3f s", self.snapshots, self.snapshot_s_last)
         return True
+
+    def live_records(self) -> int:
+        """About how many records a snapshot now would hold (a segment each, a pass-done per pass)."""
+        agg = self.cloud.aggregator
+        return len(agg.segments) + len(agg.passes)
+
+    def stats(self) -> dict:
+        return {"snapshots": self.snapshots, "snapshot_records": self.snapshot_records,
+                "journal_records_since": self.since_snapshot, "snapshot_s_last": round(self.snapshot_s_last, 4),
+                "snapshot_s_max": round(self.snapshot_s_max, 4), "journal_generation": self.journal.generation}
 
     def close(self) -> None:
         self.journal.close()

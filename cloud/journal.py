@@ -43,6 +43,17 @@ SCHEMA = pa.schema([
     ("key", pa.string()),
     ("payload", pa.binary()),
 ])
+SNAPSHOT_BATCH = 1024  # records per batch of a snapshot file at most…
+SNAPSHOT_BATCH_BYTES = 1 << 20  # …and about this many payload bytes: the transient memory of a snapshot
+
+
+def _batch(seq0: int, rows: list[tuple[str, str, bytes]]) -> pa.RecordBatch:
+    return pa.record_batch([pa.array(range(seq0, seq0 + len(rows)), pa.uint64()),
+                            pa.array([r[0] for r in rows], pa.string()),
+                            pa.array([r[1] for r in rows], pa.string()),
+                            pa.array([r[2] for r in rows], pa.binary())], schema=SCHEMA)
+
+
 _JOURNAL = re.compile(r"journal-(\d{6})\.arrows$")
 _SNAPSHOT = re.compile(r"snapshot-(\d{6})\.arrow$")
 
@@ -132,6 +143,8 @@ class Journal:
                 raise JournalError(f"{path}: unreadable snapshot ({e})") from None
             raw = (table.schema.metadata or {}).get(b"driveby")
             meta = json.loads(raw) if raw else {}
+            if "seq0" in meta and "next_seq" not in meta:  # streamed: its rows say where it ends
+                meta["next_seq"] = int(meta["seq0"]) + table.num_rows
             cols = table.to_pydict()
             records.extend(Record(int(s), k, key, p)
                            for s, k, key, p in zip(cols["seq"], cols["kind"], cols["key"], cols["payload"]))
@@ -184,24 +197,32 @@ class Journal:
         """
         self.close()
         self.generation += 1
-        rows = list(records)
         seq0 = self.next_seq
-        table = pa.table({
-            "seq": pa.array(range(seq0, seq0 + len(rows)), pa.uint64()),
-            "kind": pa.array([r[0] for r in rows], pa.string()),
-            "key": pa.array([r[1] for r in rows], pa.string()),
-            "payload": pa.array([r[2] for r in rows], pa.binary()),
-        }, schema=SCHEMA)
-        self.next_seq = seq0 + len(rows)
-        meta = {**meta, "next_seq": self.next_seq}
-        table = table.replace_schema_metadata({"driveby": json.dumps(meta)})
+        # Streamed in batches (memory: one batch, however large the state). The record count is not
+        # known before the end, so the metadata says where the snapshot's seqs start and recovery
+        # counts them (``next_seq`` = ``seq0`` + rows).
+        schema = SCHEMA.with_metadata({"driveby": json.dumps({**meta, "seq0": seq0})})
         final = self.dir / f"snapshot-{self.generation:06d}.arrow"
         tmp = final.with_suffix(".tmp")
+        seq = seq0
         with open(tmp, "wb") as f:
-            with pa.ipc.new_file(f, table.schema) as w:
-                w.write_table(table)
+            with pa.ipc.new_file(f, schema) as w:
+                batch: list[tuple[str, str, bytes]] = []
+                size = 0
+                for r in records:
+                    batch.append(r)
+                    size += len(r[2])
+                    if len(batch) == SNAPSHOT_BATCH or size >= SNAPSHOT_BATCH_BYTES:
+                        w.write_batch(_batch(seq, batch))
+                        seq += len(batch)
+                        batch, size = [], 0
+                if batch or seq == seq0:
+                    w.write_batch(_batch(seq, batch))
+                    seq += len(batch)
             f.flush()
             os.fsync(f.fileno())
+        self.next_seq = seq
+        pa.default_memory_pool().release_unused()  # the batches' buffers: back to the OS, not kept
         os.replace(tmp, final)
         dfd = os.open(self.dir, os.O_RDONLY)
         try:

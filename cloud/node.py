@@ -25,7 +25,7 @@ from shared.registry import RegistryError, Site, load_site
 from shared.schema import Calibration, DecodeError, decode_alarm, decode_calibration
 from shared.transport import add_zenoh_arguments, config_from_args
 
-from .aggregator import Aggregator
+from .aggregator import DEFAULT_MAX_RESIDENT_PASSES, MIN_RESIDENT_PASSES, Aggregator
 from .alignment import Alignment, estimate_alignment, realign
 from .bridge.estimator import BridgeSettings
 from .bridge.vehicle_error import class_log_sd, fit_log_sd
@@ -79,6 +79,11 @@ REISSUE_AFTER_S = 1.0
 #: While segments stream in, bridge estimates (0.2–1.5 s each) may take at most this share of the
 #: cloud's time, so the bridge view still updates pass by pass during a fast replay.
 BRIDGE_DUTY = 0.2
+#: Per quiet tick (every STATUS_INTERVAL_S), at most this long encoding resident segments into the
+#: spill index (Cloud.flush_spill): a snapshot then copies stored payloads instead of encoding ~1 000
+#: segments (~1 s) with the serve loop held.
+FLUSH_BUDGET_S = 0.01
+RAIL_MODELS = ("carriage", "bogie_half_car")  # vehicle models whose passes are rail runs (issue #6)
 
 
 class Cloud:
@@ -87,7 +92,8 @@ class Cloud:
     def __init__(self, net: str, site: Site, publish, view=None, spacing_m: float = 0.05,
                  calibration: str = "nominal", node_id: str = "cloud-1", align: bool = False,
                  bridge_settings: BridgeSettings = BridgeSettings(), shard: frozenset[str] | None = None,
-                 max_resident: int | None = None, spill_dir: Path | None = None):
+                 max_resident: int | None = None, spill_dir: Path | None = None,
+                 max_resident_passes: int | None = None):
         # A shard (``shard``: the routes this aggregator owns) sees the site as its routes and their
         # bridges only; pass-dones for the other shards' routes are not its business (counted apart).
         foreign = frozenset()
@@ -102,10 +108,12 @@ class Cloud:
         # The vehicle step compares against the data alone (the flat-prior limit of the posterior):
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, spacing_m)
-        # At most ``max_resident`` segments decoded in memory (None: all); the rest in a spill file
-        # under ``spill_dir`` (default: the system's temporary directory), read back when needed.
+        # At most ``max_resident`` segments decoded in memory (None: all) and ``max_resident_passes``
+        # passes' bookkeeping; the rest on disk under ``spill_dir`` (default: the system's temporary
+        # directory), read back when needed, so memory does not grow with the passes.
         self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign,
-                                     store=SegmentStore(max_resident, spill_dir))
+                                     store=SegmentStore(max_resident, spill_dir),
+                                     max_resident_passes=max_resident_passes, spill_dir=spill_dir)
         if max_resident is not None and isinstance(getattr(self.profile, "segments", None), dict):
             # The profile estimator keeps each segment it holds too (exact retraction, the per-pass
             # drift assembled at snapshot time): bounded the same way.
@@ -117,7 +125,8 @@ class Cloud:
         self.align_due = False  # passes completed since the last alignment
         self.alignments: dict[tuple[str, str], Alignment] = {}
         # Calibration epochs (see EPOCH_MAX_STEP): passes in first-acknowledgement order, the current
-        # epoch's size and the calibrator's round count when it began.
+        # epoch's size and the calibrator's round count when it began. Kept under fleet calibration only
+        # (its rounds see every pass anyway); without it nothing here grows with the passes.
         self.completion_order: list[tuple[str, str]] = []
         self._ordered: set[tuple[str, str]] = set()  # the same passes, for membership
         self.epoch_size = 0
@@ -133,7 +142,6 @@ class Cloud:
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
-        self.completed: set[tuple[str, str]] = set()
         self.status_due = False  # acks were published since the last status
         # Bridges are fed and estimated when the bus is quiet (maybe_estimate_bridges), never per segment.
         self.bridges = BridgeMonitor(site, bridge_settings)
@@ -187,17 +195,17 @@ class Cloud:
             if self.align:
                 self._reapply_alignment((ack.vehicle_id, ack.pass_id))
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
-            first = (ack.vehicle_id, ack.pass_id) not in self.completed
+            first = ps is not None and ps.times_acked == 1
             if self.calibrator is not None and ps is not None and ps.model:
                 try:
                     self.calibrator.initial(ack.vehicle_id, ps.model)  # rounds: see maybe_calibrate
                 except KeyError:  # no vehicle class for this model in the registry: not calibrated
                     pass
-            if (ack.vehicle_id, ack.pass_id) not in self._ordered:
-                self.completion_order.append((ack.vehicle_id, ack.pass_id))
-                self._ordered.add((ack.vehicle_id, ack.pass_id))
+            if first:
                 self._new_pass_at = time.monotonic()
-            self.completed.add((ack.vehicle_id, ack.pass_id))
+                if self.calibrator is not None and (ack.vehicle_id, ack.pass_id) not in self._ordered:
+                    self.completion_order.append((ack.vehicle_id, ack.pass_id))
+                    self._ordered.add((ack.vehicle_id, ack.pass_id))
             v = self.vehicles[ack.vehicle_id]
             v["passes"] += first
             v["last_pass"] = ack.pass_id
@@ -211,6 +219,22 @@ class Cloud:
         if acks:
             self.status_due = True
             self.flush_status()
+
+    def flush_spill(self, budget_s: float = FLUSH_BUDGET_S) -> None:
+        """Idle work: encode resident segments into the spill index ahead of time, so that neither
+        spilling them under load nor a snapshot (every segment) has to."""
+        for store in (self.aggregator.segments, self.profile.segments):
+            if isinstance(store, SegmentStore):
+                store.flush(budget_s / 2)
+
+    @property
+    def completed(self) -> set[tuple[str, str]]:
+        """Every pass acknowledged at least once (reads every pass: for tests and tools)."""
+        return {key for key, ps in self.aggregator.passes.items() if ps.times_acked}
+
+    def has_rail(self) -> bool:
+        """Whether any pass is a rail run: the batches look at every pass, so not without one."""
+        return not self.aggregator.models.isdisjoint(RAIL_MODELS)
 
     def current_version(self, vehicle_id: str) -> int:
         st = self.calibrator.vehicles.get(vehicle_id) if self.calibrator is not None else None
@@ -663,7 +687,8 @@ class Cloud:
         return {rid: with_long_wave_band(s, segs) for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:
-        self.rail.step(self, force=True)  # every acknowledged carriage run calibrated and re-keyed
+        if self.has_rail():
+            self.rail.step(self, force=True)  # every acknowledged carriage run calibrated and re-keyed
         snaps = self.snapshot()
         tables = {"profile": profile_table(snaps)}
         rough = [roughness_table(rid, s.chainage_m, self.profile.sample(rid, 100, np.random.default_rng(0)),
@@ -674,7 +699,8 @@ class Cloud:
         if self.calibrator is not None or vehicle_rows:
             tables["vehicles"] = vehicles_table(vehicle_rows)
         # --- rail (issue #6): track geometry quality of routes that carriages ran on ---------------
-        rail = {ps.route_id for ps in self.aggregator.passes.values() if ps.model in ("carriage", "bogie_half_car")}
+        rail = {ps.route_id for ps in self.aggregator.passes.values() if ps.model in RAIL_MODELS} \
+            if self.has_rail() else set()
         if rail:
             tables["track_quality"] = track_quality_table({r: s for r, s in snaps.items() if r in rail})
         # --- end rail -----------------------------------------------------------------------------
@@ -706,6 +732,28 @@ def _finite_or_null(v):
     return v
 
 
+class LatencyTrace:
+    """The last ``n`` traced segments' (sent, applied) times, Unix s, in a ring allocated (and
+    written, so resident) up front: the daemon's memory does not creep up as it fills."""
+
+    def __init__(self, n: int = TRACE_RECORDS):
+        self.rows = np.full((n, 2), np.nan)
+        self.count = 0  # records ever added
+
+    def add(self, sent: float, applied: float, times: int = 1) -> None:
+        for _ in range(min(times, len(self.rows))):
+            self.rows[self.count % len(self.rows)] = (sent, applied)
+            self.count += 1
+
+    def since(self, t: float) -> tuple[list[float], list[float]]:
+        """(sent, applied) of the records whose raw chunk was published at ``t`` or later."""
+        n = len(self.rows)
+        order = np.arange(self.count - min(self.count, n), self.count) % n
+        rows = self.rows[order]
+        rows = rows[rows[:, 0] >= t]
+        return rows[:, 0].tolist(), rows[:, 1].tolist()
+
+
 def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Event,
           default_export: Path | None = None, durability: Durability | None = None,
           shard: frozenset[str] | None = None) -> None:
@@ -719,7 +767,7 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
     rounds once the bus has been quiet for ``QUIET_S``.
     """
     lock = threading.Lock()
-    traced: collections.deque = collections.deque(maxlen=TRACE_RECORDS)  # (sent, applied), Unix s
+    traced = LatencyTrace()
     last_input = time.monotonic()
 
     def apply(on_message, sample, kind: str) -> None:
@@ -737,7 +785,7 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                 if trace is not None and accepted:
                     trace = trace.to_bytes()
                     if len(trace) == TRACE.size:
-                        traced.extend([(TRACE.unpack(trace)[0], time.time())] * accepted)
+                        traced.add(TRACE.unpack(trace)[0], time.time(), accepted)
             except Exception:  # a daemon never dies of one message; it is counted and logged
                 cloud.aggregator.rejected["internal_error"] += 1
                 log.exception("failed to process %s", key)
@@ -779,7 +827,8 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
     def on_stats(query):
         with query:
             with lock:
-                body = {"stats": cloud.aggregator.stats(), "passes_complete": cloud.passes_complete}
+                body = {"stats": cloud.aggregator.stats(), "passes_complete": cloud.passes_complete,
+                        **({"durability": durability.stats()} if durability is not None else {})}
             query.reply(keys.control_key(cloud.net, node_id, "stats"), json.dumps(body).encode())
 
     def on_latency(query):  # ?since=T: the traced segments whose raw chunk was published at T or later
@@ -791,8 +840,8 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                 query.reply_err(b"since: expected Unix seconds")
                 return
             with lock:
-                rows = [r for r in traced if r[0] >= since]
-            body = {"sent": [r[0] for r in rows], "applied": [r[1] for r in rows]}
+                sent, applied = traced.since(since)
+            body = {"sent": sent, "applied": applied}
             query.reply(keys.control_key(cloud.net, node_id, "latency"), json.dumps(body).encode())
 
     decl = [
@@ -834,10 +883,12 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                         else:
                             # (A round journals the calibrator through cloud.record before publishing.)
                             cloud.maybe_calibrate(tail=cloud.since_new_pass_s() >= EPOCH_TAIL_S)
-                            cloud.rail.step(cloud)  # carriage batches (issue #6)
+                            if cloud.has_rail():
+                                cloud.rail.step(cloud)  # carriage batches (issue #6)
                             # Bridges take passes at their vehicle's current calibration only, so a
                             # round just published leaves them as they are until recomputed.
                             cloud.maybe_estimate_bridges()
+                        cloud.flush_spill()
                         if durability is not None:
                             durability.maybe_snapshot()
                     elif cloud.bridges_may_run():  # streaming: bridges within their share of the time
@@ -869,6 +920,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep at most N segments decoded in memory, the rest spilled to disk (under --state, "
                         "else the temporary directory) and read back exactly when needed "
                         f"(default {DEFAULT_MAX_RESIDENT}, ~4 kB each)")
+    p.add_argument("--max-resident-passes", type=int, default=DEFAULT_MAX_RESIDENT_PASSES, metavar="N",
+                   help="keep the bookkeeping of at most N passes (the most recent) in memory, the rest on disk "
+                        f"like spilled segments (default {DEFAULT_MAX_RESIDENT_PASSES}, a few kB each)")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
     p.add_argument("--log-level", default="WARNING")
@@ -881,6 +935,9 @@ def main(argv: list[str] | None = None) -> int:
         conf = config_from_args(args)
         if args.max_resident_segments < 1:
             raise ValueError(f"--max-resident-segments: expected >= 1, got {args.max_resident_segments}")
+        if args.max_resident_passes < MIN_RESIDENT_PASSES:
+            raise ValueError(f"--max-resident-passes: expected >= {MIN_RESIDENT_PASSES}, "
+                             f"got {args.max_resident_passes}")
         journal = Journal(args.state) if args.state else None
         shard = None
         if args.routes:
@@ -914,7 +971,7 @@ def main(argv: list[str] | None = None) -> int:
 
             cloud = Cloud(args.net, site, publish, view, calibration=args.calibration, node_id=args.id,
                           align=args.align, shard=shard, max_resident=args.max_resident_segments,
-                          spill_dir=args.state)
+                          spill_dir=args.state, max_resident_passes=args.max_resident_passes)
             if journal is not None:
                 durability = Durability(journal, cloud)
                 durability.recover()

@@ -7,7 +7,21 @@ module (in ``shared``) depends on none of the process packages at import time.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+
+#: Thread counts of the BLAS/OpenMP libraries numpy and scipy may load. A daemon's linear algebra is
+#: small (e.g. a 270×270 eigh) and shares the machine with the others: one thread took 0.04 s where a
+#: thread per core took 0.3–4 s on a loaded box, so the daemons run it single-threaded.
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def single_threaded_blas(environ=os.environ) -> None:
+    """Make BLAS single-threaded unless the user chose otherwise (a variable already set wins).
+
+    Call before numpy is first imported: the libraries read these variables once, when loaded."""
+    for name in BLAS_THREAD_VARIABLES:
+        environ.setdefault(name, "1")
 
 
 def _run_args(p: argparse.ArgumentParser) -> None:
@@ -55,12 +69,15 @@ def _cmd_demo(args) -> int:
 
 
 DAEMONS = {"edge": "edge", "cloud": "cloud", "fleet": "simfleet"}  # subcommand → package with node.main
+BLAS_DAEMONS = ("edge", "cloud")  # long-running, sharing the machine: single-threaded BLAS by default
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] and argv[0] in DAEMONS:
         # Daemons own their whole command line (Zenoh options, ...): hand it over untouched.
+        if argv[0] in BLAS_DAEMONS:
+            single_threaded_blas()
         node = __import__(f"{DAEMONS[argv[0]]}.node", fromlist=["main"])
         try:
             return node.main(argv[1:])

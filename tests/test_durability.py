@@ -164,7 +164,7 @@ def test_a_cloud_killed_mid_run_is_restarted_and_the_export_is_unchanged(road, t
     assert crash.stats["accepted"] == ref.stats["accepted"]  # nothing lost, nothing counted twice
 
 
-def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, snapshot=False):
+def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, snapshot=False, max_resident_passes=None):
     """Edge and cloud cores wired in memory (as simfleet.reproduce.run_in_process), the cloud with a
     journal; optionally the cloud "dies" after some calibration rounds and is rebuilt from it."""
     import collections
@@ -182,7 +182,8 @@ def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, sna
         queue.append((key, payload))
 
     def new_cloud():
-        cloud = Cloud(NET, site, publish, calibration="fleet", max_resident=max_resident, spill_dir=state_dir)
+        cloud = Cloud(NET, site, publish, calibration="fleet", max_resident=max_resident, spill_dir=state_dir,
+                      max_resident_passes=max_resident_passes)
         cloud.calibrator.max_rounds = 5  # enough rounds to crash between; the suite stays quick
         d = Durability(Journal(state_dir), cloud)
         d.recover()
@@ -221,12 +222,15 @@ def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, sna
 
 
 def test_fleet_calibration_resumes_from_the_journal(road, tmp_path):
-    """…and, the crashed cloud keeping at most 5 segments in memory, recalibrated passes retract
-    segments spilled long before: read back, retracted exactly (the profile to the bit)."""
+    """…and, the crashed cloud keeping at most 5 segments and 2 passes in memory, recalibrated passes
+    retract segments spilled long before and update passes read back from disk: retracted exactly (the
+    profile to the bit)."""
     ref = _fleet_loop(road, tmp_path / "ref")
-    crashed = _fleet_loop(road, tmp_path / "crash", crash_after_rounds=2, max_resident=5)
+    crashed = _fleet_loop(road, tmp_path / "crash", crash_after_rounds=2, max_resident=5, max_resident_passes=2)
     store = crashed.aggregator.segments
     assert store.reads > 0 and store.resident <= 5
+    passes = crashed.aggregator.passes
+    assert passes.reads > 0 and passes.resident <= 2 and len(passes) == 4
     sa, sb = ref.profile.snapshot()["R1"], crashed.profile.snapshot()["R1"]
     for f in ("elevation_m", "lo95_m", "hi95_m", "n_passes"):
         assert np.array_equal(getattr(sa, f), getattr(sb, f), equal_nan=True), f
@@ -324,3 +328,101 @@ def test_memory_stays_bounded_as_passes_accumulate_and_the_export_is_unchanged(r
     assert a.keys() == b.keys() and "profile.parquet" in a
     for name in a:
         assert a[name].equals(b[name]), name
+
+
+def _fleet_of(msgs, n_passes: int, vehicles: int) -> list[tuple[str, bytes]]:
+    """``n_passes`` passes of ``vehicles`` vehicles, each a copy of one of the road's passes under a new
+    vehicle and pass id (as a fleet that drives the same road for months)."""
+    import dataclasses
+
+    from shared.schema import decode_pass_done
+
+    base: dict[str, list] = {}
+    for key, payload in msgs:
+        if "/ap/" in key:
+            for seg in decode_ap(payload):
+                base.setdefault(seg.pass_id, []).append(seg)
+        else:
+            done = decode_pass_done(payload)
+            base.setdefault(done.pass_id, []).append(done)
+    templates = list(base.values())
+    out = []
+    for k in range(n_passes):
+        vid = f"f{k % vehicles:03d}"
+        for m in templates[k % len(templates)]:
+            m = dataclasses.replace(m, vehicle_id=vid, pass_id=f"{vid}-{k // vehicles}")
+            key = keys.ap_key(NET, m.route_id, m.tile, vid) if hasattr(m, "tile") else keys.done_key(NET, vid)
+            out.append((key, m.encode()))
+    return out
+
+
+def test_held_state_stays_bounded_as_passes_accumulate(road, tmp_path):
+    """The cloud's per-pass state (segments, pass bookkeeping: idempotence, exact retraction) lives
+    on disk beyond a window, so what it holds in memory stops growing with the passes: measured
+    with tracemalloc between the middle and the end of 120 passes, against an unbounded cloud that
+    keeps everything (~20 kB a pass); and the export is the unbounded cloud's, table for table."""
+    import gc
+    import tracemalloc
+
+    fleet = _fleet_of(_messages(road), n_passes=120, vehicles=30)
+    seg_bound, pass_bound = 24, 8
+
+    def fed(cloud):
+        at = []
+        gc.collect()
+        tracemalloc.start()
+        try:
+            for key, payload in fleet:
+                _feed(cloud, [(key, payload)])
+                agg = cloud.aggregator
+                if agg.segments.max_resident is not None:
+                    assert agg.segments.resident <= seg_bound and cloud.profile.segments.resident <= seg_bound
+                    assert agg.passes.resident <= pass_bound
+                if "/done/" in key and cloud.passes_complete in (60, 120):
+                    gc.collect()
+                    at.append(tracemalloc.get_traced_memory()[0])
+        finally:
+            tracemalloc.stop()
+        return (at[1] - at[0]) / 60
+
+    unbounded = _cloud(road)
+    per_pass_unbounded = fed(unbounded)
+    cloud = Cloud(NET, load_site(road / "site.toml"), lambda k, p: None, calibration="nominal",
+                  max_resident=seg_bound, max_resident_passes=pass_bound, spill_dir=tmp_path / "spill")
+    per_pass = fed(cloud)
+    assert cloud.passes_complete == unbounded.passes_complete == 120
+    assert len(cloud.aggregator.passes) == 120 and cloud.aggregator.passes.spilled == 120 - pass_bound
+    # Nothing else per pass: no completion order without fleet calibration, nothing hidden or replaced.
+    assert not cloud.completion_order and not cloud.aggregator.held.other and not cloud.aggregator.held.absent
+    assert per_pass_unbounded > 10_000  # what the measurement sees when everything is kept
+    assert per_pass < 1_000, per_pass  # bytes per pass (measured ~0 ± 300): what is left is O(vehicles), not O(passes)
+    a, b = _export_tables(unbounded, tmp_path / "a"), _export_tables(cloud, tmp_path / "b")
+    assert a.keys() == b.keys() and "profile.parquet" in a
+    for name in a:
+        assert a[name].equals(b[name]), name
+
+
+def test_compaction_runs_when_the_journal_is_mostly_garbage(road, tmp_path, monkeypatch):
+    """A snapshot rewrites the live state: not due while every journalled record is live (a soak's
+    steady stream), due once superseded or duplicate records make the journal twice the live state;
+    the compacted state restarts to the same cloud."""
+    import cloud.durable as durable
+
+    monkeypatch.setattr(durable, "SNAPSHOT_MIN_RECORDS", 10)
+    msgs = _messages(road)
+    cloud = _cloud(road)
+    d = Durability(Journal(tmp_path), cloud)
+    d.recover()
+    d.live = True
+    _feed(cloud, msgs, d)
+    assert d.since_snapshot == len(msgs) >= 10 and not d.maybe_snapshot()  # nothing to gain yet
+    resent = 0
+    while d.since_snapshot < durable.COMPACT_RATIO * d.live_records():
+        assert not d.maybe_snapshot()
+        _feed(cloud, msgs, d)  # the edges resend: duplicates, journalled and garbage
+        resent += 1
+    assert resent and d.maybe_snapshot() and d.snapshots == 1
+    assert d.since_snapshot == 0 and d.snapshot_records == d.live_records() and not d.maybe_snapshot()
+    restarted = _cloud(road)
+    Durability(Journal(tmp_path), restarted).recover()
+    _same(cloud, restarted)
