@@ -35,8 +35,8 @@ from .estimators.gmrf_profile import GmrfProfile
 from .estimators.long_wave import with_long_wave_band
 from .estimators.mean_profile import MeanProfile
 from .journal import Journal, JournalError
-from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_table,
-                     roughness_table, track_quality_table, vehicles_table, write_export)
+from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
+                     profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
 from .fleet_calibration import FleetCalibrator
 from .segment_store import DEFAULT_MAX_RESIDENT, SegmentStore
 from .rail import RailBatches
@@ -44,6 +44,9 @@ from .rail import RailBatches
 log = logging.getLogger("driveby.cloud")
 
 TILE_M = 50.0
+#: Knot spacing (m) of each pass's own drift, a nuisance of the profile posterior (cloud.estimators.pass_drift);
+#: None leaves the drift to the band's measured long-wave term.
+DRIFT_KNOT_M: float | None = 25.0
 ALIGN_MIN_SCORE = 0.5  # correlation below this: the pass and the consensus do not overlap well enough
 ALIGN_MIN_PASSES = 3  # fewer passes do not define a frame worth centring on
 ALIGN_ITERATIONS = 6
@@ -104,7 +107,7 @@ class Cloud:
                                        bridges=tuple(b for b in site.bridges if b.route in shard))
         self.net, self.site, self.publish, self.view, self.node_id = net, site, publish, view, node_id
         routes = {r.id: r.length_m for r in site.routes}
-        self.profile = GmrfProfile(routes, spacing_m)
+        self.profile = GmrfProfile(routes, spacing_m, drift_knot_m=DRIFT_KNOT_M)
         # The vehicle step compares against the data alone (the flat-prior limit of the posterior):
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, spacing_m)
@@ -684,15 +687,17 @@ class Cloud:
         drift and calibration error each pass adds beyond the likelihood's white noise, measured band
         by band from their disagreement: :mod:`cloud.estimators.long_wave`)."""
         segs = list(self.aggregator.held.values())  # what the estimators hold (chainage-aligned)
-        return {rid: with_long_wave_band(s, segs) for rid, s in self.profile.snapshot().items()}
+        longest = self.profile.drift_knot_m is None  # the drift nuisance covers the longest band itself
+        return {rid: with_long_wave_band(s, segs, longest=longest) for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:
         if self.has_rail():
             self.rail.step(self, force=True)  # every acknowledged carriage run calibrated and re-keyed
         snaps = self.snapshot()
         tables = {"profile": profile_table(snaps)}
-        rough = [roughness_table(rid, s.chainage_m, self.profile.sample(rid, 100, np.random.default_rng(0)),
-                                 self.profile.spacing_m) for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
+        segs = list(self.aggregator.held.values())
+        rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0), self.profile.spacing_m)
+                 for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
         if rough:
             tables["roughness"] = pa.concat_tables(rough)
         vehicle_rows = self.vehicle_rows() + self.rail.rows()
