@@ -33,11 +33,12 @@ class EdgeConfig:
     # body: ~18 s) would have nothing reliable in a short log. Its warm-up past this time is sent
     # flagged unreliable and down-weighted (σ × 100) instead of dropped; road vehicles settle sooner.
     hard_warmup_s: float = 1.0
-    # Anti-alias the AP before gridding (see :func:`_antialias`); off: plain linear interpolation.
-    # Off by default: alias-free in isolation (tests/test_gridding.py), but end to end on
-    # bridge-healthy (30 fleet-calibrated passes) it made the element pattern worse (max error
-    # 7.6 → 14 points, a false crack alarm); not yet understood — see the session-3 note.
-    antialias: bool = False
+    # Anti-alias the AP before gridding (see :func:`_antialias`); off: plain linear interpolation,
+    # which folds the inverse's noise up to 250 Hz into the 5 cm grid's band: on a bridge span that is
+    # ~10× the sensor noise at the quarter-car's γ = 0.6, and it is coloured like the vehicle's
+    # transfer, so the bridge's calibration nuisance fits it (8 passes: effective stiffness 1.22
+    # against 0.97 alias-free; tests/test_bridge_common_calibration.py).
+    antialias: bool = True
     # The AP error model sent with each segment (edge.error_model): each channel's noise level from
     # its data pushed through the inverse's transfer, fitted with a precision band of this order
     # over wavelengths up to error_longest_m. Off: segments carry only the white sigma.

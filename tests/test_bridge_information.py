@@ -74,3 +74,40 @@ def test_noise_sd_is_the_percentage_of_the_clean_signal():
     clean = np.sin(np.linspace(0, 60, 20000))
     noisy = clean + 0.02 * np.std(clean) * rng.standard_normal(clean.size)
     assert math.isclose(noise_sd_of(noisy, 2.0), 0.02 * np.std(clean), rel_tol=0.01)
+
+
+def test_calibration_errors_are_marginalised_as_in_the_joint_information():
+    """The common and per-pass calibration nuisances (with their priors) against the brute-force
+    joint Fisher information over (θ, every vehicle's load, the common δ, every pass's own δ)."""
+    names = ["c/M", "k/M"]
+    road = lambda x: 0.009 * np.clip((x + 12.0) / 3.0, 0.0, 1.0) + 2e-3 * np.sin(0.7 * x)  # noqa: E731 (a ramp)
+    other = dict(QC, c=QC["c"] * 1.1, M=QC["M"] * 0.95)
+    cases = [PassCase("v1", "quarter_car", QC, 16.0, 1e-3, road), PassCase("v1", "quarter_car", QC, 19.0, 1e-3, road),
+             PassCase("v2", "quarter_car", other, 21.0, 1e-3, road)]
+    sens = [pass_sensitivity(c, BEAM, calibration=names) for c in cases]
+    w_rel, common_sd, pass_sd = 0.1, [0.03, 0.02], [0.04, 0.04]
+    info = fleet_information(sens, w_rel, common_sd=common_sd, pass_sd=pass_sd, span_m=BEAM.span_m)
+
+    ne, K, P = BEAM.n_elements, len(names), len(sens)
+    vehicles = ["v1", "v2"]
+    n_par = ne + len(vehicles) + K + P * K
+    mean_u = np.mean([s.u for s in sens], axis=0)
+    F = np.zeros((n_par, n_par))
+    for i, s in enumerate(sens):
+        common, own = s.calibration_columns(mean_u, BEAM.span_m)
+        X = np.zeros((s.S.shape[0], n_par))
+        X[:, :ne] = s.S
+        X[:, ne + vehicles.index(s.case.vehicle_id)] = s.s_w
+        X[:, ne + 2 : ne + 2 + K] = common
+        X[:, ne + 2 + K + i * K : ne + 2 + K + (i + 1) * K] = own
+        F += X.T @ X
+    prior = np.r_[np.zeros(ne), np.full(2, 1 / w_rel**2), 1 / np.square(common_sd), np.tile(1 / np.square(pass_sd), P)]
+    joint = np.linalg.inv(F + np.diag(prior))[:ne, :ne]
+    assert np.allclose(np.linalg.inv(info.marginal()), joint, rtol=1e-6)
+    # the nuisances cost information, and the columns are not empty
+    bare = fleet_information(sens, w_rel)
+    assert info.global_sd() > bare.global_sd()
+    assert np.linalg.norm(sens[0].calibration_columns(mean_u, BEAM.span_m)[0]) > 0
+    # scaling keeps the joint blocks (the common prior does not scale with passes)
+    big = info.scaled(30)
+    assert big.global_sd() < info.global_sd() and np.allclose(big.common_precision, info.common_precision)

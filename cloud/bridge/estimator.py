@@ -30,8 +30,9 @@ from .hypotheses import Assessment, HypothesisSettings, Kernels, assess
 from .mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
 from .passdata import EdgeSettings, PassData, Reference, extract_pass, span_profile
 from .static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, Whitener,
-                     fit_elements, marginal_loglik_batch, model_columns, mu_basis, road_sensitivity, step_basis,
-                     vehicle_stats, whiten_pass)
+                     common_calibration_columns, consensus_distortion, fit_elements, marginal_loglik_batch,
+                     model_columns, mu_basis, pass_distortion, road_sensitivity, step_basis, vehicle_stats,
+                     whiten_pass)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,15 +62,26 @@ class BridgeSettings:
     #: (measured, 30 quarter-cars at 2 % noise: rms log errors 0.5–3.7 % per quantity, c/M the
     #: worst); None: parameters taken as exact.
     calibration_log_sd: float | None = 0.04
+    #: prior of the calibration error every pass of the vehicle class shares (the fleet-common mode
+    #: that fleet agreement cannot see, :mod:`cloud.bridge.vehicle_error`), integrated out jointly
+    #: across passes: "mean" — log-sd σ_class/√N per quantity, the error of the class prior's mean as
+    #: the mean of N vehicles drawn from the class (N: vehicles with calibrated passes on the bridge,
+    #: at most the number calibrated, so this errs wide); "class" — σ_class (the fleet may differ
+    #: from the class as a whole); None — not modelled.
+    common_calibration: str | None = "mean"
 
 
 def class_weight_prior(site: Site, model: str) -> WeightPrior:
-    """Static wheel load prior of a single-contact vehicle class: mean and sd of (M + m)·g (N).
+    """Static wheel load prior of a single-contact vehicle class: mean and sd of (M + m)·g (N),
+    with the class's spread of each calibration quantity (log-sd, the scale of the fleet-common
+    calibration error, :attr:`BridgeSettings.common_calibration`).
 
     Absolute masses are not identifiable from road data: the class mean is the scale
     (thesis §4.5.5); a vehicle's ratio m/M does not change the prior mean to first order.
     """
     from shared.vehicles import GRAVITY, vehicle_from_params
+
+    from .vehicle_error import class_log_sd
 
     vc = site.vehicle_class(model)
     mean = vehicle_from_params(model, dict(vc.mean)).system().static_contact_forces()
@@ -77,7 +89,11 @@ def class_weight_prior(site: Site, model: str) -> WeightPrior:
         raise ValueError("class_weight_prior: single-contact vehicle classes only")
     mass_names = [k for k in vc.mean if k in ("M", "m")] or list(vc.mean)[:1]
     sd = math.sqrt(sum(vc.std.get(k, 0.0) ** 2 for k in mass_names)) * GRAVITY
-    return WeightPrior(float(mean[0]), float(sd))
+    try:
+        spread = tuple(sorted(class_log_sd(site, model).items()))
+    except (KeyError, ValueError):
+        spread = ()
+    return WeightPrior(float(mean[0]), float(sd), class_log_sd=spread)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -117,6 +133,7 @@ class _PassEntry:
     data: PassData
     columns: tuple[Whitener, np.ndarray, tuple | None]
     road: tuple[int, np.ndarray] | None = None  # (passes in the consensus, its road sensitivity)
+    common: np.ndarray | None = None  # its fleet-common calibration columns, band-limited forward model
 
 
 class BridgeEstimator:
@@ -136,6 +153,7 @@ class BridgeEstimator:
         self._scale = 1.0  # uniform stiffness ratio of the dynamic correction
         self._linearise_at: np.ndarray | None = None  # bearing models: the last estimate's parameters
         self._cache: dict = {}  # (vehicle, pass, parameters) → dynamic excess on the window
+        self._common_at: tuple | None = None  # (passes, names, consensus distortion) of the common columns
 
     # -- data ------------------------------------------------------------------------------
     def add_segments(self, segments: Sequence[ApSegment], model: str, params: dict,
@@ -182,8 +200,11 @@ class BridgeEstimator:
         # for bearings at the last estimate: the bearings' prior mean (Krot 1e8, nearly pinned) is far
         # from a stiff bearing's line, and linearising there read bearing-1e10 as 1e11.3 (H4).
         load = self.model.a(self._linearise_at if self._linearise_at is not None else self.model.prior_mean())
+        common = self._common(entries)
+        cols = self._common_columns(entries, ref, common, load)
         wps = [whiten_pass(e.data, ref, self.setup.basis, self.settings.deck, columns=e.columns, load=load,
-                           weight_n=self.weight_prior.mean_n, road=self._road(e, ref)) for e in entries]
+                           weight_n=self.weight_prior.mean_n, road=self._road(e, ref), common=common,
+                           common_columns=c) for e, c in zip(entries, cols)]
         level_loglik = level = None
         if self.settings.dynamic:
             fit = fit_elements_dynamic(wps, self.setup, self.weight_prior, model=self.model, start=self._scale,
@@ -211,6 +232,51 @@ class BridgeEstimator:
         self.baseline.offer(mril)
         indicators = damage_indicators(self.baseline.mril, mril) if self.baseline.ready else None
         return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes)
+
+    def _common(self, entries: list[_PassEntry]) -> tuple[tuple[str, float], ...] | None:
+        """(name, prior log-sd) of the fleet-common calibration error's coordinates, or None."""
+        how = self.settings.common_calibration
+        spread = self.weight_prior.class_log_sd
+        if how is None or not spread:
+            return None
+        if how not in ("mean", "class"):
+            raise ValueError(f"common_calibration: 'mean', 'class' or None, got {how!r}")
+        n = len({e.data.vehicle_id for e in entries if e.data.params_log_sd})
+        if n == 0:
+            return None
+        k = 1.0 / math.sqrt(n) if how == "mean" else 1.0
+        return tuple((name, s * k) for name, s in spread if s > 0)
+
+    def _common_columns(self, entries: list[_PassEntry], ref: Reference, common, load: np.ndarray) -> list:
+        """Every pass's band-limited forward model of its fleet-common calibration columns
+        (:func:`~cloud.bridge.static.common_calibration_columns`). They are a nuisance's shape, not
+        data: all are recomputed when the fleet has grown by a quarter since (the consensus and its
+        distortion move), a new pass's against the consensus distortion of then — so an update
+        costs one pass's columns, amortised."""
+        if not common:
+            return [None] * len(entries)
+        names = tuple(n for n, _ in common)
+        window, on, deck = self.setup.window, self.setup.window.on_span, self.settings.deck
+        J = self.setup.basis.design @ load
+
+        def deflection(e: _PassEntry) -> np.ndarray:
+            d = np.zeros(window.n)
+            d[on] = -self.weight_prior.mean_n * e.data.load_factor[on] * J
+            return d
+
+        at = self._common_at
+        if at is None or len(entries) > 1.25 * at[0] or at[1] != names:
+            cols, us = common_calibration_columns([e.data for e in entries], ref, names, deck,
+                                                  [deflection(e) for e in entries])
+            for e, c in zip(entries, cols):
+                e.common = e.columns[0].stage1(c)
+            self._common_at = (len(entries), names, consensus_distortion(us, window, deck))
+        else:
+            for e in entries:
+                if e.common is None:
+                    u = pass_distortion(e.data, ref, names, deck, deflection(e))
+                    e.common = e.columns[0].stage1(u - at[2])
+        return [e.common for e in entries]
 
     def _road(self, e: _PassEntry, ref: Reference) -> np.ndarray | None:
         """The pass's calibration sensitivity to the consensus road, recomputed when the fleet behind
@@ -265,7 +331,8 @@ class BridgeEstimator:
         deltas, loads = [], []
         x = None
         window, deck = self.setup.window, self.settings.deck
-        common = mu_basis(window, self.setup.basis, deck) @ post.mu
+        mb = mu_basis(window, self.setup.basis, deck)
+        common = mb @ post.mu[: mb.shape[1]]  # the deck's μ (the calibration coordinates follow)
         steps = step_basis(window, deck)
         a = self.model.a(post.params)
         for e, wp in zip(entries, wps):

@@ -23,6 +23,19 @@ processing (AP inversion, band limits, drift control) can only lose information.
 does not enter: the sensitivities are differences of simulations over the same surface, and the
 approach is taken flat (the dynamic wheel load from roughness modulates the sensitivities by a few
 per cent at most).
+
+**Calibration error.** The vehicles' parameters are known only as well as fleet self-calibration
+knows them, and that error is a nuisance of the bound as of the estimator
+(:mod:`cloud.bridge.vehicle_error`): a part every pass of the class shares (the fleet-common mode,
+prior log-sd ``common_sd`` per quantity) and a part of each pass's own (``pass_sd``). The road off
+the span is unknown too (the estimator takes it from the fleet's consensus; the deck on the span is
+known flat), so a common error is seen only as what a common change of that road cannot explain:
+per pass the channel column ``F_p[u_p − 1_off·ū]`` with ``u_p = F_p⁻¹∂F_p/∂log q [road + deflection]``
+(the AP distortion, :func:`~cloud.bridge.vehicle_error.distortion_of`) and ``ū`` its fleet mean —
+the error's ringing into the span, and the passes' different speeds. A pass's own error has the
+column ``F_p[u_p]`` (the others' consensus does not move with it). Both need the scenario's road
+(``PassCase.road``); they are marginalised with their priors jointly with the loads
+(:func:`fleet_information`), the common one across all passes (:meth:`Information.marginal`).
 """
 
 from __future__ import annotations
@@ -50,6 +63,8 @@ class PassCase:
     params: dict
     speed_mps: float
     noise_sd: float
+    #: the road, elevation (m) at distance x (m) from the first support, vectorised; None: flat
+    road: object = None
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -60,6 +75,26 @@ class PassSensitivity:
     case: PassCase
     S: np.ndarray
     s_w: np.ndarray
+    #: the AP distortion per calibration quantity u_p (n_grid, K) on ``grid_x`` (distance from the
+    #: first support, m) and the channel samples' positions ``sample_x`` (empty: not computed)
+    u: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
+    grid_x: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    sample_x: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+
+    def calibration_columns(self, mean_u: np.ndarray, span_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """The whitened channel columns of the fleet-common error (``F_p[u_p − 1_off·ū]``) and of the
+        pass's own (``F_p[u_p]``), (n, K) each, at the channel samples."""
+        from cloud.bridge.passdata import VehicleFilter
+        from shared.vehicles import vehicle_from_params
+
+        c = self.case
+        spacing = float(self.grid_x[1] - self.grid_x[0])
+        vf = VehicleFilter(vehicle_from_params(c.model, dict(c.params)).system(), c.speed_mps, spacing)
+        off = (self.grid_x < 0.0) | (self.grid_x > span_m)
+        cols = vf.whiten(np.column_stack([self.u - off[:, None] * mean_u, self.u]))
+        at = np.column_stack([np.interp(self.sample_x, self.grid_x, col) for col in cols.T]) / c.noise_sd
+        k = self.u.shape[1]
+        return at[:, :k], at[:, k:]
 
 
 def _run(beam: Beam, system, speed: float, start_m: float, pre_m: float, post_m: float,
@@ -73,11 +108,14 @@ def _run(beam: Beam, system, speed: float, start_m: float, pre_m: float, post_m:
 
 
 def pass_sensitivity(case: PassCase, beam: Beam, pre_m: float = 5.0, post_m: float = 25.0,
-                     sample_rate_hz: float = 500.0, step: float = FD_STEP) -> PassSensitivity:
+                     sample_rate_hz: float = 500.0, step: float = FD_STEP, calibration: Sequence[str] = (),
+                     approach_m: float = 60.0, spacing_m: float = 0.05) -> PassSensitivity:
     """Finite-difference sensitivities of ``case``'s measured channel at the bridge ``beam``
     (its ``ei_factor`` is the linearisation point). The record runs from ``pre_m`` before the first
     support to ``post_m`` after the second (the bridge's free vibration after the vehicle left it
-    no longer reaches the vehicle)."""
+    no longer reaches the vehicle). ``calibration``: the calibration quantities whose error is a
+    nuisance (module docstring); their AP distortion is computed over the road from ``approach_m``
+    before the span on a ``spacing_m`` grid (the estimator's window)."""
     from shared.vehicles import vehicle_from_params
 
     system = vehicle_from_params(case.model, dict(case.params)).system()
@@ -94,7 +132,20 @@ def pass_sensitivity(case: PassCase, beam: Beam, pre_m: float = 5.0, post_m: flo
     heavy = vehicle_from_params(case.model, {k: (v * math.exp(step) if k not in ("D1", "D2") else v)
                                              for k, v in case.params.items()}).system()
     s_w = (_run(beam, heavy, case.speed_mps, start, pre_m, post_m, sample_rate_hz) - base) / step
-    return PassSensitivity(case, S / case.noise_sd, s_w / case.noise_sd)
+    if not calibration:
+        return PassSensitivity(case, S / case.noise_sd, s_w / case.noise_sd)
+    from shared.fe.beam import influence_line
+
+    from .vehicle_error import distortion_of
+
+    grid = np.arange(-approach_m, beam.span_m + post_m + 0.5 * spacing_m, spacing_m)
+    road = np.zeros(grid.size) if case.road is None else np.asarray(case.road(grid), dtype=float)
+    on = (grid >= 0.0) & (grid <= beam.span_m)
+    load = float(system.static_contact_forces()[0])
+    profile = road - load * on * influence_line(beam, np.clip(grid, 0.0, beam.span_m))
+    u = distortion_of(case.model, case.params, case.speed_mps, spacing_m, profile, list(calibration))
+    sample_x = -pre_m + case.speed_mps * np.arange(base.size) / sample_rate_hz
+    return PassSensitivity(case, S / case.noise_sd, s_w / case.noise_sd, u, grid, sample_x)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -105,16 +156,28 @@ class Information:
     F: np.ndarray
     n_passes: int
     n_vehicles: int
+    #: the fleet-common calibration error's blocks of the joint information (elements × K, K × K)
+    #: and its prior precision (K,); empty: not a nuisance
+    F_tc: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
+    F_cc: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 0)))
+    common_precision: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+
+    def marginal(self) -> np.ndarray:
+        """The elements' information with the fleet-common calibration error marginalised (Schur
+        complement with its prior): it does not add up over passes, the joint blocks do."""
+        if self.common_precision.size == 0:
+            return self.F
+        return self.F - self.F_tc @ np.linalg.solve(self.F_cc + np.diag(self.common_precision), self.F_tc.T)
 
     def global_sd(self) -> float:
         """CRB sd of the global log EI (≈ relative sd of the global stiffness)."""
         one = np.ones(self.F.shape[0])
-        return float(1.0 / math.sqrt(one @ self.F @ one))
+        return float(1.0 / math.sqrt(one @ self.marginal() @ one))
 
     def element_sd(self, prior_precision: np.ndarray | None = None) -> np.ndarray:
         """sd of each element's log EI: the CRB with 20 free elements, or — with the GMRF's
         ``prior_precision`` — the Bayesian (van Trees) bound of the regularised problem."""
-        F = self.F if prior_precision is None else self.F + prior_precision
+        F = self.marginal() if prior_precision is None else self.marginal() + prior_precision
         return np.sqrt(np.diag(np.linalg.pinv(F)))
 
     def crack_sd(self, n_elements: int, span_m: float, depth_m: float, crack_x_m: float,
@@ -122,14 +185,14 @@ class Information:
         """CRB sd of (x_c m, φ, g) of a crack at (``crack_x_m``, ``phi``) (φ > 0: at φ = 0 the
         location is not identifiable)."""
         T = crack_jacobian(n_elements, span_m, depth_m, crack_x_m, phi)
-        Fc = T.T @ self.F @ T
+        Fc = T.T @ self.marginal() @ T
         return np.sqrt(np.diag(np.linalg.inv(Fc)))
 
     def scaled(self, n_passes: int, n_vehicles: int | None = None) -> "Information":
         """The information of ``n_passes`` passes like these (Fisher information adds up)."""
         k = n_passes / self.n_passes
         return Information(self.F * k, n_passes, int(round(self.n_vehicles * k)) if n_vehicles is None
-                           else n_vehicles)
+                           else n_vehicles, self.F_tc * k, self.F_cc * k, self.common_precision)
 
 
 def crack_jacobian(n_elements: int, span_m: float, depth_m: float, crack_x_m: float, phi: float,
@@ -143,9 +206,18 @@ def crack_jacobian(n_elements: int, span_m: float, depth_m: float, crack_x_m: fl
     return T
 
 
-def fleet_information(sens: Sequence[PassSensitivity], weight_rel_sd: float) -> Information:
+def fleet_information(sens: Sequence[PassSensitivity], weight_rel_sd: float,
+                      common_sd: Sequence[float] | None = None, pass_sd: Sequence[float] | None = None,
+                      span_m: float | None = None) -> Information:
     """Sum the passes' information, each vehicle's log wheel load marginalised with its prior
-    (relative sd ``weight_rel_sd``) — a vehicle's passes share one load."""
+    (relative sd ``weight_rel_sd``) — a vehicle's passes share one load.
+
+    With the passes' calibration distortions (:func:`pass_sensitivity` ``calibration``), the
+    calibration error is a nuisance too: each pass's own part with prior log-sd ``pass_sd`` (per
+    quantity, marginalised pass by pass), and the fleet-common part with ``common_sd`` (kept as
+    joint blocks, marginalised by :meth:`Information.marginal`); ``span_m``: the span (m)."""
+    if common_sd is not None or pass_sd is not None:
+        return _fleet_information_calibrated(sens, weight_rel_sd, common_sd, pass_sd, span_m)
     n_e = sens[0].S.shape[1]
     F = np.zeros((n_e, n_e))
     by_vehicle: dict[str, list[float | np.ndarray]] = {}
@@ -163,3 +235,29 @@ def noise_sd_of(channel: np.ndarray, noise_pct: float) -> float:
     var(noisy) = var(signal)·(1 + p²)."""
     p = noise_pct / 100.0
     return float(p * np.std(channel) / math.sqrt(1.0 + p * p))
+
+
+def _fleet_information_calibrated(sens, weight_rel_sd, common_sd, pass_sd, span_m) -> Information:
+    if span_m is None or any(s.u.size == 0 for s in sens):
+        raise ValueError("fleet_information: calibration nuisances need pass_sensitivity(calibration=...) and span_m")
+    n_e, K = sens[0].S.shape[1], sens[0].u.shape[1]
+    mean_u = np.mean([s.u for s in sens], axis=0)
+    n_c = K if common_sd is not None else 0
+    by_vehicle: dict[str, np.ndarray] = {}
+    for s in sens:
+        common, own = s.calibration_columns(mean_u, span_m)
+        X = np.column_stack([s.S, s.s_w, common[:, :n_c]])  # θ, log W, common δ
+        info = X.T @ X
+        if pass_sd is not None:  # this pass's own error, integrated out with its prior
+            G = own.T @ X
+            info -= G.T @ np.linalg.solve(own.T @ own + np.diag(1.0 / np.asarray(pass_sd, dtype=float) ** 2), G)
+        v = s.case.vehicle_id
+        by_vehicle[v] = by_vehicle.get(v, 0.0) + info
+    F = np.zeros((n_e + n_c, n_e + n_c))
+    keep = np.r_[np.arange(n_e), n_e + 1 + np.arange(n_c)]
+    for info in by_vehicle.values():  # the vehicle's load, integrated out with its prior
+        w = info[:, n_e]
+        reduced = info - np.outer(w, w) / (info[n_e, n_e] + 1.0 / weight_rel_sd**2)
+        F += reduced[np.ix_(keep, keep)]
+    prec = np.zeros(0) if common_sd is None else 1.0 / np.asarray(common_sd, dtype=float) ** 2
+    return Information(F[:n_e, :n_e], len(sens), len(by_vehicle), F[:n_e, n_e:], F[n_e:, n_e:], prec)

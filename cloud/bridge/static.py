@@ -20,6 +20,9 @@ Model of one pass p (vehicle v, speed v_p) over the window, in AP units (m, up p
   antisymmetric error that reads as a stiffness gradient along the span (measured: ±6 %).
 * ``μ(x)`` — on a rough deck the consensus holds the fleet-mean deflection: a common unknown
   shape on the span (basis ``{ψ_j}``), estimated with the rest.
+* the fleet-common calibration error δ_c (:mod:`cloud.bridge.vehicle_error`): one coefficient per
+  calibration quantity shared by every pass, its columns the pass's AP distortion less the
+  consensus'; carried as further coordinates of μ with their own prior (``mu_precision``).
 * ``W_v`` — the vehicle's static wheel load (N), prior ``N(W̄, s_W²)`` from its class: W̄ fixes the
   scale between loads and compliances (thesis §4.5.5).
 
@@ -233,6 +236,9 @@ class WhitenedPass:
     B: np.ndarray
     whitener: Whitener
     raw: np.ndarray | None = None  # unprojected [w, Ψ, B] columns, to recover the step coefficients
+    #: prior precision of the common coefficients of ``B`` (the deck's μ, 1/m², then the fleet-common
+    #: calibration error's, per log unit²); None: all μ at ``MU_PRIOR_SD_M``
+    mu_precision: np.ndarray | None = None
 
     def step_coefficients(self, a: np.ndarray, weight: float, mu: np.ndarray, delta: np.ndarray | None = None
                           ) -> np.ndarray:
@@ -316,7 +322,9 @@ def road_sensitivity(p: PassData, ref: Reference, skeleton: Whitener, names: Seq
 def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smooth",
                 leave_out: bool = True, band_hz: float | None = None,
                 columns: tuple | None = None, load: np.ndarray | None = None,
-                weight_n: float | None = None, road: np.ndarray | None = None) -> WhitenedPass:
+                weight_n: float | None = None, road: np.ndarray | None = None,
+                common: Sequence[tuple[str, float]] | None = None,
+                common_columns: np.ndarray | None = None) -> WhitenedPass:
     """The :class:`WhitenedPass` of ``p`` against the consensus ``ref``.
 
     The measured-channel residual is white only to first order (the AP was gridded in chainage,
@@ -326,7 +334,12 @@ def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smoo
     uncertainty, its error is integrated out (:mod:`cloud.bridge.vehicle_error`), linearised at the
     load-term coefficients ``load`` and the static wheel load ``weight_n`` (N); without them the
     parameters are taken as exact. ``road``: the pass's :func:`road_sensitivity`, if cached (it
-    moves little as the consensus grows).
+    moves little as the consensus grows). ``common``: (name, prior log-sd) of the calibration
+    quantities whose error is shared by every pass of the vehicle class, and ``common_columns``
+    (n_dec, K) the band-limited forward model (:meth:`Whitener.stage1`) of how this pass's residual
+    AP moves with them (:func:`common_calibration_columns`): whitened (through this pass's own
+    calibration marginal), they join the common nuisance columns ``B`` after the deck's own, with
+    that prior.
     """
     w = p.window
     x = w.x
@@ -360,10 +373,58 @@ def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smoo
         marginal = CalibrationMarginal.of(Cw, sd)
         wr = marginal(wr)
     raw, steps = (wr[:, :-n_step], wr[:, -n_step:]) if n_step else (wr, None)
+    mu_precision = np.full(raw.shape[1] - 1 - basis.n, 1.0 / MU_PRIOR_SD_M**2)
+    if common:
+        # The fleet-common calibration error: coefficients shared by all passes, seen through this
+        # pass's own (per-pass) calibration marginal.
+        if common_columns is None or np.shape(common_columns) != (white.shape[0], len(common)):
+            raise ValueError(f"pass {p.pass_id}: common calibration columns must be ({white.shape[0]}, {len(common)})")
+        Bc = _fir(ar, np.asarray(common_columns, dtype=float))[rows] / sigma
+        raw = np.column_stack([raw, Bc if marginal is None else marginal(Bc)])
+        mu_precision = np.r_[mu_precision, [1.0 / s_**2 for _, s_ in common]]
     whitener = dataclasses.replace(skeleton, ar=ar, rows=rows, sigma=sigma, steps=steps, marginal=marginal)
     proj = whitener.project(raw)
     nb = basis.n
-    return WhitenedPass(p.vehicle_id, p.pass_id, proj[:, 0], proj[:, 1 : 1 + nb], proj[:, 1 + nb :], whitener, raw)
+    return WhitenedPass(p.vehicle_id, p.pass_id, proj[:, 0], proj[:, 1 : 1 + nb], proj[:, 1 + nb :], whitener, raw,
+                        mu_precision)
+
+
+def common_calibration_columns(passes: Sequence[PassData], ref: Reference, names: Sequence[str], deck: str,
+                               deflection: Sequence[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """How each pass's residual AP − consensus moves with a calibration error δ shared by all passes
+    (window grid, (n, K) per pass, m per log unit; :mod:`cloud.bridge.vehicle_error`).
+
+    Every AP moves by its distortion ``u_p`` (:func:`~cloud.bridge.vehicle_error.ap_distortion` of
+    what the vehicle drove over: the consensus road and its deflection ``deflection[p]``, m), and
+    so does the consensus off the span, by the fleet mean ``ū``: the column is ``u_p − 1_off·ū``. On
+    the approach the two nearly cancel (an error every pass shares is in the consensus too), which
+    a per-pass model cannot know; what is left is the error ringing on into the span, where a smooth
+    deck's consensus is known to be flat — the same sign in every pass. Returns the columns and
+    the u_p.
+    """
+    us = [pass_distortion(p, ref, names, deck, d) for p, d in zip(passes, deflection)]
+    if not us:
+        return [], []
+    mean = consensus_distortion(us, passes[0].window, deck)
+    return [u - mean for u in us], us
+
+
+def pass_distortion(p: PassData, ref: Reference, names: Sequence[str], deck: str, deflection: np.ndarray) -> np.ndarray:
+    """``u_p`` of :func:`common_calibration_columns`: the pass's AP distortion (n_window, K) over
+    the consensus road plus its deflection ``deflection`` (m)."""
+    from .vehicle_error import ap_distortion
+
+    road = consensus_used(p, ref, smooth_deck=(deck == "smooth"), leave_out=True)
+    ok = np.isfinite(road)
+    road = np.interp(np.arange(road.size), np.flatnonzero(ok), road[ok]) if ok.any() else np.zeros(road.size)
+    return ap_distortion(p, road + deflection, names)
+
+
+def consensus_distortion(us: Sequence[np.ndarray], window: Window, deck: str) -> np.ndarray:
+    """``1_off·ū`` of :func:`common_calibration_columns`: how the consensus the passes are compared
+    with moves (the fleet-mean distortion where the consensus is used: off the span of a smooth deck)."""
+    off = ~window.on_span if deck == "smooth" else np.ones(window.n, dtype=bool)
+    return np.mean(us, axis=0) * off[:, None]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -393,13 +454,14 @@ class VehicleStats:
     ww: float
     n: int
     passes: int
+    mu_precision: np.ndarray | None = None  # prior precision of μ (see :class:`WhitenedPass`)
 
     @classmethod
     def of_pass(cls, wp: WhitenedPass, delta: np.ndarray | None = None) -> "VehicleStats":
         P, B, w = wp.Psi, wp.B, wp.w
         d = np.zeros(w.size) if delta is None else np.asarray(delta, dtype=float)
         return cls(wp.vehicle_id, P.T @ P, P.T @ d, float(d @ d), P.T @ w, P.T @ B, float(d @ w), B.T @ d,
-                   B.T @ w, B.T @ B, float(w @ w), int(w.size), 1)
+                   B.T @ w, B.T @ B, float(w @ w), int(w.size), 1, wp.mu_precision)
 
     def __add__(self, other: "VehicleStats") -> "VehicleStats":
         if other.vehicle_id != self.vehicle_id:
@@ -407,7 +469,7 @@ class VehicleStats:
         return VehicleStats(self.vehicle_id, self.A + other.A, self.e + other.e, self.f + other.f,
                             self.Pw + other.Pw, self.Pb + other.Pb, self.dw + other.dw, self.db + other.db,
                             self.Bw + other.Bw, self.BB + other.BB, self.ww + other.ww, self.n + other.n,
-                            self.passes + other.passes)
+                            self.passes + other.passes, self.mu_precision)
 
 
 def vehicle_stats(passes: Sequence[WhitenedPass], deltas: dict[str, np.ndarray] | None = None) -> list[VehicleStats]:
@@ -438,6 +500,7 @@ class Stacked:
     w_sd: np.ndarray  # prior sd, N
     n: int
     passes: int
+    q_mu: np.ndarray | None = None  # prior precision of every μ coordinate (default 1/MU_PRIOR_SD_M²)
 
     @classmethod
     def of(cls, stats: Sequence[VehicleStats], prior: Callable[[str], tuple[float, float]]) -> "Stacked":
@@ -445,9 +508,14 @@ class Stacked:
             raise ValueError("no passes")
         pri = np.array([prior(s.vehicle_id) for s in stats], dtype=float)
         st = lambda name: np.array([getattr(s, name) for s in stats])  # noqa: E731
+        nm = np.shape(stats[0].Bw)[0]
+        q = stats[0].mu_precision
+        q = np.full(nm, 1.0 / MU_PRIOR_SD_M**2) if q is None else np.asarray(q, dtype=float)
+        if q.shape != (nm,):
+            raise ValueError(f"mu_precision: {q.shape} for {nm} common nuisance columns")
         return cls(tuple(s.vehicle_id for s in stats), st("A"), st("e"), st("f"), st("Pw"), st("Pb"), st("dw"),
                    st("db"), st("Bw"), st("BB"), st("ww"), pri[:, 0], pri[:, 1], int(sum(s.n for s in stats)),
-                   int(sum(s.passes for s in stats)))
+                   int(sum(s.passes for s in stats)), q)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -500,7 +568,7 @@ def marginal_loglik_batch(S: Stacked, a: np.ndarray, delta_scale: np.ndarray | N
                           chunk: int = 512) -> np.ndarray:
     """log p(data | a) for a batch of coefficient vectors ``a`` (K, n_b): weights *and* μ integrated.
 
-    μ has the prior N(0, MU_PRIOR_SD_M² I) and enters the weight-marginal log-likelihood
+    μ has the prior N(0, diag(1/S.q_mu)) and enters the weight-marginal log-likelihood
     quadratically, so its integral is exact. ``delta_scale`` (K,) multiplies the dynamic
     correction column of every pass (ε scales with the compliance). Returns (K,).
     """
@@ -508,7 +576,7 @@ def marginal_loglik_batch(S: Stacked, a: np.ndarray, delta_scale: np.ndarray | N
     K = a.shape[0]
     ds = np.ones(K) if delta_scale is None else np.asarray(delta_scale, dtype=float)
     nm = S.Bw.shape[1]
-    q_mu = 1.0 / MU_PRIOR_SD_M**2
+    q_mu = S.q_mu
     inv_s2 = 1.0 / S.w_sd**2
     out = np.empty(K)
     for lo in range(0, K, chunk):
@@ -518,13 +586,14 @@ def marginal_loglik_batch(S: Stacked, a: np.ndarray, delta_scale: np.ndarray | N
                + inv_s2[None, :])  # (k, V)
         t = np.matmul(ak[None], S.Pb).transpose(1, 0, 2) + dk[:, None, None] * S.db[None, :, :]  # (k, V, nm)
         u0 = S.w_mean * inv_s2 - (ak @ S.Pw.T) - dk[:, None] * S.dw[None, :]  # (k, V)
-        H = S.BB.sum(axis=0)[None] - np.matmul(t.transpose(0, 2, 1) / lam[:, None, :], t) + q_mu * np.eye(nm)[None]
+        H = S.BB.sum(axis=0)[None] - np.matmul(t.transpose(0, 2, 1) / lam[:, None, :], t) + np.diag(q_mu)[None]
         b = S.Bw.sum(axis=0)[None] + np.matmul((u0 / lam)[:, None, :], t)[:, 0, :]
         c0 = np.sum(-0.5 * S.ww[None] + 0.5 * u0**2 / lam - 0.5 * S.w_mean[None] ** 2 * inv_s2[None]
                     - 0.5 * np.log(lam / inv_s2[None]), axis=1)
         sol = np.linalg.solve(H, b[:, :, None])[:, :, 0]
         _, logdet = np.linalg.slogdet(H)
-        out[lo : lo + chunk] = c0 + 0.5 * np.einsum("km,km->k", b, sol) - 0.5 * logdet + 0.5 * nm * math.log(q_mu)
+        out[lo : lo + chunk] = (c0 + 0.5 * np.einsum("km,km->k", b, sol) - 0.5 * logdet
+                                + 0.5 * float(np.sum(np.log(q_mu))))
     return out
 
 
@@ -778,6 +847,9 @@ class WeightPrior:
     mean_n: float
     sd_n: float
     per_vehicle: tuple[tuple[str, float, float], ...] = ()
+    #: the class's log-sd of each calibration quantity, (name, sd): the scale of the fleet-common
+    #: calibration error (:class:`~cloud.bridge.estimator.BridgeSettings`); empty: not known
+    class_log_sd: tuple[tuple[str, float], ...] = ()
 
     def __call__(self, vehicle_id: str) -> tuple[float, float]:
         for vid, m, s in self.per_vehicle:
@@ -797,7 +869,7 @@ def fit_elements(stats: Sequence[VehicleStats], model: "ElementModel | BearingEl
     npar, nm = model.n, S.Bw.shape[1]
     ne = model.n_elements
     Q, m0 = model.prior_precision(), model.prior_mean()
-    q_mu = 1.0 / MU_PRIOR_SD_M**2
+    q_mu = S.q_mu  # (nm,)
 
     def fun(z):
         par, mu = z[:npar], z[npar:]
@@ -807,8 +879,8 @@ def fit_elements(stats: Sequence[VehicleStats], model: "ElementModel | BearingEl
         H_pp = Ja.T @ T["Haa"] @ Ja + np.diag(d2.T @ T["ga"]) - Q
         H_mp = T["Hma"] @ Ja
         g = np.r_[gp - Q @ (par - m0), T["gm"] - q_mu * mu]
-        H = np.block([[H_pp, H_mp.T], [H_mp, T["Hmm"] - q_mu * np.eye(nm)]])
-        val = T["value"] - 0.5 * (par - m0) @ Q @ (par - m0) - 0.5 * q_mu * mu @ mu
+        H = np.block([[H_pp, H_mp.T], [H_mp, T["Hmm"] - np.diag(q_mu)]])
+        val = T["value"] - 0.5 * (par - m0) @ Q @ (par - m0) - 0.5 * mu @ (q_mu * mu)
         return val, g, H
 
     z0 = np.r_[m0, np.zeros(nm)]
@@ -831,7 +903,7 @@ def fit_elements(stats: Sequence[VehicleStats], model: "ElementModel | BearingEl
     _, logdet_Q = np.linalg.slogdet(Q)
     log_ev = (val + 0.5 * (npar + nm) * math.log(2 * math.pi) - 0.5 * logdet_H
               + 0.5 * logdet_Q - 0.5 * npar * math.log(2 * math.pi)
-              + 0.5 * nm * math.log(q_mu) - 0.5 * nm * math.log(2 * math.pi))
+              + 0.5 * float(np.sum(np.log(q_mu))) - 0.5 * nm * math.log(2 * math.pi))
     edges = np.linspace(0.0, model.basis.window.span_m, ne + 1)
     bounds = np.column_stack([edges[:-1], edges[1:]])
     # Effective stiffness: area under the design influence line over the area under J (D2-like).
