@@ -6,21 +6,30 @@ and hardly anything else: a stiffer beam on softer bearings and a softer beam on
 the same deflections and the same first frequency. Measured on ``bearing-1e9`` (30 self-calibrated
 passes, 2 % noise, the dynamic likelihood maximised over a uniform level g at each log10 Krot κ):
 the maximum log-likelihood varies by 0.3 along the whole ridge from pinned bearings with a 16 %
-stiffer beam (κ ≤ 8) to κ = 9.25 with a 12 % softer one, while the effective ratio on it stays
-within 1.157–1.171 (truth 1.166). Krot is therefore only identifiable with a prior on the beam's
-stiffness: the as-built tolerance, ``g ~ N(0, AS_BUILT_SD²)`` — the same tolerance the damage
-hypotheses carry (:class:`~cloud.bridge.hypotheses.HypothesisSettings`). A bearing restraint and a
-uniform stiffness change cannot be told apart by these data; with this prior the restraint takes
-what the tolerance does not allow the beam.
+stiffer beam (κ ≤ 8) to κ = 9.25 with a 12 % softer one. Krot is therefore only identifiable with a
+prior on the beam's stiffness: the as-built tolerance, ``g ~ N(0, AS_BUILT_SD²)`` — the same
+tolerance the damage hypotheses carry (:class:`~cloud.bridge.hypotheses.HypothesisSettings`).
 
-The search (:func:`bearing_ridge`): the effective level by the 1-D dynamic profile at the prior's
-κ (then again at the ridge's mode while that moves: a stiff pinned beam does not vibrate like a
-clamped one of the same area, so the level read at the wrong κ is biased), then along the iso-effective line g_r(κ) (uniform beam: J(g, κ) = e^{−g}·J(0, κ − g/ln 10), so
-g_r is a 1-D root on a table of the pinned-to-clamped areas) the dynamic log-likelihood at a few
-κ, each integrated over g against the tolerance prior, times the κ prior: a grid posterior of
-one log10 Krot shared by both supports (the data do not separate the supports either). Its mode
-is where the per-element fit is linearised; its quantiles are the reported Krot — for a nearly
-clamped span the upper one is the grid's top: read it as a lower bound.
+Nor is the effective stiffness itself always determined. A nearly clamped span (``bearing-1e12``:
+4.6× the pinned span's area, first mode 9.5 Hz, outside the band the vehicles feel) deflects so
+little that 30 passes only bound it from below: at g = 0 the dynamic log-likelihood is within 2 of
+its best everywhere from κ = 10 to 13 (effective 2.2–4.7×), and falls by 12 at κ = 9. Reading the
+effective level first and then walking along its iso-effective line (the previous search) turned
+that flat likelihood into a sharp, wrong κ = 10.0 ± 0.1. So κ is read where the tolerance prior
+puts the beam, not along a ridge: at each κ node the dynamic log-likelihood at g = 0, ±2σ (a
+parabola in g; one more level where the likelihood pulls the beam outside that range), integrated
+over g against the tolerance prior, on a grid of one log10 Krot shared by both supports (the data
+do not separate the supports either). Its mode is where the per-element fit is linearised.
+
+The prior is uniform in the restraint fraction r = (A_pinned − A(κ)) / (A_pinned − A_clamped) of
+the design span (A: influence-line area), not in κ: it saturates at both ends, where decades of
+Krot all mean "pinned" or "fixed" — uniform in κ (thesis eq. 4.23 over an interval), a flat
+likelihood over κ = 11…13 gathers two decades of prior mass and drags a measured 10^10 upwards.
+The grid runs from 10^6 (r < 0.001: pinned) to 10^13 (r > 0.998: clamped). Where the data do not
+exclude a limit — the integrated likelihood at the grid's end within the 95 % likelihood-ratio
+threshold of its maximum — the interval is reported one-sided: (lower 5 % quantile, grid top),
+read "Krot ≥ 10^lo, effectively fixed" (:func:`krot_reading`), or (grid bottom, upper 95 %
+quantile) for an effectively pinned span.
 """
 
 from __future__ import annotations
@@ -35,23 +44,31 @@ from .static import Setup, Stacked, WeightPrior, WhitenedPass, fit_elements, mar
 
 #: as-built tolerance of the global stiffness (log sd) — HypothesisSettings.tolerance_sd
 AS_BUILT_SD = 0.02
-#: log10 Krot (N·m/rad) where the dynamic likelihood is evaluated along the ridge: dense where the
-#: restraint changes the span (K·L/EI ≈ 1 at ≈ 9.3 for the thesis bridge), sparse where it does not
-KAPPA_NODES = (6.0, 7.0, 8.0, 8.5, 9.0, 9.25, 9.5, 10.0, 10.5, 11.0, 12.0, 13.0)
+#: log10 Krot (N·m/rad) where the dynamic likelihood is evaluated: dense where the restraint
+#: changes the span (K·L/EI ≈ 1 at ≈ 9.3 for the thesis bridge), sparse where it does not
+KAPPA_NODES = (6.0, 7.0, 8.0, 8.5, 9.0, 9.25, 9.5, 9.75, 10.0, 10.5, 11.0, 12.0, 13.0)
 KAPPA_FINE_STEP = 0.02
-#: the effective level is re-profiled at the ridge's mode until the mode moves less than this
-MODE_TOLERANCE = 0.5
-MAX_ROUNDS = 2
+#: the levels g (log EI ratio, in as-built sds) evaluated at every κ node before any refinement
+G_OFFSETS_SD = (-2.0, 0.0, 2.0)
+#: the data "do not exclude" a limit (fixed or pinned) when the log-likelihood there is within this
+#: of its maximum: the 95 % likelihood-ratio threshold, χ²₁(0.95)/2
+LR_THRESHOLD = 1.92
+#: sd (log10) with which the per-element fit holds Krot at the grid posterior's mode
+HOLD_SD = 0.05
+#: the one-sided bound's probability (a 95 % bound: the 5 % quantile)
+ONE_SIDED_P = 0.05
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class BearingRidge:
-    """Posterior of one shared log10 Krot from the dynamic likelihood along the iso-effective line.
+class KrotPosterior:
+    """Posterior of one shared log10 Krot, the beam's level integrated against the tolerance.
 
     ``kappa``/``log_post``: fine grid and its log posterior (normalised); ``g_mean``: posterior
     mean of the uniform log level given κ on that grid; ``effective_log``/``effective_sd``: the
-    posterior's effective log level (pinned-equivalent) and its sd; ``evaluations``: (κ, g) → the
-    dynamic log-likelihood.
+    posterior's effective log level (pinned-equivalent) and its sd; ``effective_logs``: the
+    effective log level at (κ, g_mean(κ)); ``evaluations``: (κ, g) → the dynamic log-likelihood;
+    ``fixed_open``/``pinned_open``: the data do not exclude a clamped / pinned span (the grid's
+    top / bottom); ``node_loglik``: κ node → log-likelihood integrated over the beam's level.
     """
 
     kappa: np.ndarray
@@ -59,25 +76,50 @@ class BearingRidge:
     g_mean: np.ndarray
     effective_log: float
     effective_sd: float
-    effective_logs: np.ndarray  # the effective log level at (κ, g_mean(κ)) on the grid
+    effective_logs: np.ndarray
     evaluations: dict[tuple[float, float], float]
+    fixed_open: bool = False
+    pinned_open: bool = False
+    node_loglik: dict | None = None
 
     @property
     def probabilities(self) -> np.ndarray:
         p = np.exp(self.log_post - self.log_post.max())
         return p / p.sum()
 
+    def quantile(self, q: float) -> float:
+        c = np.cumsum(self.probabilities)
+        return float(self.kappa[min(np.searchsorted(c, q), c.size - 1)])
+
     def summary(self) -> tuple[float, float, float]:
-        """(mean, lo95, hi95) of log10 Krot."""
-        p = self.probabilities
-        c = np.cumsum(p)
-        lo = float(self.kappa[np.searchsorted(c, 0.025)])
-        hi = float(self.kappa[min(np.searchsorted(c, 0.975), c.size - 1)])
-        return float(p @ self.kappa), lo, hi
+        """(mean, lo95, hi95) of log10 Krot; one-sided where the data do not exclude a limit:
+        (5 % quantile, grid top) when a clamped span is not excluded, (grid bottom, 95 % quantile)
+        when a pinned one is not, the whole grid if neither is."""
+        mean = float(self.probabilities @ self.kappa)
+        fixed, pinned = self.fixed_open, self.pinned_open
+        if fixed and pinned:
+            return mean, float(self.kappa[0]), float(self.kappa[-1])
+        if fixed:
+            return mean, self.quantile(ONE_SIDED_P), float(self.kappa[-1])
+        if pinned:
+            return mean, float(self.kappa[0]), self.quantile(1.0 - ONE_SIDED_P)
+        return mean, self.quantile(0.025), self.quantile(0.975)
 
     @property
     def mode(self) -> int:
         return int(np.argmax(self.log_post))
+
+
+def krot_reading(lo95: float, hi95: float) -> str:
+    """How to read a reported (lo95, hi95) of log10 Krot (:meth:`KrotPosterior.summary`)."""
+    top, bottom = KAPPA_NODES[-1] - 0.5 * KAPPA_FINE_STEP, KAPPA_NODES[0] + 0.5 * KAPPA_FINE_STEP
+    if hi95 >= top and lo95 <= bottom:
+        return "not identified"
+    if hi95 >= top:
+        return f"effectively fixed: Krot ≥ 10^{lo95:.1f} (lower bound)"
+    if lo95 <= bottom:
+        return f"effectively pinned: Krot ≤ 10^{hi95:.1f} (upper bound)"
+    return "measured"
 
 
 def _log_area_table(setup: Setup, kappa: np.ndarray) -> np.ndarray:
@@ -90,93 +132,85 @@ def _log_area_table(setup: Setup, kappa: np.ndarray) -> np.ndarray:
     return np.log(kern.bearings(np.ones_like(kappa), 10.0**kappa) @ setup.basis.integrals)
 
 
-def bearing_ridge(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: WeightPrior, model,
-                  cache: dict | None = None, start_effective: float = 1.0,
-                  as_built_sd: float = AS_BUILT_SD) -> BearingRidge:
-    """The grid posterior of log10 Krot (shared by both supports) — see the module docstring.
-    ``start_effective``: the effective ratio to start the effective-level search from (e.g. the
-    quasi-static fit's: a stiff restraint doubles it, further than the search walks from 1)."""
-    from .dynamic import LEVEL_GRID, dynamic_deltas, profile_global_level
+def _parabola_marginal(gs: Sequence[float], ys: Sequence[float], sd: float) -> tuple[float, float, float]:
+    """∫ exp(parabola through (gs, ys)) · N(g; 0, sd²) dg, as (log of it, mean of g, sd of g)."""
+    g1 = float(np.median(gs))
+    c2, c1, c0 = np.polyfit(np.asarray(gs) - g1, ys, 2)
+    c2 = min(c2, 0.0)  # a convex bend is noise on a flat likelihood: keep the slope only
+    A = -c2 + 0.5 / sd**2
+    B = c1 - g1 / sd**2
+    C = c0 - 0.5 * g1**2 / sd**2 - 0.5 * math.log(2 * math.pi * sd**2)
+    return C + B * B / (4 * A) + 0.5 * math.log(math.pi / A), g1 + B / (2 * A), math.sqrt(0.5 / A)
+
+
+def krot_posterior(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: WeightPrior, model,
+                  cache: dict | None = None, as_built_sd: float = AS_BUILT_SD) -> KrotPosterior:
+    """The grid posterior of log10 Krot (shared by both supports) — see the module docstring."""
+    from .dynamic import LEVEL_GRID, dynamic_deltas
 
     cache = {} if cache is None else cache
     ne = model.n_elements
-    kap0 = float(model.prior_mean()[ne])
     table_k = np.arange(min(KAPPA_NODES) - 4.0, max(KAPPA_NODES) + 4.0 + 1e-9, 0.05)
     table = _log_area_table(setup, table_k)
     log_area = lambda k: np.interp(k, table_k, table)  # noqa: E731 — monotone in κ
     slope = lambda k: np.interp(k, table_k, np.gradient(table, table_k))  # noqa: E731
     log_area_d = math.log(float(model.basis.integrals @ model.basis.coefficients(_design_J(model))))
 
-    def log_eff(g, k):
+    def log_eff(g, k):  # uniform beam: J(g, κ) = e^{−g}·J(0, κ − g/ln 10)
         return log_area_d - (-g + log_area(k - g / math.log(10.0)))
 
-    def g_at(k, target):  # log_eff increases with g at fixed κ: bisection
-        lo, hi = -2.0, 2.0
-        for _ in range(50):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if log_eff(mid, k) < target else (lo, mid)
-        return 0.5 * (lo + hi)
-
-    kap = np.arange(KAPPA_NODES[0], KAPPA_NODES[-1] + 1e-9, KAPPA_FINE_STEP)
-    nodes = np.array(KAPPA_NODES)
-    k_mean, k_sd = model.krot_prior
-    # 1. The effective level: the 1-D dynamic profile at a fixed κ (the prior's, then the ridge's
-    #    mode: far from the truth the profile's level is biased — a stiffer pinned beam does not
-    #    vibrate like a clamped one — so it is repeated at the mode until the mode stays put).
-    kap_p, g_start = kap0, g_at(kap0, math.log(max(start_effective, 1e-3)))
     ev: dict[tuple[float, float], float] = {}  # (κ, g) → dynamic log-likelihood
-    for _ in range(MAX_ROUNDS):
-        at = dataclasses.replace(model, krot_prior=(kap_p, model.krot_prior[1]))
-        level = profile_global_level(passes, setup, weight_prior, at, start=g_start, cache=cache, post=None)
-        eff_log = float(log_eff(level.log_ratio, kap_p))
-        d_eff = 1.0 + float(slope(kap_p - level.log_ratio / math.log(10.0))) / math.log(10.0)
-        eff_sd = (level.sd if np.isfinite(level.sd) else 0.05) * d_eff
-        # 2. At each κ node the dynamic log-likelihood at three levels about the ridge (a parabola in
-        #    g: where the span's vibration is out of the band, e.g. nearly clamped, it is flat and the
-        #    tolerance decides), integrated over g against the tolerance prior N(0, as_built_sd²).
-        marg, gmean, gsd = np.empty(nodes.size), np.empty(nodes.size), np.empty(nodes.size)
-        for j, k in enumerate(KAPPA_NODES):
-            gr = g_at(k, eff_log)
-            dg = 1.0 + float(slope(k - gr / math.log(10.0))) / math.log(10.0)  # ∂ log eff / ∂g
-            step = float(np.clip(eff_sd / dg, 2 * LEVEL_GRID, 0.1))
-            gs = [round(round((gr + o * step) / LEVEL_GRID) * LEVEL_GRID, 6) for o in (-1, 0, 1)]
-            ys = []
-            for g in gs:
-                key = (round(k, 6), g)
-                if key not in ev:
-                    lin = np.array(model.prior_mean(), dtype=float)
-                    lin[:ne] = g
-                    lin[ne:] = k
-                    d = dynamic_deltas(passes, setup, lin, cache)
-                    S = Stacked.of(vehicle_stats(passes, d), weight_prior)
-                    ev[key] = float(marginal_loglik_batch(S, model.a(lin)[None, :])[0])
-                ys.append(ev[key])
-            g1 = gs[1]
-            c2, c1, c0 = np.polyfit(np.array(gs) - g1, ys, 2)
-            c2 = min(c2, 0.0)  # a convex bend is noise on a flat likelihood: keep the slope only
-            A = -c2 + 0.5 / as_built_sd**2
-            B = c1 - g1 / as_built_sd**2
-            C = c0 - 0.5 * g1**2 / as_built_sd**2 - 0.5 * math.log(2 * math.pi * as_built_sd**2)
-            marg[j] = C + B * B / (4 * A) + 0.5 * math.log(math.pi / A)
-            gmean[j] = g1 + B / (2 * A)
-            gsd[j] = math.sqrt(0.5 / A)
-        # 3. On a fine grid (interpolated between the nodes), times the κ prior.
-        log_post = np.interp(kap, nodes, marg) - 0.5 * ((kap - k_mean) / k_sd) ** 2
-        log_post -= log_post.max() + math.log(np.sum(np.exp(log_post - log_post.max())))
-        g_mean = np.interp(kap, nodes, gmean)
-        mode = float(kap[np.argmax(log_post)])
-        if abs(mode - kap_p) <= MODE_TOLERANCE:
-            break
-        kap_p = round(mode / 0.05) * 0.05
-        g_start = g_at(kap_p, eff_log)
+
+    def loglik(k: float, g: float) -> float:
+        key = (round(k, 6), round(round(g / LEVEL_GRID) * LEVEL_GRID, 6))
+        if key not in ev:
+            lin = np.array(model.prior_mean(), dtype=float)
+            lin[:ne] = key[1]
+            lin[ne:] = key[0]
+            d = dynamic_deltas(passes, setup, lin, cache)
+            S = Stacked.of(vehicle_stats(passes, d), weight_prior)
+            ev[key] = float(marginal_loglik_batch(S, model.a(lin)[None, :])[0])
+        return ev[key]
+
+    nodes = np.array(KAPPA_NODES)
+    marg, gmean, gsd = np.empty(nodes.size), np.empty(nodes.size), np.empty(nodes.size)
+    reach = max(abs(o) for o in G_OFFSETS_SD) * as_built_sd
+    for j, k in enumerate(KAPPA_NODES):
+        gs = [o * as_built_sd for o in G_OFFSETS_SD]
+        ys = [loglik(k, g) for g in gs]
+        for _ in range(3):  # where the likelihood pulls the beam out of ±2σ, add the level it pulls to
+            marg[j], gmean[j], gsd[j] = _parabola_marginal(gs, ys, as_built_sd)
+            if abs(gmean[j]) <= reach + LEVEL_GRID or any(abs(g - gmean[j]) < 2 * LEVEL_GRID for g in gs):
+                break
+            g_new = round(round(gmean[j] / LEVEL_GRID) * LEVEL_GRID, 6)
+            gs, ys = gs + [g_new], ys + [loglik(k, g_new)]
+            near = np.argsort(np.abs(np.array(gs) - g_new))[:3]
+            gs, ys = [gs[i] for i in near], [ys[i] for i in near]
+        marg[j], gmean[j], gsd[j] = _parabola_marginal(gs, ys, as_built_sd)
+    # On a fine grid (interpolated between the nodes), under a prior uniform in the restraint
+    # fraction r(κ) = (A_pinned − A(κ)) / (A_pinned − A_clamped) of the design span: uniform in
+    # what the bearings do to the span, so that it saturates at both ends (a flat likelihood over
+    # κ = 11…13 does not gather the mass of two decades that all mean "fixed").
+    kap = np.arange(KAPPA_NODES[0], KAPPA_NODES[-1] + 1e-9, KAPPA_FINE_STEP)
+    area = np.exp(table)
+    restraint = (area[0] - np.interp(kap, table_k, area)) / (area[0] - area[-1])
+    log_prior = np.log(np.maximum(np.gradient(restraint, kap), 1e-300))
+    log_post = np.interp(kap, nodes, marg) + log_prior
+    log_post -= log_post.max() + math.log(np.sum(np.exp(log_post - log_post.max())))
+    g_mean = np.interp(kap, nodes, gmean)
+    # One-sided where the data do not exclude the limit: the likelihood (integrated over the
+    # beam's level) at the grid's end within the 95 % likelihood-ratio threshold of its maximum.
+    near_top = marg[-1] >= marg.max() - LR_THRESHOLD
+    near_bottom = marg[0] >= marg.max() - LR_THRESHOLD
     # The effective level the posterior implies (what the per-element fit is recentred on).
     p = np.exp(log_post)
     le = log_eff(g_mean, kap)
-    dg = 1.0 + slope(kap - g_mean / math.log(10.0)) / math.log(10.0)
+    dg = 1.0 + slope(kap - g_mean / math.log(10.0)) / math.log(10.0)  # ∂ log eff / ∂g
     within = (np.interp(kap, nodes, gsd) * dg) ** 2
     e_mean = float(p @ le)
     e_sd = math.sqrt(float(p @ ((le - e_mean) ** 2 + within)))
-    return BearingRidge(kap, log_post, g_mean, e_mean, e_sd, le, ev)
+    return KrotPosterior(kap, log_post, g_mean, e_mean, e_sd, le, ev, bool(near_top), bool(near_bottom),
+                        dict(zip(KAPPA_NODES, marg.tolist())))
 
 
 def _design_J(model) -> np.ndarray:
@@ -188,28 +222,33 @@ def _design_J(model) -> np.ndarray:
 def fit_bearings_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: WeightPrior, model,
                          cache: dict | None = None, start: float | None = None):
     """The bearing model's dynamic fit (same contract as :func:`~cloud.bridge.dynamic.fit_elements_dynamic`):
-    the Krot ridge posterior, the per-element fit linearised at its mode with Krot held there by a
-    prior of the ridge's width, recentred on the effective level; Krot reported from the ridge."""
+    the Krot grid posterior, the per-element fit linearised at its mode with Krot held there
+    (:data:`HOLD_SD`), recentred on the effective level there; Krot and the effective ratio
+    reported from the whole grid posterior (Krot one-sided where the data leave a limit open)."""
     from .dynamic import LEVEL_GRID, DynamicFit, GlobalLevel, dynamic_deltas, recentre
 
     cache = {} if cache is None else cache
     ne = model.n_elements
     qs = fit_elements(vehicle_stats(passes), model, weight_prior)
-    eff0 = qs.effective_ratio if np.isfinite(qs.effective_ratio) else 1.0
-    ridge = bearing_ridge(passes, setup, weight_prior, model, cache=cache, start_effective=eff0)
-    # (``start`` is not used: the quasi-static fit's effective ratio is a better start for a restraint.)
-    i = ridge.mode
-    k_hat = float(ridge.kappa[i])
-    mean, lo, hi = ridge.summary()
+    kp = krot_posterior(passes, setup, weight_prior, model, cache=cache)  # (``start`` is not needed)
+    i = kp.mode
+    k_hat = float(kp.kappa[i])
+    mean, lo, hi = kp.summary()
     lin = np.array(model.prior_mean(), dtype=float)
-    lin[:ne] = round(round(float(ridge.g_mean[i]) / LEVEL_GRID) * LEVEL_GRID, 6)
+    lin[:ne] = round(round(float(kp.g_mean[i]) / LEVEL_GRID) * LEVEL_GRID, 6)
     lin[ne:] = k_hat
     deltas = dynamic_deltas(passes, setup, lin, cache)
-    held = dataclasses.replace(model, krot_prior=(k_hat, max(0.25 * (hi - lo), 0.05)))
+    # Krot held at the mode (the fit is conditional on it; its uncertainty is the grid posterior's):
+    # a loose hold lets the two supports split and the elements absorb the difference.
+    held = dataclasses.replace(model, krot_prior=(k_hat, HOLD_SD))
     post = fit_elements(vehicle_stats(passes, deltas), held, weight_prior, theta0=lin)
     # Recentred on the effective level at the linearisation (the posterior's mean over κ would
     # pull the elements towards a restraint they are not fitted with).
-    level = GlobalLevel(float(ridge.effective_logs[i]), ridge.effective_sd, {})
+    level = GlobalLevel(float(kp.effective_logs[i]), kp.effective_sd, {})
     final = recentre(post, held, level)
-    final = dataclasses.replace(final, krot=((mean, lo, hi),) * 2)
+    # The effective stiffness and Krot are reported from the whole grid posterior (the elements are
+    # conditional on its mode): for a nearly clamped span the effective ratio is as uncertain as Krot.
+    eff = math.exp(kp.effective_log)
+    final = dataclasses.replace(final, krot=((mean, lo, hi),) * 2, effective_ratio=eff,
+                                effective_ratio_sd=eff * kp.effective_sd)
     return DynamicFit(final, (qs, post), deltas, math.exp(float(lin[0])), lin, level)
