@@ -238,9 +238,21 @@ def case_information(case: Case, sample: int = 6, noise_pct: float = 2.0):
     from .sim import bridge_beam
     from .scenarios import SCENARIOS
 
-    beam = bridge_beam(SCENARIOS[case.name])
+    from cloud.bridge.estimator import BridgeSettings
+    from cloud.bridge.vehicle_error import class_log_sd
+
+    from .sim import _deck_window, _surfaces
+
+    sc = SCENARIOS[case.name]
+    beam = bridge_beam(sc)
     if beam.supports != "simply_supported":
         beam = design_beam(case.site.bridges[0])
+    # The calibration error is a nuisance of the bound too (cloud.bridge.information): its columns
+    # need the road the passes drove (the simulation's, read here on the truth side only).
+    surface = _surfaces(sc, case.seed)[0][0]
+    road = lambda x: surface.at(sc.bridge.start_m + x) * _deck_window(sc, sc.bridge.start_m + x)  # noqa: E731
+    spread = class_log_sd(case.site, "quarter_car")
+    names = sorted(spread)
     records = {r["pass_id"]: r for r in case.truth["passes"]}
     paths = list_drive_logs(case.sim_dir / "logs")
     pick = np.unique(np.linspace(0, len(paths) - 1, min(sample, len(paths))).round().astype(int))
@@ -250,11 +262,14 @@ def case_information(case: Case, sample: int = 6, noise_pct: float = 2.0):
         rec = records[lg.meta.pass_id]
         ch = next(iter(lg.channels.values()))
         pc = PassCase(lg.meta.vehicle_id, lg.meta.vehicle_model, case.truth["vehicles"][lg.meta.vehicle_id],
-                      rec["speed_mps"], noise_sd_of(ch, noise_pct))
-        sens.append(pass_sensitivity(pc, beam))
+                      rec["speed_mps"], noise_sd_of(ch, noise_pct), road)
+        sens.append(pass_sensitivity(pc, beam, calibration=names))
     vc = case.site.vehicle_class("quarter_car")
     w_rel = math.hypot(vc.std["M"], vc.std["m"]) / (vc.mean["M"] + vc.mean["m"])
-    return fleet_information(sens, w_rel).scaled(case.passes, len({r["vehicle_id"] for r in case.truth["passes"]}))
+    n_vehicles = len({r["vehicle_id"] for r in case.truth["passes"]})
+    per_pass = BridgeSettings().calibration_log_sd or 0.04
+    return fleet_information(sens, w_rel, common_sd=[spread[n] / math.sqrt(n_vehicles) for n in names],
+                             pass_sd=[per_pass] * len(names), span_m=beam.span_m).scaled(case.passes, n_vehicles)
 
 
 # ---------------------------------------------------------------------------------------------
