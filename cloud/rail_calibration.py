@@ -50,10 +50,11 @@ import time
 from typing import Sequence
 
 import numpy as np
-from numba import njit
 from scipy.signal import butter, sosfiltfilt
 
 from shared.vehicles.carriage import Carriage
+
+from .batched_inverse import inverse_runs
 
 RUN_NAMES = ("mv", "Iv", "v")
 #: Global properties calibrated with the batch (their class sd is the prior); the wheelset mass does
@@ -179,80 +180,9 @@ class _Mapper:
 #: The carriage's parameters the inverse depends on, in the order of :func:`carriage_aps`' columns.
 INVERSE_NAMES = ("mv", "Iv", "mb", "Ib", "kp", "cp", "ks", "cs")
 INVERSE_GAMMA = 0.8  # the edge's inverse (shared.dynamics.inverse; cloud.reference.cross_entropy)
-
-
-@njit(cache=True)
-def _inverse_runs(Sinv, M, C, K, kp, cp, run_of, z, lengths, dts, gamma, beta, out):
-    """:func:`cloud.reference.cross_entropy._inverse_batch` (the inverse Newmark-β step of
-    :mod:`shared.dynamics.inverse`) for a carriage, trial t on run ``run_of[t]``'s channels
-    ``z[run_of[t], :lengths[run_of[t]]]`` at step ``dts[run_of[t]]``: one compiled call for a whole
-    batch. DOFs 2..5 (the bogies) are measured — acceleration, pitch rate, acceleration, pitch
-    rate — and 0, 1 (the body) are free; the four contacts are the primary suspensions (kp, cp).
-    ``out`` (T, 4, N): the AP under each contact, wheel-major (beyond a run's length: untouched)."""
-    T = M.shape[0]
-    n = 6
-    nf = 2
-    u = np.zeros(n)
-    v = np.zeros(n)
-    a = np.zeros(n)
-    up = np.zeros(n)
-    vp = np.zeros(n)
-    known = np.zeros(n)
-    y = np.zeros(4)
-    yd = np.zeros(4)
-    for t in range(T):
-        r = run_of[t]
-        dt = dts[r]
-        bdt2 = beta * dt * dt
-        gdt = gamma * dt
-        for i in range(n):
-            u[i] = 0.0
-            v[i] = 0.0
-            a[i] = 0.0
-        for c in range(4):
-            y[c] = 0.0
-            yd[c] = 0.0
-            out[t, c, 0] = 0.0
-        a[2] = z[r, 0, 0]
-        v[3] = z[r, 0, 1]
-        a[4] = z[r, 0, 2]
-        v[5] = z[r, 0, 3]
-        for k in range(1, lengths[r]):
-            for i in range(n):
-                up[i] = u[i] + dt * v[i] + dt * dt * (0.5 - beta) * a[i]
-                vp[i] = v[i] + dt * (1.0 - gamma) * a[i]
-            for m in range(4):
-                i = 2 + m
-                if m % 2 == 0:
-                    a[i] = z[r, k, m]
-                else:  # a measured rate: the acceleration Newmark's velocity update implies
-                    a[i] = (z[r, k, m] - vp[i]) / gdt
-                u[i] = up[i] + bdt2 * a[i]
-                v[i] = vp[i] + gdt * a[i]
-            for row in range(n):
-                s = 0.0
-                for i in range(2, n):
-                    s += M[t, row, i] * a[i] + C[t, row, i] * v[i] + K[t, row, i] * u[i]
-                for i in range(nf):
-                    s += C[t, row, i] * vp[i] + K[t, row, i] * up[i]
-                known[row] = s
-            for q in range(nf + 4):
-                s = 0.0
-                for row in range(n):
-                    s -= Sinv[t, q, row] * known[row]
-                if q < nf:
-                    a[q] = s
-                    u[q] = up[q] + bdt2 * s
-                    v[q] = vp[q] + gdt * s
-                else:
-                    c = q - nf
-                    if cp[t] == 0.0:
-                        y[c] = s / kp[t]
-                    else:  # kc·y + cc·ẏ = g by the trapezoidal rule
-                        ynew = (s + cp[t] * (2.0 * y[c] / dt + yd[c])) / (kp[t] + 2.0 * cp[t] / dt)
-                        yd[c] = 2.0 * (ynew - y[c]) / dt - yd[c]
-                        y[c] = ynew
-                    out[t, c, k] = y[c]
+_MEASURED = np.arange(2, 6)  # the channels (RailRun order) measure the bogies' DOFs: acc, rate, acc, rate
+_IS_ACC = np.array([True, False, True, False])
+_FREE = np.arange(2)  # the body's bounce and pitch
 
 
 def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: float, z: np.ndarray,
@@ -287,9 +217,11 @@ def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: floa
     S = np.concatenate([M[:, :, :2] + c.gamma * dt * C[:, :, :2] + c.beta * dt * dt * K[:, :, :2],
                         np.broadcast_to(-G, (T, 6, 4))], axis=2)
     out = np.zeros((T, 4, z.shape[1]))  # wheel-major: what the mapping reads in one piece
-    _inverse_runs(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.ascontiguousarray(kp), np.ascontiguousarray(cp),
-                  run_of, np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts,
-                  c.gamma, c.beta, out)
+    # the four contacts are the primary suspensions (kp, cp)
+    inverse_runs(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.repeat(kp[:, None], 4, axis=1),
+                 np.repeat(cp[:, None], 4, axis=1), _MEASURED, _IS_ACC, _FREE, run_of,
+                 np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta,
+                 out)
     return out.transpose(0, 2, 1)
 
 

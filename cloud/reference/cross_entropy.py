@@ -30,10 +30,10 @@ Only ratios are identifiable (divide the equations of motion by the body mass): 
 flat along each vehicle's mass scale, so absolute values wander while ratios converge — exactly
 what the thesis reports (Tables 2.3, 2.5, 2.6).
 
-Evaluating a trial runs the inverse of every vehicle under new parameters; :func:`_inverse_batch`
-runs the readable inverse step of :mod:`shared.dynamics.inverse` (same equations, same initial
-state convention as :class:`~shared.dynamics.inverse.InverseStream` without an initial state) for a
-whole population in one compiled call, without compiling a state-space model per trial.
+Evaluating a trial runs the inverse of every vehicle under new parameters;
+:func:`cloud.batched_inverse.inverse_runs` runs the readable inverse step of
+:mod:`shared.dynamics.inverse` for a whole population in one compiled call, without compiling a
+state-space model per trial.
 """
 
 from __future__ import annotations
@@ -44,10 +44,11 @@ import time
 from typing import NamedTuple, Sequence
 
 import numpy as np
-from numba import njit
 
 from shared.dynamics.newmark import newmark_constants
 from shared.vehicles import MODELS, vehicle_from_params
+
+from ..batched_inverse import inverse_runs
 
 log = logging.getLogger(__name__)
 
@@ -56,84 +57,6 @@ ELITE_FRACTION = 0.10  # thesis §2.4: "the 10% best of the trial vehicle proper
 
 # ---------------------------------------------------------------------------------------------
 # The inverse for a population of parameter sets
-
-
-@njit(cache=True)
-def _inverse_batch(Sinv, M, C, K, kc, cc, dof, is_acc, free, z, dt, gamma, beta, out):
-    """The inverse Newmark-β step (:func:`shared.dynamics.inverse.inverse_step`) for T parameter sets.
-
-    Sinv (T, nf + nc, n), M/C/K (T, n, n), kc/cc (T, nc); dof/is_acc (n_channels,), free (nf,);
-    z (n_samples, n_channels) measured channels; out (T, n_samples, nc) the AP under each contact.
-    The state starts at rest with the first measured values (a logger switched on while driving).
-    """
-    T, n = M.shape[0], M.shape[1]
-    nc = kc.shape[1]
-    nm = dof.size
-    nf = free.size
-    n_samples = z.shape[0]
-    u = np.zeros(n)
-    v = np.zeros(n)
-    a = np.zeros(n)
-    up = np.zeros(n)
-    vp = np.zeros(n)
-    known = np.zeros(n)
-    y = np.zeros(nc)
-    yd = np.zeros(nc)
-    bdt2 = beta * dt * dt
-    gdt = gamma * dt
-    for t in range(T):
-        for i in range(n):
-            u[i] = 0.0
-            v[i] = 0.0
-            a[i] = 0.0
-        for c in range(nc):
-            y[c] = 0.0
-            yd[c] = 0.0
-            out[t, 0, c] = 0.0
-        for m in range(nm):
-            if is_acc[m]:
-                a[dof[m]] = z[0, m]
-            else:
-                v[dof[m]] = z[0, m]
-        for k in range(1, n_samples):
-            for i in range(n):
-                up[i] = u[i] + dt * v[i] + dt * dt * (0.5 - beta) * a[i]
-                vp[i] = v[i] + dt * (1.0 - gamma) * a[i]
-            for m in range(nm):
-                i = dof[m]
-                if is_acc[m]:
-                    a[i] = z[k, m]
-                else:  # a measured rate: the acceleration Newmark's velocity update implies
-                    a[i] = (z[k, m] - vp[i]) / gdt
-                u[i] = up[i] + bdt2 * a[i]
-                v[i] = vp[i] + gdt * a[i]
-            for r in range(n):
-                s = 0.0
-                for m in range(nm):
-                    i = dof[m]
-                    s += M[t, r, i] * a[i] + C[t, r, i] * v[i] + K[t, r, i] * u[i]
-                for f in range(nf):
-                    i = free[f]
-                    s += C[t, r, i] * vp[i] + K[t, r, i] * up[i]
-                known[r] = s
-            for q in range(nf + nc):
-                s = 0.0
-                for r in range(n):
-                    s -= Sinv[t, q, r] * known[r]
-                if q < nf:
-                    i = free[q]
-                    a[i] = s
-                    u[i] = up[i] + bdt2 * s
-                    v[i] = vp[i] + gdt * s
-                else:
-                    c = q - nf
-                    if cc[t, c] == 0.0:
-                        y[c] = s / kc[t, c]
-                    else:  # kc·y + cc·ẏ = g by the trapezoidal rule
-                        ynew = (s + cc[t, c] * (2.0 * y[c] / dt + yd[c])) / (kc[t, c] + 2.0 * cc[t, c] / dt)
-                        yd[c] = 2.0 * (ynew - y[c]) / dt - yd[c]
-                        y[c] = ynew
-                    out[t, k, c] = y[c]
 
 
 def population_aps(model: str, trials: Sequence[dict[str, float]], channels: np.ndarray, dt: float,
@@ -157,10 +80,11 @@ def population_aps(model: str, trials: Sequence[dict[str, float]], channels: np.
     cc = np.stack([s.cc for s in systems])
     dof = np.array(measured, dtype=np.int64)
     is_acc = np.array([ch.kind == "acc" for ch in s0.channels])
-    z = np.ascontiguousarray(channels, dtype=np.float64).reshape(len(channels), -1)
-    out = np.empty((len(systems), z.shape[0], s0.n_contacts))
-    _inverse_batch(Sinv, M, C, K, kc, cc, dof, is_acc, free, z, dt, c.gamma, c.beta, out)
-    return out, np.stack([s.offsets_m for s in systems])
+    z = np.ascontiguousarray(channels, dtype=np.float64).reshape(1, len(channels), -1)  # one run
+    out = np.empty((len(systems), s0.n_contacts, z.shape[1]))
+    inverse_runs(Sinv, M, C, K, kc, cc, dof, is_acc, free, np.zeros(len(systems), dtype=np.int64), z,
+                 np.array([z.shape[1]], dtype=np.int64), np.array([float(dt)]), c.gamma, c.beta, out)
+    return out.transpose(0, 2, 1), np.stack([s.offsets_m for s in systems])
 
 
 # ---------------------------------------------------------------------------------------------
