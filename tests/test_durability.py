@@ -408,14 +408,14 @@ def test_compaction_runs_when_the_journal_is_mostly_garbage(road, tmp_path, monk
     the compacted state restarts to the same cloud."""
     import cloud.durable as durable
 
-    monkeypatch.setattr(durable, "SNAPSHOT_MIN_RECORDS", 10)
+    monkeypatch.setattr(durable, "SNAPSHOT_MIN_RECORDS", 5)
     msgs = _messages(road)
     cloud = _cloud(road)
     d = Durability(Journal(tmp_path), cloud)
     d.recover()
     d.live = True
     _feed(cloud, msgs, d)
-    assert d.since_snapshot == len(msgs) >= 10 and not d.maybe_snapshot()  # nothing to gain yet
+    assert d.since_snapshot == len(msgs) >= 5 and not d.maybe_snapshot()  # nothing to gain yet
     resent = 0
     while d.since_snapshot < durable.COMPACT_RATIO * d.live_records():
         assert not d.maybe_snapshot()

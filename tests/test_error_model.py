@@ -118,7 +118,12 @@ def test_channel_noise_level_is_measured_from_the_data(half_car_long):
 
 def test_model_spectrum_matches_the_ap_error_of_noise_only_passes():
     """White noise on the half-car's channels (levels the edge must find itself, seed unlike the
-    model's): the AP the edge makes of it is all error, and the model's spectrum holds it per band."""
+    model's): the AP the edge makes of it is all error, and the model's spectrum holds it per band.
+
+    The model describes the linearly gridded AP (the inverse's noise up to 250 Hz folded into the
+    grid); the alias-free gridding (the edge's default) removes most of that fold, so there the
+    model is an upper bound in every band (for a half-car's pitch rate by far: a precision band of
+    low order cannot follow the filtered spectrum's 1 000× range; see the session-4 note)."""
     system = vehicle_from_params("half_car", TABLE_2_1).system()
     model = build_inverse(system, 0.002)
     rng = np.random.default_rng(7)
@@ -132,10 +137,13 @@ def test_model_spectrum_matches_the_ap_error_of_noise_only_passes():
             t0=i * 0.002, sample_rate_hz=500.0, chainage=v * 0.002 * np.arange(i, i + k), speed=np.full(k, v),
             channels={c: (lvl * rng.standard_normal(k)).astype(np.float32) for c, lvl in levels.items()},
             final=i + k >= n))
-    segs = _segments(model, "half_car", chunks)
+    segs = _segments(model, "half_car", chunks, antialias=False)
     ratios = _compare_spectra(segs, lambda start, size, axle: np.zeros(size))
     for band, (r_model, r_white) in ratios.items():
         assert 0.75 <= r_model <= 1.33, (band, r_model)
+    alias_free = _compare_spectra(_segments(model, "half_car", chunks), lambda start, size, axle: np.zeros(size))
+    for band, (r_model, _) in alias_free.items():
+        assert r_model >= 0.75, (band, r_model)
     # The white sigma (second differences) is set by the shortest wavelengths: 2–20 m far too high.
     assert ratios[(2.0, 5.0)][1] > 10 and ratios[(5.0, 20.0)][1] > 10
 
@@ -146,7 +154,7 @@ def test_model_spectrum_matches_the_ap_error_of_simulated_passes(half_car_long):
     truth = json.loads((half_car_long / "truth.json").read_text())
     p = truth["profile"]
     tx = p["start_m"] + p["spacing_m"] * np.arange(len(p["elevation_m"]))
-    segs = _log_segments(half_car_long / "logs")
+    segs = _log_segments(half_car_long / "logs", antialias=False)  # what the model describes (above)
     ratios = _compare_spectra(segs, lambda start, size, axle: np.interp((start + np.arange(size)) * SP, tx,
                                                                          p["elevation_m"]))
     for band, (r_model, r_white) in ratios.items():
