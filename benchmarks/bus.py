@@ -176,12 +176,7 @@ class Deployment:
         pub.put(payload, attachment=TRACE.pack(time.time()))  # the stamp is the last thing before put
 
     def query(self, verb: str, params: str = "") -> dict:
-        selector = keys.control_key(NET, CLOUD_ID, verb) + (f"?{params}" if params else "")
-        for reply in self.session.get(selector, timeout=30.0):
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes())
-            raise BenchError(f"{verb}: {reply.err.payload.to_bytes().decode(errors='replace')}")
-        raise BenchError(f"the cloud did not answer {verb}")
+        return control_query(self.session, CLOUD_ID, verb, params)
 
     def latencies_ms(self, since: float) -> np.ndarray:
         body = self.query("latency", f"since={since!r}")
@@ -205,6 +200,16 @@ class Deployment:
             s.undeclare()
         self.session.close()
         _stop(list(self.procs.values()))
+
+
+def control_query(session: zenoh.Session, node: str, verb: str, params: str = "", net: str = NET) -> dict:
+    """A daemon's answer to a control query (``driveby/<net>/control/<node>/<verb>``), as JSON."""
+    selector = keys.control_key(net, node, verb) + (f"?{params}" if params else "")
+    for reply in session.get(selector, timeout=30.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+        raise BenchError(f"{node} {verb}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+    raise BenchError(f"{node} did not answer {verb}")
 
 
 def _spawn(cmd: list[str], log_path: Path, **kw) -> subprocess.Popen:

@@ -68,7 +68,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from benchmarks.bus import BenchError, _spawn, _stop, watch_alive
+from benchmarks.bus import BenchError, _spawn, _stop, control_query, watch_alive
 from cloud.node import TRACE
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log, write_drive_log
@@ -237,12 +237,7 @@ class Soak:
         sub.undeclare()
 
     def query(self, node: str, verb: str, params: str = "") -> dict:
-        selector = keys.control_key(NET, node, verb) + (f"?{params}" if params else "")
-        for reply in self.session.get(selector, timeout=30.0):
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes())
-            raise BenchError(f"{node} {verb}: {reply.err.payload.to_bytes().decode(errors='replace')}")
-        raise BenchError(f"{node} did not answer {verb}")
+        return control_query(self.session, node, verb, params, NET)
 
     def memory(self) -> dict[str, float | None]:
         pids = {name: p.pid for name, p in {**self.routers, **self.procs}.items()}
