@@ -35,19 +35,18 @@ def profile_table(snapshots: dict[str, ProfileSnapshot]) -> pa.Table:
 
 
 def profile_draws(profile, route_id: str, snap: ProfileSnapshot, segments: list, n: int = 100,
-                  rng: np.random.Generator | int | None = 0, longest: bool | None = None) -> np.ndarray:
+                  rng: np.random.Generator | int | None = 0) -> np.ndarray:
     """``n`` draws (n, P) of a route's profile carrying every error term of its exported band: the
     posterior's own (``profile.sample``: the white/AR(1) or edge error model, and the per-pass drift
-    nuisance when it is on) plus the passes' excess error (:func:`.estimators.long_wave.pass_error_draws`),
-    so that what is computed from them (the IRI) has the band's uncertainty. ``snap`` is the
-    posterior's snapshot of the route, ``segments`` the held segments; ``longest`` as for
-    :func:`.estimators.long_wave.with_long_wave_band` (default: when the profile has no drift nuisance)."""
-    from .estimators.long_wave import pass_error_draws
+    nuisance when it is on) plus the passes' excess error beyond those
+    (:func:`.estimators.long_wave.pass_error_draws`, told of the drift nuisance), so that what is
+    computed from them (the IRI) has the band's uncertainty. ``snap`` is the posterior's snapshot of
+    the route, ``segments`` the held segments."""
+    from .estimators.long_wave import drift_of, pass_error_draws
 
-    if longest is None:
-        longest = getattr(profile, "drift_knot_m", None) is None
     rng = np.random.default_rng(rng)
-    return profile.sample(route_id, n, rng) + pass_error_draws(snap, segments, n, rng, longest=longest)
+    draws = profile.sample(route_id, n, rng)  # (first: the posterior, hence its drift level, is computed)
+    return draws + pass_error_draws(snap, segments, n, rng, drift=drift_of(profile, route_id))
 
 
 def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, spacing_m: float,
@@ -70,10 +69,17 @@ def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, 
         raise ValueError(f"samples have {draws.shape[1]} points, chainage {x.size}")
     if x.size > 1 and not np.isclose(x[1] - x[0], spacing_m, rtol=1e-9):
         raise ValueError(f"chainage spacing {x[1] - x[0]} is not spacing_m {spacing_m}")
+    # A segment's bounds are clipped to the profile's extent, not the route's: where the passes begin
+    # a few metres in, the first segment's IRI is of the stretch from there (the car's run starts
+    # there), and start_m says so — reported as [0, L) it read as the IRI of ground no pass drove.
+    # (Whether a segment is reported at all still asks for half of its nominal length.)
+    has = np.flatnonzero(np.isfinite(draws).any(axis=0))
+    first_m, last_m = (x[has[0]], x[has[-1]]) if has.size else (np.inf, -np.inf)
     names = ("start_m", "end_m", "length_m", "iri_m_per_km", "iri_lo95", "iri_hi95")
     cols: dict[str, list] = {k: [] for k in names}
     for length in lengths_m:
         start, end, v = iri_segments(x, draws, length)
+        start, end = np.maximum(start, first_m), np.minimum(end, last_m)
         keep = np.all(np.isfinite(v), axis=0)
         v = v[:, keep]
         cols["start_m"].append(start[keep])

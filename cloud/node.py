@@ -32,7 +32,7 @@ from .bridge.vehicle_error import class_log_sd, fit_log_sd
 from .durable import AP, CALIB, DONE, Durability, restore_calibration
 from .bridges import CLEARED, BridgeMonitor
 from .estimators.gmrf_profile import GmrfProfile
-from .estimators.long_wave import with_long_wave_band
+from .estimators.long_wave import drift_of, with_long_wave_band
 from .estimators.mean_profile import MeanProfile
 from .journal import Journal, JournalError
 from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
@@ -45,10 +45,9 @@ log = logging.getLogger("driveby.cloud")
 
 TILE_M = 50.0
 #: Knot spacing (m) of each pass's own drift, a nuisance of the profile posterior (cloud.estimators.pass_drift);
-#: None leaves the drift to the band's measured long-wave term. Off: with it on, a replay interrupted by a
-#: partition ended 0.6 mm away from the uninterrupted run (tests/test_router_restart.py, under load), so
-#: its learnt level depends on the run's history somewhere; exact replays come first.
-DRIFT_KNOT_M: float | None = None
+#: None leaves the drift to the band's measured long-wave term. The posterior, its τ and drift level are a
+#: function of the held segments alone, not of their history (tests/test_pass_drift.py), so replays agree.
+DRIFT_KNOT_M: float | None = 25.0
 ALIGN_MIN_SCORE = 0.5  # correlation below this: the pass and the consensus do not overlap well enough
 ALIGN_MIN_PASSES = 3  # fewer passes do not define a frame worth centring on
 ALIGN_ITERATIONS = 6
@@ -689,8 +688,9 @@ class Cloud:
         drift and calibration error each pass adds beyond the likelihood's white noise, measured band
         by band from their disagreement: :mod:`cloud.estimators.long_wave`)."""
         segs = list(self.aggregator.held.values())  # what the estimators hold (chainage-aligned)
-        longest = self.profile.drift_knot_m is None  # the drift nuisance covers the longest band itself
-        return {rid: with_long_wave_band(s, segs, longest=longest) for rid, s in self.profile.snapshot().items()}
+        # With the drift nuisance on, the passes' scatter adds only what exceeds its learnt level.
+        return {rid: with_long_wave_band(s, segs, drift=drift_of(self.profile, rid))
+                for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:
         if self.has_rail():

@@ -153,7 +153,11 @@ def score_iri(export_dir: Path, truth: dict, length_m: float = 100.0, trim_m: fl
     hi = np.asarray(t["iri_hi95"])[rows]
     p = truth["profile"]
     tx = p["start_m"] + p["spacing_m"] * np.arange(len(p["elevation_m"]))
-    ts, te, tv = iri_segments(tx, np.asarray(p["elevation_m"]), length_m)
+    ty = np.asarray(p["elevation_m"])
+    if start.size:  # over the stretch the exported profile covers (its segments' bounds): the same run-up
+        on = (tx >= start.min() - 1e-6) & (tx <= end.max() + 1e-6)
+        tx, ty = tx[on], ty[on]
+    ts, te, tv = iri_segments(tx, ty, length_m)
     length = truth["route"]["length_m"]
     keep = (start >= trim_m - 1e-9) & (end <= length - trim_m + 1e-9) & (end - start >= 0.99 * length_m)
     j = np.clip(np.searchsorted(ts, start - 1e-6), 0, ts.size - 1)

@@ -185,7 +185,7 @@ def test_roughness_table():
     assert set(d["route_id"]) == {"R1"}
     ten = d["length_m"] == 10.0
     assert ten.sum() == 15 and (~ten).sum() == 1  # 0–150 m known; 100–200 m is less than half known
-    assert d["end_m"][ten].max() == 150.0
+    assert d["end_m"][ten].max() == x[2999]  # the last known point: bounds are the profile's, not the route's
     assert np.all(d["iri_lo95"] <= d["iri_m_per_km"]) and np.all(d["iri_m_per_km"] <= d["iri_hi95"])
     assert np.all(d["iri_hi95"] > d["iri_lo95"])
     # One profile: the band collapses onto the value, which is the profile's IRI.
@@ -193,3 +193,19 @@ def test_roughness_table():
     _, _, v100 = iri_segments(x, base, 100.0)
     np.testing.assert_allclose(one["iri_m_per_km"][one["length_m"] == 100.0], v100)
     np.testing.assert_array_equal(one["iri_lo95"], one["iri_hi95"])
+
+
+def test_roughness_segments_start_where_the_profile_does():
+    """Passes begin a few metres into the route: the first segment's IRI is of the stretch from there
+    (the car's run starts at the first known point), and its bounds say so rather than [0, L)."""
+    rng = np.random.default_rng(5)
+    x = np.arange(4001) * DX
+    draws = np.cumsum(rng.normal(0, 5e-4, (20, x.size)), axis=1)
+    draws[:, :97] = np.nan  # known from 4.85 m
+    d = {k: np.asarray(v) for k, v in roughness_table("R1", x, draws, DX).to_pydict().items()}
+    for length in (10.0, 100.0):
+        rows = d["length_m"] == length
+        assert d["start_m"][rows].min() == x[97]
+        assert d["end_m"][rows].max() == x[-1]
+    _, _, v = iri_segments(x[97:], draws[:, 97:], 10.0)  # the same IRI as of the known stretch alone
+    np.testing.assert_allclose(d["iri_m_per_km"][d["length_m"] == 10.0], v.mean(axis=0))

@@ -356,7 +356,10 @@ class GmrfProfile:
     tau_init : float, optional
         Starting value when τ is learnt (default :func:`iso8608_tau` for class B).
     tau_tol : float
-        Relative tolerance on the learnt τ (each iteration is one factorisation of every block).
+        Relative tolerance on the learnt τ (each iteration is one factorisation of every block). Tight
+        (1e-10: one iteration more than 1e-6 from a cold start), because τ is warm-started from the last
+        snapshot's: at 1e-6 where it stopped depended on the run's history (snapshots taken on the way),
+        which moved the mean by ~1e-7 of its sd — replays must give the same export.
     max_tau_iter : int
         Iterations allowed for learning τ before settling for the last value (with a warning).
     drift_knot_m : float or None
@@ -372,7 +375,7 @@ class GmrfProfile:
 
     def __init__(self, routes: dict[str, float], spacing_m: float = 0.05, tau: float | None = None, *,
                  order: int = 1, rho: float = 0.0, ridge: float = 1e-6, max_gap_m: float = 1.0,
-                 tau_init: float | None = None, tau_tol: float = 1e-6, max_tau_iter: int = 60,
+                 tau_init: float | None = None, tau_tol: float = 1e-10, max_tau_iter: int = 60,
                  drift_knot_m: float | None = None, drift_sd_m: float | None = None):
         if order not in _DIFF:
             raise ValueError(f"order must be 1 or 2, got {order}")

@@ -25,6 +25,12 @@ covers), averaged over the passes, up to a constant level (:func:`simfleet.evalu
 Errors every pass shares (a calibration bias common to the fleet, the inverse's discretisation)
 do not show in the scatter and are not in this term.
 
+With the per-pass drift nuisance on (:mod:`.pass_drift`, ``drift = (sd, knot_m)``) the posterior's
+band already holds each pass's drift as a homogeneous process of the learnt level; each band's
+model share then includes that drift's (:func:`drift_band_shares`), the longest band included, so
+that only what the passes' scatter shows beyond it — where the drift is locally larger than the
+route-wide level, or shaped otherwise than the knots' hats — is added (not the drift twice).
+
 Draws (:func:`pass_error_draws`): whatever is computed from posterior draws (the IRI and its band)
 must carry this term too. Its variance alone does not say how it moves the IRI: a calibration error
 scales the road (first order in the IRI), sensor noise adds to it (second order). So per band the
@@ -38,6 +44,7 @@ to a segment update, and a retracted segment is simply not among those held.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from scipy.stats import t as student_t
@@ -72,6 +79,42 @@ def _white_share(widths: list[int]) -> list[float]:
     return out
 
 
+def drift_band_shares(knot_m: float, spacing_m: float, widths: list[int]) -> np.ndarray:
+    """Variance, per unit drift variance ``s²``, of each moving-average band (as :func:`band_error_variances`
+    cuts them) of a drift ``Σ_k β_k φ_k(x)`` with independent ``β_k ~ N(0, s²)`` on linear hats at
+    knots every ``knot_m`` (:mod:`.pass_drift`'s model), averaged over the position between knots."""
+    key = (float(knot_m), float(spacing_m), tuple(widths))
+    hit = _DRIFT_SHARES.get(key)
+    if hit is None:
+        knot_pts = knot_m / spacing_m
+        pad = max(widths) + int(math.ceil(2 * knot_pts))
+        n_knots = 4
+        x = (np.arange(-pad, int(math.ceil(n_knots * knot_pts)) + pad) / knot_pts)  # in knots
+        mid = (x >= 1.0) & (x < 2.0)  # one knot period, far from the lattice's ends
+        every = np.ones(x.size, dtype=bool)
+        out = np.zeros(len(widths))
+        for k in range(int(math.floor(x[0])) - 1, int(math.ceil(x[-1])) + 2):
+            hat = np.clip(1.0 - np.abs(x - k), 0.0, None)
+            if not hat.any():
+                continue
+            mas = [_moving_average(hat, every, w) for w in widths]
+            for j in range(len(widths)):
+                band = mas[j] - mas[j + 1] if j + 1 < len(widths) else mas[j]
+                out[j] += float(np.mean(band[mid] ** 2))
+        _DRIFT_SHARES[key] = hit = out
+    return hit
+
+
+_DRIFT_SHARES: dict = {}
+
+
+def drift_of(profile, route_id: str) -> tuple[float, float] | None:
+    """``(sd_m, knot_m)`` of the per-pass drift nuisance a profile estimator holds for a route (after
+    its snapshot), or None when it models none: the ``drift`` argument of this module's functions."""
+    knot = getattr(profile, "drift_knot_m", None)
+    return None if knot is None else (float(profile.drift_sd[route_id]), float(knot))
+
+
 def _pass_residuals(snap: ProfileSnapshot, segments: list[ApSegment]):
     """Each pass's ``(lo, hi, r, ok, sigma)``: its residual ``y − μ`` on grid points ``[lo, hi)``, where
     it counts (finite, and not flagged unreliable by the edge) and its stated sd."""
@@ -81,7 +124,11 @@ def _pass_residuals(snap: ProfileSnapshot, segments: list[ApSegment]):
     for s in segments:
         if s.route_id == snap.route_id:
             passes.setdefault((s.vehicle_id, s.pass_id, s.axle), []).append(s)
-    for segs in passes.values():
+    # Passes by key and each pass's segments by position, not in the order they arrived: the sums over
+    # passes and the segment whose error model stands for the pass are then the same whatever the
+    # run's history (a re-sent pass, a retraction and re-add) — exact replays.
+    for key in sorted(passes):
+        segs = sorted(passes[key], key=lambda s: (s.start_index, s.end_index))
         lo = max(min(s.start_index for s in segs), 0)
         hi = min(max(s.end_index for s in segs), P)
         if hi - lo < 3:
@@ -103,24 +150,30 @@ def _pass_residuals(snap: ProfileSnapshot, segments: list[ApSegment]):
 
 
 def pass_error_variance(snap: ProfileSnapshot, segments: list[ApSegment],
-                        band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True) -> np.ndarray:
+                        band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True,
+                        drift: tuple[float, float] | None = None) -> np.ndarray:
     """Variance (m²) per grid point of the fused profile's error that the white likelihood misses.
 
     ``longest``: also the band beyond the last edge (> 50 m). Pass False when the posterior
-    models those wavelengths itself (the per-pass drift nuisance of :mod:`.pass_drift`, knots at
-    ≤ 25 m), so that they are not counted twice.
+    models those wavelengths itself and nothing of them is to be added. ``drift``: ``(sd_m, knot_m)``
+    of the per-pass drift nuisance the posterior holds (:mod:`.pass_drift`): its share of every band
+    counts as modelled, so only the scatter beyond it is added (with the longest band).
     """
-    return band_error_variances(snap, segments, band_edges_m, longest).sum(axis=0)
+    return band_error_variances(snap, segments, band_edges_m, longest, drift).sum(axis=0)
 
 
 def band_error_variances(snap: ProfileSnapshot, segments: list[ApSegment],
-                         band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True) -> np.ndarray:
+                         band_edges_m: tuple[float, ...] = BAND_EDGES_M, longest: bool = True,
+                         drift: tuple[float, float] | None = None) -> np.ndarray:
     """:func:`pass_error_variance` band by band: (bands, P), the band beyond the last edge last
     (zero unless ``longest``)."""
     P = snap.elevation_m.size
     h = float(snap.chainage_m[1] - snap.chainage_m[0]) if P > 1 else 1.0
     widths = [max(int(round(e / h)) | 1, 1) for e in band_edges_m]  # odd: centred
     nb = len(widths)
+    # The drift nuisance's per-pass variance in each band (0 without it): modelled, like the white share.
+    dshare = (drift[0] ** 2 * drift_band_shares(drift[1], h, widths) if drift is not None and drift[0] > 0
+              else np.zeros(nb))
     ss = np.zeros((nb, P))  # Σ_p band residual²
     n = np.zeros(P)  # passes with a residual at the point
     sw = np.zeros(P)  # Σ_p w_p
@@ -135,7 +188,8 @@ def band_error_variances(snap: ProfileSnapshot, segments: list[ApSegment],
         n[lo:hi] += ok
         sw[lo:hi] += w
         sw2[lo:hi] += w * w
-        ssig[:, lo:hi] += np.where(ok, sig * sig, 0.0) * error_band_shares(em, widths)[:, None]
+        ssig[:, lo:hi] += (np.where(ok, sig * sig, 0.0) * error_band_shares(em, widths)[:, None]
+                           + np.where(ok, 1.0, 0.0) * dshare[:, None])
     var = np.zeros((nb, P))
     many = n > 1
     if not many.any():
@@ -202,7 +256,7 @@ def band_gain_covariance(snap: ProfileSnapshot, segments: list[ApSegment],
 
 def pass_error_draws(snap: ProfileSnapshot, segments: list[ApSegment], n: int,
                      rng: np.random.Generator | int | None = None, band_edges_m: tuple[float, ...] = BAND_EDGES_M,
-                     longest: bool = True) -> np.ndarray:
+                     longest: bool = True, drift: tuple[float, float] | None = None) -> np.ndarray:
     """``n`` draws (n, P) of the error :func:`pass_error_variance` describes, to add to posterior
     draws so that what is computed from them (the IRI) carries the band's every error term.
 
@@ -215,7 +269,7 @@ def pass_error_draws(snap: ProfileSnapshot, segments: list[ApSegment], n: int,
     """
     rng = np.random.default_rng(rng)
     P = snap.elevation_m.size
-    v = band_error_variances(snap, segments, band_edges_m, longest)
+    v = band_error_variances(snap, segments, band_edges_m, longest, drift)
     gcov, m = band_gain_covariance(snap, segments, band_edges_m)
     gvar = np.diag(gcov)
     sd = np.sqrt(np.where(gvar > 0, gvar, 1.0))
@@ -247,10 +301,11 @@ def pass_error_draws(snap: ProfileSnapshot, segments: list[ApSegment], n: int,
     return out
 
 
-def with_pass_error_band(snap: ProfileSnapshot, segments: list[ApSegment], longest: bool = True) -> ProfileSnapshot:
+def with_pass_error_band(snap: ProfileSnapshot, segments: list[ApSegment], longest: bool = True,
+                         drift: tuple[float, float] | None = None) -> ProfileSnapshot:
     """``snap`` with :func:`pass_error_variance` added to the variance of its 95 % band."""
     sd_post = (snap.hi95_m - snap.lo95_m) / (2 * _Z95)
-    sd = np.sqrt(sd_post**2 + pass_error_variance(snap, segments, longest=longest))
+    sd = np.sqrt(sd_post**2 + pass_error_variance(snap, segments, longest=longest, drift=drift))
     return dataclasses.replace(snap, lo95_m=snap.elevation_m - _Z95 * sd, hi95_m=snap.elevation_m + _Z95 * sd)
 
 

@@ -59,6 +59,8 @@ from shared.schema import ApSegment
 
 #: Range the drift sd is learnt within (m); below the lower end the drift is taken as absent.
 DRIFT_SD_BOUNDS_M = (1e-7, 1e-2)
+#: Tolerance of the learnt log drift variance (the score equation's residual).
+SCORE_TOL = 1e-11
 
 
 def pass_key(seg: ApSegment) -> tuple[str, str, int]:
@@ -101,7 +103,9 @@ def drift_system(segments: list[ApSegment], a: int, e: int, size: int, spacing_m
     """
     spans: dict[tuple, list[int]] = {}
     parts = []
-    for s in segments:
+    # In a fixed order (pass, then position), not the order they arrived in: the sums below are then
+    # the same floating-point sums whatever the run's history (arrivals, retractions, re-sends).
+    for s in sorted(segments, key=lambda s: (pass_key(s), s.start_index, s.end_index)):
         lo, hi = max(s.start_index, a), min(s.end_index, size, e)
         if hi <= lo or s.start_index < a:  # a segment lies in one block (blocks are covered runs)
             continue
@@ -364,6 +368,17 @@ class DriftPosterior:
         return (0.5 * (float(self.b_red @ x) - self.quad0) - 0.5 * (logdet - self.logdet0)
                 - 0.5 * self.n_beta * math.log(s2))
 
+    def em_statistic(self, s2: float) -> float:
+        """``E[βᵀβ | y, s2] = μ_βᵀμ_β + tr Σ_ββ`` (m²) at drift variance ``s2``: the evidence's score is
+        ``(E[βᵀβ] / s2 − K) / (2 s2)``, zero where ``s2 = E[βᵀβ] / K`` (the EM fixed point)."""
+        if self.n_beta == 0:
+            return 0.0
+        from .gmrf_profile import _selected_inverse
+
+        cb = self._factor(s2)
+        mb = cho_solve_banded((cb, True), self.b_red, check_finite=False)[self.beta_idx]
+        return float(mb @ mb) + float(_selected_inverse(cb)[0, self.beta_idx].sum())
+
     def set_level(self, s2: float) -> None:
         """Fix the drift variance (m²): factorise the reduced system and take its mean and band."""
         self.s2 = float(s2) if self.n_beta else 0.0
@@ -524,8 +539,16 @@ def log_evidence(s2: float, posts: list[DriftPosterior]) -> float:
     return sum(d.log_evidence(s2) for d in posts)
 
 
-def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M) -> float:
-    """Type-II ML drift variance (m²) over all blocks of a route; 0 when the lower bound wins."""
+def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M, tol: float = SCORE_TOL) -> float:
+    """Type-II ML drift variance (m²) over all blocks of a route; 0 when the lower bound wins.
+
+    A function of the held data alone, to well below anything it moves: a fixed grid brackets the
+    maximum (ℓ can have a flat shoulder), Brent's method on ℓ finds it to ~1e-4 in log s², and the
+    score equation (the EM fixed point ``log s² = log(E[βᵀβ] / K)``) polishes it by secant steps to
+    ``tol`` in log s² — a comparison of evidence values stops resolving the maximum at ~1e-6 (their
+    rounding against ℓ's curvature), and where it stops would depend on the rounding of the sums,
+    i.e. on the order segments arrived in.
+    """
     if not any(d.n_beta for d in posts):
         return 0.0
     lo, hi = 2.0 * math.log(bounds_m[0]), 2.0 * math.log(bounds_m[1])
@@ -538,4 +561,35 @@ def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M
     res = minimize_scalar(lambda u: -log_evidence(math.exp(u), posts), bounds=(a, b), method="bounded",
                           options={"xatol": 1e-4})
     u = res.x if -res.fun >= vals[i] else grid[i]
-    return 0.0 if u <= lo + 1e-9 else math.exp(u)
+    if u <= lo + 1e-9:
+        return 0.0
+    return math.exp(_polish(u, posts, a, b, tol))
+
+
+def _polish(u: float, posts: list[DriftPosterior], a: float, b: float, tol: float, max_iter: int = 30) -> float:
+    """The root of ``h(u) = log(Σ E[βᵀβ] / Σ K) − u`` near ``u`` within ``[a, b]`` (secant steps after
+    one EM step); ``u`` unchanged if the steps leave the bracket or do not converge."""
+    K = sum(d.n_beta for d in posts)
+
+    def h(v):
+        st = sum(d.em_statistic(math.exp(v)) for d in posts)
+        return math.log(st / K) - v if st > 0.0 else -math.inf
+
+    try:
+        u0, h0 = u, h(u)
+        if abs(h0) <= tol:
+            return u0
+        u1 = u0 + h0
+        for _ in range(max_iter):
+            if not (a <= u1 <= b):
+                break
+            h1 = h(u1)
+            if abs(h1) <= tol:
+                return u1
+            step = h1 if h1 == h0 else -h1 * (u1 - u0) / (h1 - h0)
+            if not math.isfinite(step):
+                break
+            u0, h0, u1 = u1, h1, u1 + step
+    except LinAlgError:
+        pass
+    return u
