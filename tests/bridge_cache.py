@@ -3,12 +3,15 @@
 Keyed by the source of everything that makes them — simulator, edge, cloud, shared; not the bridge
 estimator under test (``cloud/bridge/``, ``cloud/bridges.py``), which runs every time — and by the
 Python and NumPy versions: any change to that code simulates and calibrates afresh.
+``DRIVEBY_BRIDGE_TEST_WORK`` (a directory) overrides the key: for checking the bridge estimator
+alone against passes made earlier while other code changes under it (say so when quoting results).
 """
 
 from __future__ import annotations
 
 import fcntl
 import hashlib
+import os
 import shutil
 import sys
 import tempfile
@@ -31,7 +34,8 @@ def source_key() -> str:
     return h.hexdigest()[:16]
 
 
-WORK = Path(tempfile.gettempdir()) / "driveby-test-bridge" / source_key()
+WORK = (Path(os.environ["DRIVEBY_BRIDGE_TEST_WORK"]) if os.environ.get("DRIVEBY_BRIDGE_TEST_WORK")
+        else Path(tempfile.gettempdir()) / "driveby-test-bridge" / source_key())
 
 
 def kept(name: str, make: Callable[[Path], None]) -> Path:
