@@ -9,7 +9,11 @@ compared with the consensus of the *other* passes, band-passed:
    straight line through the windows' shifts (Theil–Sen, then least squares on the inliers) gives
    (b, ε) — a window on a featureless or disagreeing stretch is an outlier, not a bias;
 2. fine: the pass re-gridded with (b, ε), each window's small residual shift in a short-wave band
-   (``FINE_BAND_M``, where a wrong calibration hardly moves the AP's phase), the line refitted.
+   (``FINE_BAND_M``, where a wrong calibration hardly moves the AP's phase), the line refitted;
+3. last: (b, ε) by least squares over all the fine stage's inlier windows at once (Gauss–Newton on
+   the spline-interpolated pass) in a band above wheel hop (``REFINE_BAND_M``), where a wrong
+   calibration changes the AP's gain but hardly its phase — free of the windows' sub-sample peak
+   bias and of the vehicle's phase error.
 
 The cost is a few dozen small FFTs per pass (~10 ms; 40 ms measured on the shared, loaded machine)
 instead of a correlation per trial stretch. The fleet's biases
@@ -34,6 +38,14 @@ BAND_M = (1.0, 30.0)  # coarse: wide, so a window's correlation peak is unique o
 # phase error, i.e. a false shift of several cm (measured: 5 cm sd with class-mean parameters in
 # 1–30 m, 3 cm in 0.5–5 m, 1.5 cm with the true parameters in either).
 FINE_BAND_M = (0.5, 5.0)
+# Last, least squares in a band above every car's wheel hop (0.34–0.5 m is 40–60 Hz at 20 m/s, past
+# ~10–15 Hz): there the inverse under wrong parameters errs in gain, hardly in phase (its transfer
+# tends to the real k/m ratio), so a pass is placed where its road is, not where its vehicle's phase
+# error puts it (measured, class-mean parameters, against the true profile: 0.3 cm sd per pass here,
+# 2.2 cm in 0.5–5 m; a calibration learning from 3 cm misplaced passes is biased by tens of %). The
+# edge's alias-free gridding keeps wavelengths down to 0.33 m. Local only: the fine stage must be
+# within a quarter wave (~8 cm).
+REFINE_BAND_M = (0.34, 0.5)
 WINDOW_M = 30.0  # long enough to hold the band's longest wave, short enough that ε·W ≪ the shortest
 FINE_LAG_M = 0.6  # residual shift searched after the coarse line (m)
 MIN_POINTS = 400
@@ -120,9 +132,11 @@ def _line(x: np.ndarray, y: np.ndarray, w: np.ndarray, robust: bool, floor_m: fl
 def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, cons: np.ndarray,
                        max_shift_m: float = 10.0, max_stretch: float = 0.06, stretch_step: float | None = None,
                        band_m: tuple[float, float] = BAND_M, fine_band_m: tuple[float, float] = FINE_BAND_M,
-                       window_m: float = WINDOW_M) -> Alignment | None:
+                       window_m: float = WINDOW_M, refine_band_m: tuple[float, float] | None = None
+                       ) -> Alignment | None:
     """(b, ε) of a pass's AP (on its reported grid ``x_rep``) against the consensus ``cons`` (on the
     regular grid ``x_cons``, same spacing). None if they overlap too little or nothing correlates.
+    ``refine_band_m``: the band of the final least-squares fit (default ``REFINE_BAND_M``).
     ``stretch_step`` is accepted for compatibility and ignored (no grid over ε any more)."""
     ok = np.isfinite(ap)
     okc = np.isfinite(cons)
@@ -183,7 +197,9 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
         # A feature the warped pass shows at true x sits at x + kk·h in the consensus: the pass's
         # true chainage there is larger by kk·h, i.e. its shift smaller by (1+ε)·kk·h.
         yk = -(1.0 + eps) * kk[g] * h
-        db, de, _ = _line(xm[g] - x_ref, yk, rr[g], robust=g.sum() >= 3, floor_m=0.02)
+        db, de, inl = _line(xm[g] - x_ref, yk, rr[g], robust=g.sum() >= 3, floor_m=0.02)
+        # The inlier windows' stretches of true chainage: where the pass and the consensus agree.
+        inlier_m = [(xg[0] + s * h, xg[0] + (s + n_win - 1) * h) for s in st[g][inl]]
         if g.sum() < 3:
             de = 0.0
         b, eps = b + db, eps + de
@@ -196,7 +212,63 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
             break
     if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
         return None
+    # Last: least squares over every inlier window at once, in REFINE_BAND_M. Each window's peak is
+    # a parabola through three lags of a 5 cm grid, biased towards whole samples; the shift and
+    # stretch that best map the whole pass onto the consensus are not.
+    refine = refine_band_m or REFINE_BAND_M
+    if refine != fine_band_m:
+        c_band, a_band = _band(c, h, refine), _band(ap, h, refine)
+    b, eps = _least_squares(x_rep, a_band, xc, c_band, Alignment(b, eps, x_ref, score), inlier_m,
+                            max_move_m=refine[0] / 4.0)
+    if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
+        return None
     return Alignment(shift_m=float(b), stretch=float(eps), x_ref_m=x_ref, score=score)
+
+
+def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment,
+                   inlier_m: list[tuple[float, float]], max_move_m: float, iterations: int = 4
+                   ) -> tuple[float, float]:
+    """(b, ε) minimising Σ (g·a(T(x)) − c(x))² over the true-chainage stretches ``inlier_m``, from
+    ``al`` by Gauss–Newton (T: true → reported chainage; ``a`` on the reported grid ``x_rep`` is
+    interpolated by a cubic spline, whose derivative is the Jacobian; g absorbs a gain mismatch).
+    Returns ``al``'s (b, ε) if the fit is degenerate or would move the pass anywhere by more than
+    ``max_move_m`` (a quarter of the band's shortest wave: beyond it the fit has left its basin, e.g.
+    against a consensus still smeared by the others' unknown shifts)."""
+    spline = make_interp_spline(x_rep, a, k=3)
+    slope = spline.derivative()
+    h = float(xc[1] - xc[0])
+    b, eps = al.shift_m, al.stretch
+    for _ in range(iterations):
+        cur = Alignment(b, eps, al.x_ref_m, 0.0)
+        lo = max(np.ceil(cur.reported_to_true(x_rep[0]) / h), np.ceil(xc[0] / h))
+        hi = min(np.floor(cur.reported_to_true(x_rep[-1]) / h), np.floor(xc[-1] / h))
+        xg = np.arange(lo, hi + 1) * h
+        keep = np.zeros(xg.size, bool)
+        for u, v in inlier_m:
+            keep |= (xg >= u) & (xg <= v)
+        xg = xg[keep]
+        if xg.size < MIN_POINTS:
+            return al.shift_m, al.stretch
+        xr = cur.true_to_reported(xg)
+        av, dv = spline(xr), slope(xr)
+        cv = c[np.clip(np.rint((xg - xc[0]) / h).astype(np.int64), 0, c.size - 1)]
+        gain = float(np.dot(av, cv) / (np.dot(av, av) + 1e-300))
+        # r = g·a(T(x)) − c(x); ∂r/∂b = g·a', ∂r/∂ε = g·a'·(x − x_ref), ∂r/∂g = a.
+        J = np.stack([gain * dv, gain * dv * (xg - al.x_ref_m), av], axis=1)
+        r = gain * av - cv
+        scale = np.sqrt(np.sum(J * J, axis=0)) + 1e-300
+        step, *_ = np.linalg.lstsq(J / scale, -r, rcond=None)
+        step /= scale
+        if not np.all(np.isfinite(step)) or abs(step[0]) > FINE_LAG_M or abs(step[1]) > 0.01:
+            return al.shift_m, al.stretch  # not a small correction: keep the windows' answer
+        b, eps = b + float(step[0]), eps + float(step[1])
+        if abs(step[0]) < 1e-5 and abs(step[1]) < 1e-7:
+            break
+    ends = np.array([x_rep[0], x_rep[-1]])
+    moved = Alignment(b, eps, al.x_ref_m, 0.0).reported_to_true(ends) - al.reported_to_true(ends)
+    if np.max(np.abs(moved)) > max_move_m:
+        return al.shift_m, al.stretch
+    return b, eps
 
 
 def realign(segments: list[ApSegment], al: Alignment) -> list[ApSegment]:
@@ -258,5 +330,6 @@ def _realign_run(run: list[ApSegment], al: Alignment) -> list[ApSegment]:
         out.append(ApSegment.make(vals, sig, vehicle_id=seg.vehicle_id, pass_id=seg.pass_id, route_id=seg.route_id,
                                   tile=seg.tile, axle=seg.axle, start_index=i0, spacing_m=h,
                                   calib_version=seg.calib_version, speed_mps=seg.speed_mps / (1.0 + al.stretch),
-                                  t_first=float(t0), t_last=float(t1), seq=seg.seq, flags=seg.flags))
+                                  t_first=float(t0), t_last=float(t1), seq=seg.seq, flags=seg.flags,
+                                  n_segments_in_pass=seg.n_segments_in_pass, error_model=seg.error_model))
     return out

@@ -105,3 +105,20 @@ def test_abutting_segments_still_abut_after_realignment(stretch):
     assert out[3].start_index - out[2].end_index > 50  # the hole stays a hole
     for s in out:
         assert np.max(np.abs(s.values - f(s.chainage_m))) < 1e-7
+
+
+def test_realigned_segments_keep_the_edges_error_model():
+    """The edge's AP error model (and the pass's segment count) travel with the re-gridded segment:
+    without it the cloud would weigh an aligned pass by its white σ alone, unlike the same pass
+    unaligned."""
+    h = 0.05
+    al = Alignment(shift_m=0.9, stretch=-0.012, x_ref_m=10.0, score=1.0)
+    x_rep = np.arange(300, 1300) * h
+    model = np.array([1.7, 2.5, -1.1, 0.2])  # [r, c0, c1, c2]: a banded, positive definite precision
+    seg = ApSegment.make(1e-3 * np.sin(x_rep), np.full(x_rep.size, 2e-4), vehicle_id="v", pass_id="p",
+                         route_id="R1", tile=0, axle=1, start_index=300, spacing_m=h, calib_version=2,
+                         speed_mps=18.0, t_first=0.0, t_last=2.7, seq=0, n_segments_in_pass=1, error_model=model)
+    (out,) = realign([seg], al)
+    assert out.start_index != seg.start_index  # really re-gridded
+    np.testing.assert_array_equal(out.error_model, seg.error_model)
+    assert out.n_segments_in_pass == 1

@@ -51,27 +51,64 @@ def _edge_chainage_maps(sim_dir):
     return maps
 
 
-@pytest.mark.xfail(strict=True, reason="issue #4 Show point failing since the edge's γ 0.6: 1.25 % against "
-                   "1.01 % (1.24×); the chainage maps still hold; see the session-4 note")
-def test_alignment_removes_gnss_bias_and_odometer_stretch(tmp_path):
-    """12 passes, 120 m, true parameters: every pass's chainage map is recovered to a few cm (up to
-    the fleet's common frame), and the profile is as good as without GNSS error (≤ 1.2×)."""
-    gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0)
-    plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0)
+def _map_residuals(alignments, maps, x=np.linspace(15.0, 105.0, 7)) -> np.ndarray:
+    """The cloud's chainage maps against the edge's (m), after the one affine frame F that fits best.
+
+    The cloud places passes in the fleet's mean frame y = F(x_true), a shift and stretch away from
+    the truth (all the data define): its map of pass p is C_p(y) = E_p(F⁻¹(y)) for the edge's map
+    E_p. So C_p(F(x)) = E_p(x) for every pass with one F, fitted here by least squares (C_p is
+    affine: α_p + β_p·y). Subtracting the passes' mean error at fixed points instead is exact only
+    when F is near identity: it leaves (ε_p − ε̄)·(F⁻¹(x) − x), cm for a frame a metre off.
+    """
+    rows, rhs = [], []
+    for (_, pid), al in alignments.items():
+        alpha, beta = al.true_to_reported(0.0), 1.0 + al.stretch
+        for xx, ee in zip(x, np.interp(x, *maps[pid])):
+            rows.append([beta, beta * xx])
+            rhs.append(ee - alpha)
+    A, y = np.array(rows), np.array(rhs)
+    f, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return A @ f - y
+
+
+@pytest.mark.parametrize("nominal, rms_m, max_m", [
+    ("true", 0.005, 0.012),  # measured 1.6 mm, 5.8 mm
+    # Uncalibrated vehicles (the class mean in the logs), as the fleet calibration starts: their AP's
+    # phase is wrong below ~2 m and placed passes 2.3 cm rms (3.9 cm max) off before the final fit
+    # moved above wheel hop; a calibration learning from such passes was biased by 5-8 %.
+    ("class", 0.010, 0.025),  # measured 3.8 mm, 11.2 mm
+])
+def test_alignment_places_every_pass_in_one_common_frame(tmp_path, nominal, rms_m, max_m):
+    """12 passes, 120 m: every pass's chainage map (GNSS bias of metres, odometer stretch of ~1 %)
+    is recovered to a few mm, up to the fleet's common frame, with the vehicles' true parameters and
+    with the class mean."""
+    gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0, nominal=nominal)
     cloud = _run(gnss, "nominal", align=True)
     maps = _edge_chainage_maps(gnss)
     assert set(k[1] for k in cloud.alignments) == set(maps)
-    x = np.array([15.0, 60.0, 105.0])
-    err = np.array([al.true_to_reported(x) - np.interp(x, *maps[pid]) for (_, pid), al in cloud.alignments.items()])
-    err -= err.mean(axis=0)  # the fleet's mean frame: all the data define
     truth = load_truth(gnss / "truth.json")
     raw = np.array([[p["gnss_bias_m"], p["speed_scale_error"]] for p in truth["passes"]])
     assert raw[:, 0].std() > 1.0 and raw[:, 1].std() > 0.005  # the errors to remove: metres and ~1 %
-    assert np.sqrt(np.mean(err**2)) < 0.015 and np.abs(err).max() < 0.04  # measured 0.5 cm, 1.2 cm
-    score = score_profile(gnss / "export", truth, fit_frame=True).rel_error
-    _run(plain, "nominal", align=True)  # alignment on a road without GNSS error changes nothing
+    err = _map_residuals(cloud.alignments, maps)
+    print(f"chainage maps: residual rms {np.sqrt(np.mean(err**2)):.4f} m, max {np.abs(err).max():.4f} m")
+    assert np.sqrt(np.mean(err**2)) < rms_m and np.abs(err).max() < max_m
+
+
+def test_profile_with_gnss_error_is_as_good_as_without(tmp_path):
+    """The Show point with true parameters: the aligned profile within 1.2x of the same fleet without
+    GNSS error (alignment on the plain road changes nothing). Measured 1.33 % against 1.74 %.
+
+    A loose guard on these 120 m records: the ratio is mostly the score's 5-50 m band near the ends
+    (its band-pass pivots on the end values). With the drift nuisance off it was 1.36 % against
+    1.01 % here and 1.10-1.71x over 7 seeds, though the passes were placed to 2 mm and an oracle
+    alignment scored the same; padded about a line fitted over the last 2 m, 0.87-1.21x."""
+    gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0)
+    plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0)
+    _run(gnss, "nominal", align=True)
+    _run(plain, "nominal", align=True)
+    score = score_profile(gnss / "export", load_truth(gnss / "truth.json"), fit_frame=True).rel_error
     reference = score_profile(plain / "export", load_truth(plain / "truth.json")).rel_error
-    print(f"alignment rms {np.sqrt(np.mean(err**2)):.4f} max {np.abs(err).max():.4f}; profile {score:.4f} vs {reference:.4f}")
+    print(f"profile {score:.4f} with GNSS error and alignment, {reference:.4f} without")
     assert score <= 1.2 * reference
 
 
@@ -89,12 +126,14 @@ def test_carpet_fleet_mean_profile_under_lane_scatter(tmp_path):
     assert score <= 0.10
 
 
-@pytest.mark.xfail(strict=True, reason="issue #4 Show point failing since the edge's γ 0.6: the plain fleet "
-                   "improved (2.35 → 1.0–1.5 %) more than the aligned one (2.1 → 1.25–1.85 %); see the session-4 note")
 def test_fleet_calibration_with_gnss_error_is_as_good_as_without(tmp_path):
     """The Show point on a small version: fleet self-calibration on aligned passes gives a profile
-    within 1.2× of the same fleet without GNSS error (measured 2.1 % against 2.35 % at γ 0.8; at
-    γ 0.6, 1.25 % against 1.01 %, 1.24×). Without alignment the calibration diverges (measured 60 %)."""
+    within 1.2× of the same fleet without GNSS error (measured 1.35 % against 1.32 %; drift nuisance
+    off: 1.81 % against 1.52 %, the vehicles' ratios as good as without: m/M, K/M, k/M, c/M median
+    0.8, 1.1, 1.0, 2.2 % against 0.8, 1.1, 0.6, 2.2 %). It failed (2.26 %, k/M +7 % fleet-wide)
+    while passes were placed where the uncalibrated vehicles' phase error put them (see the
+    alignment test with the class mean).
+    Without alignment the calibration diverges (measured 60 %)."""
     gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0, nominal="class")
     plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0, nominal="class")
     _run(gnss, "fleet", align=True)
