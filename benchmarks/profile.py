@@ -16,8 +16,12 @@
   Table 4.1 from static equilibrium, 2 % noise, P profile unknowns), the wall time of the thesis's
   Metropolis-within-Gibbs (vehicles held at the truth, thesis settings) to come within 10 % of our
   error, over our time from raw channels to the answer (:func:`equal_accuracy`). The value is
-  against the exact posterior of the same model (dense, mean and sd); the production path (edge
-  inverse → segments → GMRF, in process) is beside it. Scores: RMSE band-passed to 0.5–10 m, and
+  against the exact posterior of the same model (mean and sd; each vehicle's response matrix
+  assembled from its impulse responses, the precision dense: ~P²n/2 multiply-adds per vehicle); the
+  production path (edge inverse → segments → GMRF with the per-pass drift nuisance, in process) is
+  beside it. The production path is not told the vehicles' initial state (the edge drops each
+  pass's inverse warm-up, ~7 m of a 20 m pass at 15–22 m/s); the exact posterior and the chain are
+  (the thesis's passes start at rest in static equilibrium). Scores: RMSE band-passed to 0.5–10 m, and
   RMSE with only a line removed (long waves kept). The value is *measured* when the chain gets
   there within its run, else its whole run over ours, a lower bound (``lower_bound`` true); beside
   it (``*_extrapolated``), a power law through the chain's excess error over the exact posterior's

@@ -161,3 +161,53 @@ def test_thesis_mcmc_with_unknown_vehicles_moves_toward_the_truth():
 
     end = [dict(zip(names, res.params[half:, i].mean(axis=0))) for i in range(3)]
     assert stiffness_error(end) < 0.5 * stiffness_error([mean] * 3)
+
+
+def _dense_posterior_mean_and_sd(model, channels, speeds, dt, grid, params, x0, tau1, sigma2, ridge):
+    """The same posterior by the plain dense formula: every H from :func:`response_matrix`."""
+    P = grid.size
+    D = np.diff(np.eye(P), axis=0) / np.diff(grid)[:, None]
+    Q = tau1 * D.T @ D + ridge * np.eye(P)
+    b = np.zeros(P)
+    for z, v, x, p in zip(channels, speeds, x0, params):
+        H = response_matrix(model, p, grid, v, x, z.shape[0], dt)
+        w = 1.0 / np.broadcast_to(np.asarray(sigma2, float), (z.shape[1],))
+        Hm = H.reshape(-1, P)
+        Hw = (H * w[None, :, None]).reshape(-1, P)
+        Q += Hw.T @ Hm
+        b += Hw.T @ z.ravel()
+    return np.linalg.solve(Q, b), np.sqrt(np.diag(np.linalg.inv(Q))), Q
+
+
+@pytest.mark.parametrize("spacing", [0.25, 0.03])  # BLAS on H's columns; lag sums (fine grid)
+@pytest.mark.parametrize("vehicle", [QuarterCar(**QC), HalfCar(**TABLE_2_1)])
+def test_exact_posterior_equals_the_dense_formula_to_rounding(vehicle, spacing, road):
+    """The fast assemblies (from each vehicle's impulse responses: BLAS on H's columns, or lag sums
+    on fine grids) change nothing but rounding: several vehicles, passes starting off the grid's
+    start, several contacts and channels, per-channel σ²."""
+    from cloud.reference.mcmc import LAGS_ABOVE
+
+    rng = np.random.default_rng(7)
+    dt, grid = 0.004, np.arange(0.0, 28.0 + 1e-9, spacing)
+    system = vehicle.system()
+    nch = len(system.channels)
+    sigma2 = [1e-3 * (1.0 + q) for q in range(nch)]
+    speeds, x0, channels, params = [9.0, 11.0, 13.0], [4.0, 5.3, 6.7], [], []  # rear axles ≥ 0
+    for v, x in zip(speeds, x0):
+        p = {k: val * (1.0 + 0.1 * rng.standard_normal()) for k, val in vehicle.params().items()}
+        r = simulate_on_profile(vehicle.system(), road.at, road.slope, x, v, 15.0 / v, dt)
+        channels.append(r.channels + np.sqrt(sigma2) * rng.standard_normal(r.channels.shape))
+        params.append(p)
+    by_lags = [grid.size**2 > LAGS_ABOVE * system.n_contacts**2 * len(z) for z in channels]
+    assert all(by_lags) if spacing < 0.1 else not any(by_lags)  # each case runs the path it names
+    tau1, ridge = 1e5, 10.0
+    post = exact_profile_posterior(vehicle.model, channels, speeds, dt, grid, params, x0=x0, tau1=tau1,
+                                   sigma2=sigma2, ridge=ridge)
+    mean, sd, Q = _dense_posterior_mean_and_sd(vehicle.model, channels, speeds, dt, grid, params, x0, tau1, sigma2,
+                                               ridge)
+    cond = np.linalg.cond(Q)
+    eps = np.finfo(float).eps
+    # the precision to a few ulps (measured ≤ 3 eps); mean and sd to what that allows (≤ 2 % of cond·eps)
+    assert np.max(np.abs(post.precision - Q)) <= 100 * eps * np.max(np.abs(Q))
+    assert np.max(np.abs(post.mean - mean)) <= cond * eps * np.max(np.abs(mean))
+    assert np.max(np.abs(post.sd / sd - 1.0)) <= cond * eps

@@ -78,6 +78,11 @@ THESIS_S_PROFILE = 0.001  # m
 THESIS_TAU1 = 1e5
 THESIS_SIGMA2 = 1e-3  # (m/s²)², the observation error variance σ₁²
 THESIS_N_ITER = 2000
+#: The exact posterior assembles a vehicle's normal equations by lag sums when P² exceeds this many
+#: times nc²·n, else by BLAS on H's columns. Measured per quarter-car (one core, loaded machine):
+#: P 201 / n 512: 1.06 ms by lags, 0.75 by BLAS; P 401 / n 1233: 19 vs 14 ms; P 1201 / n 1514: 33 vs
+#: 121 ms (P²/(nc²n) = 79, 130, 953).
+LAGS_ABOVE = 400.0
 MAX_COLUMN_BYTES = 2e9  # the sampler keeps every vehicle's response to every grid point in memory
 
 
@@ -249,6 +254,108 @@ def _profile_sweep(R, grid, tau1, ridge, s_profile, inv_s2, n_len, cols, kmin, r
     return accepted
 
 
+@njit(cache=True)
+def _columns_by_sample(n_len, idx, w, gk, g0, cols):
+    """Every column of H at once into ``cols`` (P, nch, n), zeroed: cols[j, q, t] = H[t, q, j].
+
+    ``gk``, ``g0`` (nc, nch, n): the impulse responses channel-major. Sample k of contact c puts
+    weight 1 − w on grid point idx[k] and w on idx[k] + 1, and each adds its weight times the
+    impulse response from k on (k = 0: the initial-height response) to that point's column: the
+    same terms as :func:`_build_h`, in the same order (contacts outer, samples increasing), with
+    the inner loop along contiguous memory.
+    """
+    nc = idx.shape[0]
+    nch = cols.shape[1]
+    for c in range(nc):
+        for k in range(n_len):
+            for side in range(2):
+                j = idx[c, k] + side
+                wt = w[c, k] if side == 1 else 1.0 - w[c, k]
+                if wt == 0.0:
+                    continue
+                for q in range(nch):
+                    col = cols[j, q]
+                    if k == 0:
+                        g = g0[c, q]
+                        for t in range(n_len):
+                            col[t] += wt * g[t]
+                    else:
+                        g = gk[c, q]
+                        for t in range(k, n_len):
+                            col[t] += wt * g[t - k]
+
+
+@njit(cache=True)
+def _gram_by_lags(idx, w, gk, g0, wq, z, M, D0, b):
+    """HᵀΛH and HᵀΛz from the impulse responses in O(nc²·nch·n²) operations, never forming H.
+
+    H = Σ_c T_c W_c: T_c (n·nch, n) the causal convolution with contact c's impulse response
+    (column 0: the response to the initial height, ``g0``), W_c (n, P) the interpolation weights
+    (two per sample). So HᵀΛH = Σ_{c,c'} W_cᵀ A_{cc'} W_{c'} with A_{cc'}[k, l] = Σ_q w_q Σ_{t≥max(k,l)}
+    T_c[t,k,q] T_{c'}[t,l,q]; for 1 ≤ k ≤ l, d = l − k, that is Σ_{s=0}^{n−1−l} g_c[s+d] g_{c'}[s]: a
+    running sum as l falls at fixed lag d. Adds the pairs k < l into ``M`` and k = l into ``D0``
+    (HᵀΛH = M + Mᵀ + D0) and HᵀΛz into ``b``: the dense product's sums, reordered.
+    """
+    nc, n = idx.shape
+    nch = wq.size
+    for c in range(nc):
+        for c2 in range(nc):
+            gc = gk[c]
+            g2 = gk[c2]
+            for d in range(n):
+                T = D0 if d == 0 else M
+                acc = 0.0
+                for l in range(n - 1, d, -1):  # k = l − d ≥ 1
+                    s = n - 1 - l
+                    for q in range(nch):
+                        acc += wq[q] * gc[s + d, q] * g2[s, q]
+                    k = l - d
+                    i = idx[c, k]
+                    j = idx[c2, l]
+                    a0 = (1.0 - w[c, k]) * acc
+                    a1 = w[c, k] * acc
+                    wj = w[c2, l]
+                    T[i, j] += a0 * (1.0 - wj)
+                    T[i, j + 1] += a0 * wj
+                    T[i + 1, j] += a1 * (1.0 - wj)
+                    T[i + 1, j + 1] += a1 * wj
+            # k = 0: the initial-height column against every l (l = 0 with itself)
+            h0 = g0[c]
+            for l in range(n):
+                acc = 0.0
+                if l == 0:
+                    for t in range(n):
+                        for q in range(nch):
+                            acc += wq[q] * h0[t, q] * g0[c2, t, q]
+                else:
+                    for t in range(l, n):
+                        for q in range(nch):
+                            acc += wq[q] * h0[t, q] * g2[t - l, q]
+                T = D0 if l == 0 else M
+                i = idx[c, 0]
+                j = idx[c2, l]
+                a0 = (1.0 - w[c, 0]) * acc
+                a1 = w[c, 0] * acc
+                wj = w[c2, l]
+                T[i, j] += a0 * (1.0 - wj)
+                T[i, j + 1] += a0 * wj
+                T[i + 1, j] += a1 * (1.0 - wj)
+                T[i + 1, j + 1] += a1 * wj
+        # HᵀΛz: y[k] = Σ_q w_q Σ_{t≥k} T_c[t,k,q] z[t,q], spread by the weights
+        for k in range(n):
+            y = 0.0
+            if k == 0:
+                for t in range(n):
+                    for q in range(nch):
+                        y += wq[q] * g0[c, t, q] * z[t, q]
+            else:
+                for t in range(k, n):
+                    for q in range(nch):
+                        y += wq[q] * gk[c, t - k, q] * z[t, q]
+            b[idx[c, k]] += (1.0 - w[c, k]) * y
+            b[idx[c, k] + 1] += w[c, k] * y
+
+
 class _Vehicle:
     """One vehicle's data and its current linear structure (rebuilt when its parameters change)."""
 
@@ -296,9 +403,17 @@ def response_matrix(model: str, params: dict[str, float], grid: np.ndarray, spee
 
 
 def _prior_precision(grid: np.ndarray, tau1: float, ridge: float) -> np.ndarray:
+    """τ₁DᵀD + ridge·I (dense, tridiagonal): D the first differences over the grid steps."""
     P = grid.size
-    D = np.diff(np.eye(P), axis=0) / np.diff(grid)[:, None]
-    return tau1 * D.T @ D + ridge * np.eye(P)
+    d2 = 1.0 / np.diff(grid) ** 2
+    Q = np.zeros((P, P))
+    i = np.arange(P - 1)
+    Q[i, i + 1] = Q[i + 1, i] = -tau1 * d2
+    diag = np.zeros(P)
+    diag[:-1] += d2
+    diag[1:] += d2
+    Q[np.arange(P), np.arange(P)] = tau1 * diag + ridge
+    return Q
 
 
 def _inv_sigma2(sigma2, nch: int) -> np.ndarray:
@@ -306,6 +421,36 @@ def _inv_sigma2(sigma2, nch: int) -> np.ndarray:
     if not np.all(s > 0):
         raise ValueError("sigma2: observation error variances must be > 0")
     return 1.0 / s
+
+
+def _data_normal_equations(veh: _Vehicle, z: np.ndarray, w: np.ndarray, buffer: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """One vehicle's ``HᵀΛH`` (P, P) and ``HᵀΛz`` (P,), Λ = diag(w) per channel.
+
+    The columns of H are built in ``buffer`` (≥ P·n·nch numbers, reused across vehicles: a fresh
+    array per vehicle costs more in page faults than the columns themselves), each a contiguous
+    row of C (P, n·nch), weighted by √w once; the Gram matrix is one symmetric rank-k product
+    (``C @ C.T``: BLAS syrk, half the multiply-adds of a general product, no transposed copy of H).
+    That is ~P²·n·nch/2 multiply-adds; on fine grids (P² > ``LAGS_ABOVE``·nc²·n) the lag sums of
+    :func:`_gram_by_lags` (~nc²·n²·(nch + 4), scalar) are cheaper.
+    """
+    P = veh.grid.size
+    n, nch = z.shape
+    nc = veh.geo.idx.shape[0]
+    if P * P > LAGS_ABOVE * nc * nc * n:
+        M, D0, b = np.zeros((P, P)), np.zeros((P, P)), np.zeros(P)
+        _gram_by_lags(veh.geo.idx, veh.geo.w, veh.gk, veh.g0, np.asarray(w, float), z, M, D0, b)
+        return M + M.T + D0, b
+    C = buffer[: P * nch * n].reshape(P, nch * n)  # rows of H ordered (channel, sample)
+    C.fill(0.0)
+    _columns_by_sample(n, veh.geo.idx, veh.geo.w, np.ascontiguousarray(veh.gk.transpose(0, 2, 1)),
+                       np.ascontiguousarray(veh.g0.transpose(0, 2, 1)), C.reshape(P, nch, n))
+    zt = z.T  # (nch, n), matching the rows
+    if np.any(w != 1.0):
+        rw = np.sqrt(w)
+        C.reshape(P, nch, n)[...] *= rw[:, None]  # HᵀΛH = (√Λ H)ᵀ(√Λ H)
+        zt = zt * rw[:, None]
+    return C @ C.T, C @ zt.ravel()
 
 
 def exact_profile_posterior(
@@ -324,20 +469,28 @@ def exact_profile_posterior(
     """The exact posterior of R given fixed vehicle parameters under the model of §4.3 (Gaussian).
 
     Same likelihood (eq. 4.1–4.2) and prior (eq. 4.8, plus ``ridge``) as
-    :func:`mcmc_profile_and_vehicles`; dense algebra, for the small problems the reference runs on.
+    :func:`mcmc_profile_and_vehicles`: precision ``τ₁DᵀD + ridge·I + Σ_n H_nᵀH_n/σ₁²``, mean from
+    one Cholesky solve, sd from the inverse factor. Each H_n is assembled from the vehicle's impulse
+    responses (two simulations per contact, as the chain's columns are; no simulation per grid
+    point) and enters as one symmetric rank-k product, or on fine grids as lag sums of the impulse
+    responses, O(n²) (:func:`_data_normal_equations`). The data make the precision dense — the
+    quarter-car's impulse response does not decay within a 20 m pass — so the algebra is dense: at
+    the thesis's size (P 201, n ≈ 550) ~P²n/2 multiply-adds per vehicle, which BLAS runs near the
+    core's peak; skipping H's causal zeros block-wise (half the multiply-adds) measured no faster
+    there, nor did the lag sums (1.06 against 0.75 ms), so neither is used there. Small problems only.
     """
     grid = np.asarray(grid, float)
     x0 = [0.0] * len(channels_list) if x0 is None else list(x0)
     Q = _prior_precision(grid, tau1, ridge)
     b = np.zeros(grid.size)
-    for z, v, x, p in zip(channels_list, speeds, x0, params_list):
-        z = np.asarray(z, float).reshape(len(z), -1)
-        H = response_matrix(model, p, grid, v, x, z.shape[0], dt)
-        w = _inv_sigma2(sigma2, z.shape[1])
-        Hm = H.reshape(-1, grid.size)
-        Hw = (H * w[None, :, None]).reshape(-1, grid.size)
-        Q += Hw.T @ Hm
-        b += Hw.T @ z.ravel()
+    zs = [np.asarray(z, float).reshape(len(z), -1) for z in channels_list]
+    buffer = np.empty(grid.size * max(z.size for z in zs))
+    for z, v, x, p in zip(zs, speeds, x0, params_list):
+        veh = _Vehicle(model, z, float(v), float(x), dt, grid)
+        veh.set_params(p)
+        Qn, bn = _data_normal_equations(veh, z, _inv_sigma2(sigma2, z.shape[1]), buffer)
+        Q += Qn
+        b += bn
     L = np.linalg.cholesky(Q)
     mean = solve_triangular(L.T, solve_triangular(L, b, lower=True), lower=False)
     Linv = solve_triangular(L, np.eye(grid.size), lower=True)
