@@ -215,6 +215,41 @@ def test_common_mode_relaxation_extrapolates_a_contracting_trend_and_freezes_a_r
     assert np.allclose(restored._common_relaxation("quarter_car", common), c._common_relaxation("quarter_car", common))
 
 
+def test_common_mode_trend_restarts_when_the_rounds_passes_change():
+    """The daemon calibrates on epochs of growing size (8, 16, … passes); the common mode's target
+    moves with the passes. A trend line through both epochs' rounds read no contraction at the jump
+    and froze the common mode where the small epoch had left it (road-qc seed 0, alias-free AP:
+    m/M and c/M 3.1 % off on every vehicle, the class mean's offset). The trend is the epoch's own."""
+    from cloud.fleet_calibration import FleetCalibrator
+    from shared.registry import Route, Site, VehicleClass
+
+    site = Site(routes=(Route("R1", 200.0),),
+                vehicle_classes=(VehicleClass("quarter_car", TABLE_4_1["mean"], TABLE_4_1["std"]),))
+    epochs = [({"p1", "p2", "p3"}, 0.01), ({"p1", "p2", "p3", "p4", "p5", "p6"}, 0.045)]  # passes, target
+
+    def run(c, restart: bool) -> float:
+        taken, g = 0.0, 0.3  # the common step so far; the contraction per unit step (log units)
+        for passes, target in epochs:
+            for _ in range(12):  # a round budget per epoch
+                hist = c._trend("quarter_car", passes if restart else {"p1"})
+                common = np.array([g * (target - taken)])
+                step = c._common_relaxation("quarter_car", common) * common
+                before = (np.asarray(hist[-1][0]) + np.asarray(hist[-1][2])) if hist else np.zeros(1)
+                hist.append((before.tolist(), common.tolist(), step.tolist()))
+                taken += float(step[0])
+        return taken
+
+    c = FleetCalibrator(site, None, relax=3.0)
+    assert abs(run(c, restart=True) - 0.045) < 1e-4
+    # one trend through both epochs: frozen after the jump, short of the target by ~10 % of it
+    assert abs(run(FleetCalibrator(site, None, relax=3.0), restart=False) - 0.045) > 2e-3
+    # the trend and the passes it belongs to survive a restart; other passes start a new one
+    restored = FleetCalibrator(site, None, relax=3.0)
+    restored.load_state(c.state())
+    assert len(restored._trend("quarter_car", epochs[1][0])) == 12
+    assert restored._trend("quarter_car", {"p1", "p2"}) == []
+
+
 def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
     """road-qc on a 3-D carpet (lane drawn per pass), small: 8 vehicles, one pass each, through
     the edge and cloud code in process. Each vehicle's channels come from its own lane, the

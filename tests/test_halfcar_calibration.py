@@ -1,0 +1,90 @@
+"""The half-car's per-vehicle step (acceleration space) recovers Table 2.6's ratios from a wrong start.
+
+Data from finer physics than the step's own discretisation (Newmark γ = ½ at 0.5 ms, the logger
+at 2 ms), 1 % sensor noise, through the edge's real pass processor (inverse under the current
+calibration, anti-aliased gridding); the consensus is the mean AP of two other vehicles of
+Table 2.4 under their true parameters, at other speeds (what a calibrated fleet makes of the road,
+the edge's distortion included). Before the remap settings (cloud.calibration.RemapSettings: the
+start state a nuisance, a low-pass) the channels reconstructed from the noisy AP were 26–44 % of
+their sd off and a pass hardly moved the ratios off the class prior.
+"""
+
+import numpy as np
+
+from cloud.calibration import PassAp, calibration_names, class_prior, fit_vehicle, to_calibration
+from cloud.fleet_calibration import FleetCalibrator
+from edge.pipeline import PassProcessor
+from shared.dynamics.forward import simulate_on_profile
+from shared.dynamics.inverse import build_inverse, edge_gamma
+from shared.profiles.iso8608 import iso8608_profile, tyre_filter
+from shared.schema import SensorChunk
+from shared.sensors import add_noise
+from shared.vehicles import vehicle_from_params
+from simfleet.scenarios import TABLE_2_4
+
+DT = 0.002  # s, the logger
+FINE = 4  # simulation steps per logger sample
+NOISE_PCT = 1.0  # sensor noise, % of each channel's std
+ROUNDS = 3  # vehicle steps, each on APs recomputed under the last
+
+
+def _pass(true: dict, start: dict, prof, speed: float, length_m: float, rng, pass_id: str,
+          noise_pct: float) -> PassAp:
+    """One logged pass of the ``true`` vehicle, its AP computed by the edge under ``start``."""
+    r = simulate_on_profile(vehicle_from_params("half_car", true).system(), prof.at, prof.slope, 5.0, speed,
+                            length_m / speed, DT / FINE, gamma=0.5)
+    channels = add_noise(r.channels[::FINE], noise_pct, rng)
+    x = r.x_cg[::FINE]
+    system = vehicle_from_params("half_car", start).system()
+    chunk = SensorChunk(vehicle_id="v", pass_id=pass_id, route_id="r", vehicle_model="half_car", seq=0, t0=0.0,
+                        sample_rate_hz=1.0 / DT, chainage=x, speed=np.full(x.size, speed),
+                        channels={ch.name: channels[:, i].astype(np.float32) for i, ch in enumerate(system.channels)},
+                        final=True)
+    proc = PassProcessor(build_inverse(system, DT, gamma=edge_gamma("half_car")), "v", pass_id, "r", 0,
+                         model_name="half_car")
+    (ap,) = FleetCalibrator._passes(proc.feed(chunk) + proc.finish()[0])
+    return ap
+
+
+def test_half_car_step_recovers_ratios_from_a_wrong_start():
+    mean = {k: float(np.mean([v[k] for v in TABLE_2_4])) for k in TABLE_2_4[0]}
+    std = {k: (0.02 if k in ("D1", "D2") else 0.1) * v for k, v in mean.items()}
+    true = {k: float(v) for k, v in TABLE_2_4[1].items()}  # vehicle 2 of Table 2.4
+    start = dict(mean)  # the class mean, as the fleet starts
+    for k, f in (("Ks1", 0.85), ("Cs2", 1.15), ("Kt1", 0.88), ("mu2", 0.9)):  # and further off
+        start[k] *= f
+    want, got0 = to_calibration("half_car", true), to_calibration("half_car", start)
+    prof = tyre_filter(iso8608_profile(150.0, 0.01, "A", seed=5))
+    # The consensus: what a well-calibrated fleet makes of the road, the mean AP of two other vehicles
+    # of Table 2.4 under their true parameters (noise-free: a large fleet's average), through the
+    # same edge inverse. Not the true profile: the edge's Newmark γ = 0.8 distorts every AP's
+    # wheel-hop band (each vehicle's a little differently), and the step must agree with the fleet's APs, not with the road.
+    others = []
+    for j, speed in ((0, 18.0), (2, 19.0)):
+        other = {k: float(v) for k, v in TABLE_2_4[j].items()}
+        others.append(_pass(other, other, prof, speed, 130.0, np.random.default_rng(j), f"o{j}", 0.0))
+    lo = max(o.start_index for o in others)
+    hi = min(o.start_index + o.values.shape[0] for o in others)
+    consensus = np.mean([o.values[lo - o.start_index : hi - o.start_index].mean(axis=1) for o in others], axis=0)
+    params = dict(start)
+    history = []
+    for _ in range(ROUNDS):  # as the fleet does: the edge recomputes its APs under each new calibration
+        rng = np.random.default_rng(2)  # the same logs every round
+        items = []
+        for k, speed in enumerate((16.0, 21.0)):
+            ap = _pass(true, params, prof, speed, 130.0, rng, f"p{k}", NOISE_PCT)
+            grid = ap.start_index + np.arange(ap.values.shape[0])
+            cons = np.interp(grid, lo + np.arange(consensus.size), consensus, left=np.nan, right=np.nan)
+            items.append((ap, np.repeat(cons[:, None], 2, axis=1)))
+        fit = fit_vehicle("half_car", params, items, class_prior("half_car", mean, std), start["ms"])
+        params = fit.params
+        history.append({n: round(100 * (m / want[n] - 1), 1) for n, m in zip(fit.names, fit.mean)})
+    names = calibration_names("half_car")
+    start_err = {n: got0[n] / want[n] - 1 for n in names}
+    err = {n: m / want[n] - 1 for n, m in zip(fit.names, fit.mean)}
+    assert sorted(abs(e) for e in start_err.values())[-4] > 0.1, start_err  # four ratios start > 10 % off
+    # measured (3 rounds): median 1.4 %, worst Cs1/ms −5.7 %, Kt2/ms +4.3 % (round 1: Cs1/ms −11.9 %);
+    # the residue is the others' APs distorted unlike this vehicle's by the edge's γ = 0.8. The
+    # thesis's noise-free Table 2.6: medians up to 22 % (Cs1/ms).
+    assert np.median([abs(e) for e in err.values()]) < 0.03, history
+    assert max(abs(e) for e in err.values()) < 0.08, history
