@@ -86,6 +86,82 @@ def test_batch_calibration(batch, fit):
     assert all(r["lo95"] < r["mean"] < r["hi95"] and r["pass_id"].startswith("run") for r in rows)
 
 
+def test_held_globals_carry_their_uncertainty(batch, fit):
+    """A batch that holds another fit's global properties (the blind test's damaged batches hold the
+    healthy batch's) keeps the held point but carries the held values' covariance into its run
+    intervals: given the globals, plus their error propagated — on the batch the covariance came
+    from, the marginal interval of the fit with the globals free. Measured (seed 5, 4 runs): log
+    width of mv's 95 % interval 0.078 free, 0.022 held as exact, 0.078 held with the covariance
+    (Iv 0.079 / 0.020 / 0.079); the speed's does not depend on them."""
+    _, _, site, runs = batch
+    cls = site.vehicle_class("carriage")
+    mean, sd = dict(cls.mean), dict(cls.std)
+    mean.update(fit.globals_)
+    sd.update({k: 0.0 for k in fit.globals_})
+    exact = calibrate_batch(runs, mean, sd)
+    carried = calibrate_batch(runs, mean, sd, held_globals_cov=fit.globals_log_cov)
+
+    def width(f, k):
+        return np.array([np.log(r.hi95[k] / r.lo95[k]) for r in f.runs])
+
+    for k in ("mv", "Iv"):
+        assert all(a.mean[k] == b.mean[k] for a, b in zip(exact.runs, carried.runs))  # the same point
+        assert np.all(width(carried, k) > 2.5 * width(exact, k)), k
+        np.testing.assert_allclose(width(carried, k), width(fit, k), rtol=0.02)
+    np.testing.assert_allclose(width(carried, "v"), width(exact, "v"), rtol=0.05)
+
+
+def _prior_explained_log_scale_error(truth: dict, cls) -> float:
+    """The batch-common log error of the masses that the priors alone explain. The data fix every
+    ratio of the inverse's masses, stiffnesses and dampings (it is invariant to scaling them all),
+    so the common scale s is where the priors balance: Σ (log true + s − log class mean)/sd² = 0 over
+    every run's mv and Iv and the carriage's six globals."""
+    from cloud.rail_calibration import GLOBAL_FIT
+
+    car = next(iter(truth["vehicles"].values()))
+    terms = [(p[k], cls.mean[k], cls.std[k]) for p in truth["passes"] for k in ("mv", "Iv")]
+    terms += [(car[k], cls.mean[k], cls.std[k]) for k in GLOBAL_FIT]
+    w = np.array([(m / sd) ** 2 for _, m, sd in terms])
+    return -float(np.sum(w * np.log([t / m for t, m, _ in terms])) / np.sum(w))
+
+
+def _batch_of(tmp_path, seed, length_m):
+    out = tmp_path / f"seed{seed}"
+    generate(dataclasses.replace(SCENARIOS["rail-track"], route_length_m=length_m), out, seed=seed, passes=N_RUNS,
+             workers=2, progress=False)
+    site = load_site(out / "site.toml")
+    runs = []
+    for path in list_drive_logs(out / "logs"):
+        log = read_drive_log(path)
+        z = np.stack([log.channels[c] for c in MODEL_CHANNELS["carriage"]], axis=1).astype(float)
+        runs.append(RailRun(log.meta.pass_id, z, log.meta.dt, float(np.mean(log.speed)), float(log.chainage[0])))
+    return json.loads((out / "truth.json").read_text()), site, runs
+
+
+def test_common_mass_error_is_what_the_priors_explain_over_seeds(batch, fit, tmp_path):
+    """Over several seeds (the module's batch and two more, 60 m), the batch-common error of the run
+    masses is the one the priors explain (:func:`_prior_explained_log_scale_error`) — no model bias
+    on top — and the 95 % intervals cover. Measured, log mv common error minus the prior-explained
+    part, seeds 5/1/2: +0.2/+1.8/+0.5 % (mean +0.8 %) with the calibration's inverse at γ = 0.5; at
+    the edge's γ = 0.8 (numerical damping read as a softer cp) +1.4/+3.9/+2.7 % (mean +2.7 %).
+    Coverage over the 12 runs: mv 1.00, Iv 0.83, v 1.00 (nominal 0.95; 4-run batches are short of
+    statistics: this bound guards a regression, the blind test's 50-run batches are in the report)."""
+    offsets, inside = [], {k: [] for k in ("mv", "Iv", "v")}
+    batches = [(batch[1], batch[2], fit)]
+    for seed in (1, 2):
+        truth, site, runs = _batch_of(tmp_path, seed, 60.0)
+        cls = site.vehicle_class("carriage")
+        batches.append((truth, site, calibrate_batch(runs, cls.mean, cls.std)))
+    for truth, site, fitted in batches:
+        true = {p["pass_id"]: p for p in truth["passes"]}
+        offsets.append(np.mean([np.log(r.mean["mv"] / true[r.pass_id]["mv"]) for r in fitted.runs])
+                       - _prior_explained_log_scale_error(truth, site.vehicle_class("carriage")))
+        for k in inside:
+            inside[k] += [r.lo95[k] <= true[r.pass_id][k] <= r.hi95[k] for r in fitted.runs]
+    assert abs(np.mean(offsets)) < 0.0125, offsets
+    assert all(np.mean(v) >= 0.75 for v in inside.values()), {k: np.mean(v) for k, v in inside.items()}
+
+
 def test_consensus_profile_gives_the_track_quality(batch, fit):
     """The batch's consensus AP (cubic removed) against the true unloaded rail in the D1 band:
     the track's deflection under the wheels hardly varies, so D1 is the rail's."""
@@ -147,7 +223,7 @@ def test_batched_inverse_is_the_reference_inverse():
     """carriage_aps_runs (all trials of all runs in one compiled call) gives the AP of the per-trial
     reference inverse (cloud.reference.cross_entropy.population_aps) exactly, runs of different
     lengths and steps included."""
-    from cloud.rail_calibration import INVERSE_NAMES, carriage_aps_runs
+    from cloud.rail_calibration import INVERSE_GAMMA, INVERSE_NAMES, carriage_aps_runs
     from cloud.reference.cross_entropy import population_aps
     from shared.vehicles.carriage import TABLE_3_1
 
@@ -161,6 +237,6 @@ def test_batched_inverse_is_the_reference_inverse():
     run_of = np.repeat([0, 1], 3)
     got = carriage_aps_runs(theta, run_of, TABLE_3_1["Lb"], TABLE_3_1["Lv"], Z, np.array([700, 450]), dts)
     for r in (0, 1):
-        ref = population_aps("carriage", trials, z[r], float(dts[r]))[0]
+        ref = population_aps("carriage", trials, z[r], float(dts[r]), gamma=INVERSE_GAMMA)[0]
         n = len(z[r])
         assert np.abs(got[3 * r:3 * r + 3, :n] - ref).max() <= 1e-12 * np.abs(ref).max()
