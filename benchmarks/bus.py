@@ -10,7 +10,12 @@ Measured in one run, each on the same daemons:
   ``ap_batch`` message, and on the 200 m ``road-qc`` route the last chunk of a pass releases all
   four tiles. The target is 5 000 segments/s.
 * ``bus.segments_per_s.synthetic_single``: the same with one ``ap_segment`` message per segment
-  (``driveby edge --ap-batch 1``, or a long route, where tiles are released one at a time).
+  (``driveby edge --ap-batch 1``, or a long route, where tiles are released one at a time). It runs
+  second, so the cloud (at its default resident bounds, 20 000 segments and 5 000 passes) spills
+  a segment to disk for each one it takes in: the steady state of a long-running cloud.
+  Both report the cloud's CPU per segment (``cloud_cpu_us_per_segment``: the whole process, from
+  ``/proc``; ``cloud_ingest_cpu_us_per_segment``: inside its message callbacks, decode to acknowledgement),
+  which a loaded machine disturbs much less than the rate.
 * ``bus.latency_p50|p99.segment_hop``: one AP segment from ``put`` to applied, unloaded (a
   synthetic ``ap_segment`` every 5 ms): the bus and the cloud's per-segment work without the edge.
 * For 1, 10 and 100 replayed vehicles (chunks of 0.1 s at 500 Hz from ``road-qc`` drive logs,
@@ -321,7 +326,8 @@ def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, b
     n = passes * tiles * PUBLISHERS
     first = 0 if batch else PUBLISHERS + 1  # worker numbers: distinct passes in each run (and the hop's)
     ids = range(first, first + PUBLISHERS)
-    before = dep.query("stats")["stats"]
+    before = dep.query("stats")
+    cpu0 = _process_cpu_s(dep.procs["cloud"].pid)
     workers = [_Worker([sys.executable, "-m", "benchmarks.bus", "publisher", "--connect", endpoint,
                         "--worker", str(w), "--passes", str(passes), "--tiles", str(tiles), *(["--batch"] * batch)],
                        workdir / f"publisher{w}.log") for w in ids]
@@ -337,14 +343,28 @@ def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, b
     finally:
         for w in workers:
             w.close()
-    after = dep.query("stats")["stats"]
-    rejected = sum(after["rejected"].values()) - sum(before["rejected"].values())
-    if accepted != n or after["accepted"] - before["accepted"] != n or rejected:
+    cpu1 = _process_cpu_s(dep.procs["cloud"].pid)
+    after_body = dep.query("stats")
+    after = after_body["stats"]
+    rejected = sum(after["rejected"].values()) - sum(before["stats"]["rejected"].values())
+    if accepted != n or after["accepted"] - before["stats"]["accepted"] != n or rejected:
         raise BenchError(f"synthetic: {n} segments sent, {accepted} acknowledged, {rejected} rejected")
     rate = n / (t_end - t0)
     yield {"name": "bus.segments_per_s.synthetic" + ("" if batch else "_single"), "value": rate, "unit": "segments/s",
            "ratio_to": {"target_5000": rate / TARGET_SEGMENTS_PER_S}, "segments": n, "publishers": PUBLISHERS,
-           "segments_per_message": tiles if batch else 1, "publish_segments_per_s": n / max(sent)}
+           "segments_per_message": tiles if batch else 1, "publish_segments_per_s": n / max(sent),
+           "cloud_cpu_us_per_segment": (cpu1 - cpu0) / n * 1e6 if cpu0 is not None and cpu1 is not None else None,
+           "cloud_ingest_cpu_us_per_segment": (after_body["cpu"]["callback_s"] - before["cpu"]["callback_s"]) / n * 1e6}
+
+
+def _process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far (Linux ``/proc``; None elsewhere)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def bench_segment_hop(dep: Deployment, tiles: int) -> Iterator[dict]:

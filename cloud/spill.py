@@ -3,10 +3,15 @@
 The cloud keeps state for every pass it has ever seen (a recalibration months later must retract a
 pass's segments exactly; a duplicate must be recognised as one). Held in Python objects, that state
 grows with the passes; here it grows on disk. What stays in memory is the ``max_resident`` most
-recently written (or, with ``promote``, read) values; every key, its place in the iteration order,
-an integer ``tag`` (what a caller needs to know about a value without decoding it) and the encoded
-values beyond the window are rows of an SQLite table. SQLite, not an Arrow file: the index is keyed
-random access with updates and deletes, and its page cache is bounded (``CACHE_KIB``).
+recently written (or, with ``promote``, read) values and their places in the iteration order;
+every other key, its place, an integer ``tag`` (what a caller needs to know about a value without
+decoding it) and its encoded value are a row of an SQLite table. SQLite, not an Arrow file: the
+index is keyed random access with updates and deletes, and its page cache is bounded (``CACHE_KIB``).
+
+A key gets its row when its value first leaves memory, not when it is written: until the resident
+bound is reached the map costs what a dict costs (the cloud's ingest writes three maps per
+segment; a row per write was a third of its CPU), and after that each write of a new key costs
+one indexed lookup (is it a spilled key?) plus the one spill it causes.
 
 Semantics are a ``dict``'s: iteration follows first insertion (a write to an existing key keeps
 its place; a key deleted and written again goes last), so anything summed over the values sums in
@@ -31,10 +36,11 @@ from pathlib import Path
 
 CACHE_KIB = 256  # SQLite page cache per map (fills within minutes: no slow creep of RSS)
 _BATCH = 64  # rows per read while iterating (spilled segments: ~0.5 MB)
+_KEY_TEXT = json.JSONEncoder(separators=(",", ":")).encode  # one encoder (json.dumps builds one per call)
 
 
 def _key_text(key) -> str:
-    return json.dumps(key, separators=(",", ":"))
+    return _KEY_TEXT(key)
 
 
 def _key_of(text: str):
@@ -61,12 +67,21 @@ class SpillMap(MutableMapping):
         self._prefix = prefix
         # Resident values, least recently written first (the next to spill).
         self._hot: collections.OrderedDict = collections.OrderedDict()
+        # Each resident key's place in the iteration order (a spilled key's is in its row).
+        self._ord: dict = {}
+        self._next_ord = 0
+        # Resident keys that have a row too (spilled once and back, or flushed): the row keeps their
+        # place; it is rewritten, not inserted, when they spill again.
+        self._rowed: set = set()
         # Resident keys whose row already holds their value encoded (:meth:`flush`): spilling them,
         # or a snapshot reading them, needs no encoding. Never with ``promote`` (a caller may change
-        # a value it read without writing it back).
+        # a value it read without writing it back). A subset of ``_rowed``.
         self._clean: set = set()
         self._db: sqlite3.Connection | None = None
-        self._n = 0  # keys in all (bounded: rows of the index)
+        # The last key looked up on disk and not found there: a write of it (``x in m`` then
+        # ``m[x] = v``, ``m.get(x)`` then ``m[x] = v``: the callers' usual pattern) needs no second lookup.
+        self._absent = _MISSING
+        self._n = 0  # keys in all
         self.spilled_total = 0  # values written out over the map's life
         self.reads = 0  # spilled values decoded back
 
@@ -80,26 +95,38 @@ class SpillMap(MutableMapping):
             db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
             # No rollback journal and no temporary files: the database is the only file, so it can be
             # unlinked while open (anonymous, gone with the process); no fsync (never read again).
-            # 16 kB pages: a spilled segment (~4 kB) takes a quarter page, not two 4 kB pages (overflow).
+            # 16 kB pages: a spilled segment (~7 kB) shares a page instead of spilling into overflow pages.
             for pragma in ("page_size=16384", "journal_mode=OFF", "synchronous=OFF", "locking_mode=EXCLUSIVE",
                            "temp_store=MEMORY", f"cache_size=-{CACHE_KIB}"):
                 db.execute(f"PRAGMA {pragma}")
-            # ``ord`` (the rowid) is the iteration order: a new key gets max+1, i.e. goes last.
+            # ``ord`` (the rowid) is the key's place in the iteration order, given when it was first written.
             db.execute("CREATE TABLE m (ord INTEGER PRIMARY KEY, k TEXT NOT NULL UNIQUE, tag INTEGER, v BLOB)")
             os.unlink(path)
             self._db = db
         return self._db
 
+    @property
+    def _any_spilled(self) -> bool:
+        return self._n > len(self._hot)
+
     def _write(self, key, value) -> None:
+        """The key's row holds ``value`` (inserted with the key's place if it has none yet)."""
         tag = self._tag(value) if self._tag is not None else None
-        self._index().execute("UPDATE m SET tag = ?, v = ? WHERE k = ?", (tag, self._encode(value), _key_text(key)))
+        if key in self._rowed:
+            self._db.execute("UPDATE m SET tag = ?, v = ? WHERE ord = ?", (tag, self._encode(value), self._ord[key]))
+        else:
+            self._index().execute("INSERT INTO m (ord, k, tag, v) VALUES (?, ?, ?, ?)",
+                                  (self._ord[key], _key_text(key), tag, self._encode(value)))
+            self._rowed.add(key)
 
     def _spill_oldest(self) -> None:
-        key, value = self._hot.popitem(last=False)
-        if key in self._clean:
-            self._clean.discard(key)
-        else:
+        key, value = next(iter(self._hot.items()))
+        if key not in self._clean:
             self._write(key, value)
+        del self._hot[key]
+        del self._ord[key]
+        self._clean.discard(key)
+        self._rowed.discard(key)
         self.spilled_total += 1
 
     def flush(self, budget_s: float) -> int:
@@ -120,10 +147,14 @@ class SpillMap(MutableMapping):
             n += 1
         return n
 
-    def _cold(self, key) -> bytes | None:
-        row = self._index().execute("SELECT v FROM m WHERE k = ?", (_key_text(key),)).fetchone() \
-            if self._db is not None else None
-        return None if row is None else row[0]
+    def _cold(self, key, columns: str = "v") -> tuple | None:
+        """A spilled key's row (``columns`` of it), None if the key is not spilled."""
+        if self._db is None or not self._any_spilled:
+            return None
+        row = self._db.execute(f"SELECT {columns} FROM m WHERE k = ?", (_key_text(key),)).fetchone()
+        if row is None:
+            self._absent = key
+        return row
 
     # -- mapping -------------------------------------------------------------------------------
     def __getitem__(self, key):
@@ -133,13 +164,15 @@ class SpillMap(MutableMapping):
             pass
         if self.max_resident is None:
             raise KeyError(key)
-        blob = self._cold(key)
-        if blob is None:
+        row = self._cold(key, "ord, v")
+        if row is None:
             raise KeyError(key)
-        value = self._decode(blob)
+        value = self._decode(row[1])
         self.reads += 1
-        if self._promote:
-            self._hot[key] = value  # its row keeps a stale copy, rewritten when it spills again
+        if self._promote:  # its row keeps a stale copy, rewritten when it spills again
+            self._hot[key] = value
+            self._ord[key] = row[0]
+            self._rowed.add(key)
             self._trim()
         return value
 
@@ -154,8 +187,17 @@ class SpillMap(MutableMapping):
             hot.move_to_end(key)
             self._clean.discard(key)
         else:
-            cur = self._index().execute("INSERT OR IGNORE INTO m (k) VALUES (?)", (_key_text(key),))
-            self._n += cur.rowcount
+            # A spilled key written again keeps its place. (Only a write makes a key present, so
+            # one just found absent still is.)
+            row = None if key == self._absent else self._cold(key, "ord")
+            self._absent = _MISSING
+            if row is None:
+                self._ord[key] = self._next_ord
+                self._next_ord += 1
+                self._n += 1
+            else:
+                self._ord[key] = row[0]
+                self._rowed.add(key)
             hot[key] = value
         self._trim()
 
@@ -164,32 +206,35 @@ class SpillMap(MutableMapping):
             self._spill_oldest()
 
     def __delitem__(self, key) -> None:
-        was_hot = self._hot.pop(key, _MISSING) is not _MISSING
-        self._clean.discard(key)
         if self.max_resident is None:
-            if not was_hot:
+            if self._hot.pop(key, _MISSING) is _MISSING:
                 raise KeyError(key)
             self._n -= 1
             return
-        if self._db is None:  # nothing was ever written: a key not resident is not here
-            raise KeyError(key)
-        if self._db.execute("DELETE FROM m WHERE k = ?", (_key_text(key),)).rowcount:
+        if self._hot.pop(key, _MISSING) is not _MISSING:
+            ordinal = self._ord.pop(key)
+            self._clean.discard(key)
+            if key in self._rowed:
+                self._rowed.discard(key)
+                self._db.execute("DELETE FROM m WHERE ord = ?", (ordinal,))
             self._n -= 1
-        elif not was_hot:
+            return
+        if self._db is None or not self._any_spilled:
             raise KeyError(key)
+        if not self._db.execute("DELETE FROM m WHERE k = ?", (_key_text(key),)).rowcount:
+            raise KeyError(key)
+        self._n -= 1
 
     def __contains__(self, key) -> bool:
-        if key in self._hot:
-            return True
-        if self._db is None:
-            return False
-        return self._db.execute("SELECT 1 FROM m WHERE k = ?", (_key_text(key),)).fetchone() is not None
+        return key in self._hot or self._cold(key, "1") is not None
 
     def __len__(self) -> int:
         return self._n
 
     def _rows(self, columns: str) -> Iterator[tuple]:
         """``(ord, k, …)`` rows in order, read in batches (the caller may read the map in between)."""
+        if self._db is None:
+            return
         last = -1
         while True:
             rows = self._db.execute(f"SELECT ord, k{columns} FROM m WHERE ord > ? ORDER BY ord LIMIT ?",
@@ -199,23 +244,49 @@ class SpillMap(MutableMapping):
             yield from rows
             last = rows[-1][0]
 
+    def _walk(self, columns: str) -> Iterator[tuple]:
+        """``(key, value or _MISSING, row or None)`` for every key in order: the resident keys (as
+        they were when the walk began, by their places) merged with the rows. A resident key that
+        has a row comes with it; one spilled meanwhile comes without (its row is read if wanted)."""
+        resident = sorted((o, k) for k, o in self._ord.items())
+        i = 0
+        for row in self._rows(columns):
+            o = row[0]
+            while i < len(resident) and resident[i][0] < o:
+                key = resident[i][1]
+                i += 1
+                yield key, self._hot.get(key, _MISSING), None
+            if i < len(resident) and resident[i][0] == o:
+                key = resident[i][1]
+                i += 1
+                value = self._hot.get(key, _MISSING)
+                # Its row was read while it was resident: current only if it still is (and clean).
+                yield key, value, row if value is not _MISSING else None
+                continue
+            key = _key_of(row[1])
+            yield key, self._hot.get(key, _MISSING), row
+        for _, key in resident[i:]:
+            yield key, self._hot.get(key, _MISSING), None
+
     def __iter__(self) -> Iterator:
-        if self._db is None:
-            yield from list(self._hot) if self.max_resident is not None else self._hot
+        if self.max_resident is None:
+            yield from self._hot
             return
-        for _, k in self._rows(""):
-            yield _key_of(k)
+        for key, value, row in self._walk(""):
+            if value is not _MISSING or row is not None or key in self:
+                yield key
 
     def items(self) -> Iterator[tuple]:  # type: ignore[override]
         """``(key, value)`` in order; spilled values are decoded copies (not brought into memory)."""
-        if self._db is None:
-            yield from (list(self._hot.items()) if self.max_resident is not None else self._hot.items())
+        if self.max_resident is None:
+            yield from self._hot.items()
             return
-        for _, k, v in self._rows(", v"):
-            key = _key_of(k)
-            value = self._hot.get(key, _MISSING)
+        for key, value, row in self._walk(", v"):
             if value is _MISSING:
-                value = self._decode(v)
+                blob = row[2] if row is not None else (self._cold(key) or (None,))[0]
+                if blob is None:  # deleted while walking
+                    continue
+                value = self._decode(blob)
                 self.reads += 1
             yield key, value
 
@@ -232,22 +303,26 @@ class SpillMap(MutableMapping):
         value = self._hot.get(key, _MISSING)
         if value is not _MISSING:
             return self._tag(value)
-        row = self._db.execute("SELECT tag FROM m WHERE k = ?", (_key_text(key),)).fetchone() \
-            if self._db is not None else None
+        row = self._cold(key, "tag")
         if row is None:
             raise KeyError(key)
         return row[0]
 
     def encoded(self) -> Iterator[tuple]:
         """``(key, encoded value)`` in order, without decoding spilled values (e.g. a snapshot)."""
-        if self._db is None:
+        if self.max_resident is None:
             for key, value in list(self._hot.items()):
                 yield key, self._encode(value)
             return
-        for _, k, v in self._rows(", v"):
-            key = _key_of(k)
-            value = self._hot.get(key, _MISSING)
-            yield key, (v if value is _MISSING or key in self._clean else self._encode(value))
+        for key, value, row in self._walk(", v"):
+            if row is not None and (value is _MISSING or key in self._clean):
+                yield key, row[2]
+            elif value is not _MISSING:
+                yield key, self._encode(value)
+            else:
+                blob = self._cold(key)
+                if blob is not None:
+                    yield key, blob[0]
 
     def resident_values(self):
         return self._hot.values()

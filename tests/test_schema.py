@@ -16,6 +16,7 @@ from shared import schema
 from shared.schema import (
     Ack,
     Alarm,
+    ApBatch,
     ApSegment,
     Calibration,
     DecodeError,
@@ -25,6 +26,7 @@ from shared.schema import (
     decode,
     decode_ack,
     decode_alarm,
+    decode_ap,
     decode_ap_segment,
     decode_calibration,
     decode_pass_done,
@@ -131,6 +133,15 @@ def test_round_trip(strategy, decoder, data):
     assert back == msg
     assert decode(payload) == msg  # the kind-dispatching decoder agrees
     assert back.encode() == payload  # encoding is deterministic
+    assert payload == _write(*_table(payload))  # byte for byte Arrow's stream writer (the encoder frames it itself)
+
+
+def test_a_batch_is_framed_as_arrows_stream_writer_frames_it():
+    segs = [_segment(tile=t, seq=t, start_index=1000 * t - 3, error_model=None if t % 2 else [1.5, 2.0, -0.4][: 2 + t % 2])
+            for t in range(4)]
+    payload = ApBatch(tuple(segs)).encode()
+    assert payload == _write(*_table(payload))
+    assert decode_ap(payload) == segs
 
 
 def test_equality_sees_array_differences():

@@ -111,3 +111,31 @@ def test_flushed_values_spill_and_snapshot_without_encoding_again(tmp_path):
     m[3] = [3]  # spills 0, which is clean: no encoding
     assert len(calls) == 4 and m.peek(0) is None and m[0] == [0] and m.tag_of(0) == 1
     assert m.flush(1.0) == 2  # 1 and 3
+
+
+def test_no_disk_until_a_value_spills(tmp_path):
+    """Keys get their rows when their values first leave memory: under the bound the map is a dict
+    (the cloud's ingest writes three maps per segment), and order still spans both sides after."""
+    m, ref = _map(tmp_path, 4), {}
+    for i in range(4):
+        m[("k", i)] = ref[("k", i)] = [i]
+    del m[("k", 1)], ref[("k", 1)]
+    m[("k", 1)] = ref[("k", 1)] = [1, 1]  # written again: goes last
+    assert m.disk_bytes() == 0 and m.spilled == 0 and ("k", 9) not in m
+    for i in range(4, 9):
+        m[("k", i)] = ref[("k", i)] = [i]
+    m[("k", 0)] = ref[("k", 0)] = [0, 0]  # a spilled key written again keeps its place
+    assert m.disk_bytes() > 0 and m.spilled == len(ref) - 4
+    assert list(m.items()) == list(ref.items()) and list(m) == list(ref)
+
+
+def test_reading_while_iterating_sees_every_key_once_in_order(tmp_path):
+    """A promoting read during iteration moves values between memory and disk under the walk."""
+    m, ref = _map(tmp_path, 3, promote=True), {}
+    for i in range(12):
+        m[i] = ref[i] = [i]
+    seen = []
+    for k, v in m.items():
+        seen.append((k, v))
+        m[(k * 5) % 12]  # promote another key, spilling the oldest resident one
+    assert seen == list(ref.items())
