@@ -117,3 +117,29 @@ def test_a_common_calibration_error_is_integrated_out_no_false_alarm_and_bands_t
     assert e0.assessment.alarm and e0.assessment.best == "crack", e0.assessment.probabilities
     p0 = e0.posterior
     assert not np.all((p0.ei_lo95 <= p0.ei_design) & (p0.ei_hi95 >= p0.ei_design))
+
+
+def test_the_calibration_columns_do_not_see_the_consensus_drift_level(passes):
+    """The edge's drift control leaves every AP with a trend of millimetres that no vehicle drove over;
+    on a smooth deck the consensus is taken as 0 on the span, so that level would be a step at each
+    support whose response to a calibration error rings on into the span. The fleet-common columns
+    (and the per-pass ones) must not move with it: measured at 300 passes (crack10-10m), a 0.4 mm
+    step at the entrance read the first five elements 15 points stiff at the true common error."""
+    import dataclasses
+
+    from cloud.bridge.passdata import Reference, extract_pass
+    from cloud.bridge.static import Setup, common_calibration_columns
+
+    setup = Setup.of(BRIDGE)
+    names = ("K/M", "c/M", "k/M", "m/M")
+    pds = [extract_pass(segs, setup.window, "quarter_car", WRONG) for segs in passes]
+    x = setup.window.x
+    drifted = [dataclasses.replace(p, ap=p.ap + 4e-4 - 5e-6 * x) for p in pds]  # 0.4 mm at the entrance
+    on = setup.window.on_span
+    defl = [np.zeros(setup.window.n)] * len(pds)
+    cols, _ = common_calibration_columns(pds, Reference.of(pds), names, "smooth", defl)
+    moved, _ = common_calibration_columns(drifted, Reference.of(drifted), names, "smooth", defl)
+    for c0, c1 in zip(cols, moved):
+        scale = np.max(np.abs(c0[on]), axis=0)
+        change = np.max(np.abs(c1[on] - c0[on]), axis=0)
+        assert np.all(change < 0.02 * scale), (change / scale).round(3)
