@@ -37,6 +37,9 @@ on the 200 m ``road-qc`` route nearly every tile is released by the pass's last 
 At full speed the queues are full by design, so full-speed latency is mostly queueing.
 
 One edge daemon serves every vehicle; ``DRIVEBY_BENCH_EDGES=N`` runs N, each with ``--shard i/N``.
+``DRIVEBY_BENCH_ONLY=realtime:100`` (a comma list of ``fullspeed`` / ``realtime``, each with an
+optional ``:N`` vehicles) measures only those replayed-vehicle runs, for a quick before/after of
+the edge; its warm-up then replays every base log once, as the full run's earlier parts would.
 """
 
 from __future__ import annotations
@@ -71,6 +74,7 @@ from simfleet.sim import generate
 NET = "bench"
 CLOUD_ID, EDGE_ID = "bc", "be"
 EDGE_SHARDS = int(os.environ.get("DRIVEBY_BENCH_EDGES", "1"))  # edge daemons sharing the fleet (--shard i/n)
+ONLY = os.environ.get("DRIVEBY_BENCH_ONLY", "")  # e.g. "realtime:100": only these pipeline runs
 ROUTE = "R1"
 TILE_POINTS = 1000  # a 50 m tile on the 0.05 m grid
 TARGET_SEGMENTS_PER_S = 5000.0
@@ -413,9 +417,11 @@ def bench_pipeline(dep: Deployment, logs: list[DriveLog], realtime: bool, n_vehi
     streams, wanted = vehicle_streams(logs, tag, n_vehicles, passes)
     dep.expect(wanted)
     since = time.time()
+    cpu0 = {name: _process_cpu_s(proc.pid) for name, proc in dep.procs.items()}
     t0 = time.monotonic()
     published = interleave(streams, dep.publish_traced, rate=1.0 if realtime else None)
     t_end, segments = dep.wait_acks()
+    cpu1 = {name: _process_cpu_s(proc.pid) for name, proc in dep.procs.items()}
     latency = dep.latencies_ms(since)
     if not report:
         return
@@ -427,9 +433,13 @@ def bench_pipeline(dep: Deployment, logs: list[DriveLog], realtime: bool, n_vehi
     yield {"name": f"bus.segments_per_s.{suffix}", "value": segments / elapsed, "unit": "segments/s",
            "ratio_to": {"target_5000": segments / elapsed / TARGET_SEGMENTS_PER_S}, "segments": segments, **common}
     chunks_per_s = published.items / elapsed
+    # each daemon's CPU over the run, per raw chunk (µs): which process a latency has to wait for
+    cpu = {f"{'cloud' if name == 'cloud' else 'edge'}_cpu_us_per_chunk" + ("" if name in ("cloud", EDGE_ID) else f".{name}"):
+           (cpu1[name] - cpu0[name]) / published.items * 1e6 for name in dep.procs
+           if cpu0[name] is not None and cpu1[name] is not None}
     yield {"name": f"bus.chunks_per_s.{suffix}", "value": chunks_per_s, "unit": "chunks/s",
            "ratio_to": {"realtime_vehicle_streams": chunks_per_s * CHUNK_S}, "chunks": published.items,
-           "publisher_max_late_ms": published.max_late_s * 1e3, **common}
+           "publisher_max_late_ms": published.max_late_s * 1e3, **cpu, **common}
     for q in (50, 99):
         value = float(np.percentile(latency, q))
         yield {"name": f"bus.latency_p{q}.{suffix}", "value": value, "unit": "ms",
@@ -437,6 +447,19 @@ def bench_pipeline(dep: Deployment, logs: list[DriveLog], realtime: bool, n_vehi
 
 
 # -- the benchmark ------------------------------------------------------------------------------------
+
+
+def _only_runs(text: str) -> list[tuple[bool, int]] | None:
+    """``DRIVEBY_BENCH_ONLY`` → the (realtime, vehicles) runs it names; None when unset."""
+    if not text.strip():
+        return None
+    runs = []
+    for part in text.split(","):
+        mode, _, n = part.strip().partition(":")
+        if mode not in ("fullspeed", "realtime") or not (n == "" or (n.isdigit() and int(n) > 0)):
+            raise ValueError(f"DRIVEBY_BENCH_ONLY: expected fullspeed|realtime[:N], got {part.strip()!r}")
+        runs += [(mode == "realtime", int(k)) for k in ([n] if n else VEHICLES)]
+    return runs
 
 
 def run() -> Iterator[dict]:
@@ -451,13 +474,16 @@ def run() -> Iterator[dict]:
             dep = Deployment(endpoint, work / "site.toml", work)
             try:
                 dep.wait_up()
-                yield from bench_synthetic(dep, endpoint, tiles, work)
-                yield from bench_synthetic(dep, endpoint, tiles, work, batch=False)
-                yield from bench_segment_hop(dep, tiles)
-                yield from bench_pipeline(dep, logs, realtime=False, n_vehicles=2, report=False)  # warm-up
-                for realtime in (False, True):
-                    for n in VEHICLES:
-                        yield from bench_pipeline(dep, logs, realtime, n)
+                only = _only_runs(ONLY)
+                if only is None:
+                    yield from bench_synthetic(dep, endpoint, tiles, work)
+                    yield from bench_synthetic(dep, endpoint, tiles, work, batch=False)
+                    yield from bench_segment_hop(dep, tiles)
+                # warm-up (numba, the edge's caches); alone, over every base log, as the skipped parts would
+                warm = 2 if only is None else len(logs)
+                yield from bench_pipeline(dep, logs, realtime=False, n_vehicles=warm, report=False)
+                for realtime, n in only or [(rt, n) for rt in (False, True) for n in VEHICLES]:
+                    yield from bench_pipeline(dep, logs, realtime, n)
             finally:
                 dep.close()
 

@@ -155,11 +155,25 @@ def band_symbol(band: np.ndarray, omega: np.ndarray) -> np.ndarray:
 
 
 _OMEGA_CHECK = np.linspace(0.0, math.pi, 2049)
+#: cos kω on the check grid for every order the edge fits (EdgeConfig allows up to 8): the symbol
+#: there is then one small product, not an array of cosines per coefficient (it is evaluated a few
+#: times per segment, for each of a fleet's segments).
+_COS_CHECK = np.cos(np.outer(np.arange(9), _OMEGA_CHECK))
+#: |2 − 2 cos ω|²: the power gain of a second difference.
+_D2_GAIN = (2.0 - 2.0 * _COS_CHECK[1]) ** 2
+
+
+def _check_symbol(band: np.ndarray) -> np.ndarray:
+    """:func:`band_symbol` on ``_OMEGA_CHECK``."""
+    band = np.asarray(band, dtype=np.float64)
+    if band.size > _COS_CHECK.shape[0]:
+        return band_symbol(band, _OMEGA_CHECK)
+    return band[0] + 2.0 * (band[1:] @ _COS_CHECK[1 : band.size])
 
 
 def band_variance(band: np.ndarray) -> float:
     """Marginal variance ``(1/π) ∫₀^π dω / P(ω)`` of the stationary process with precision band ``c``."""
-    return float(np.trapezoid(1.0 / band_symbol(band, _OMEGA_CHECK), _OMEGA_CHECK) / math.pi)
+    return float(np.trapezoid(1.0 / _check_symbol(band), _OMEGA_CHECK) / math.pi)
 
 
 def filled_spectrum(omega: np.ndarray, S: np.ndarray, spacing_m: float, longest_m: float = LONGEST_M,
@@ -167,11 +181,39 @@ def filled_spectrum(omega: np.ndarray, S: np.ndarray, spacing_m: float, longest_
     """``max(S, min(S_L, ceiling))`` with ``S_L`` the mean of ``S`` over wavelengths
     ``longest_m / 2.5 … longest_m`` (the valley fill of the module docstring; ``ceiling`` in the
     units of ``S``, a white process's variance)."""
-    lam = 2.0 * math.pi * spacing_m / omega
-    long = (lam >= longest_m / _FILL_SPAN) & (lam <= longest_m)
+    return _fill(S, _fit_grid(omega, spacing_m, longest_m)[2], ceiling)
+
+
+def _fill(S: np.ndarray, long: np.ndarray, ceiling: float) -> np.ndarray:
     if not long.any():
         return S
     return np.maximum(S, min(float(np.mean(S[long])), ceiling))
+
+
+_FIT_GRIDS: OrderedDict = OrderedDict()
+
+
+def _fit_grid(omega: np.ndarray, spacing_m: float, longest_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the fit needs of the frequencies alone, cached (the unit spectra of a fleet share a few
+    grids): each frequency's log band (``_N_BANDS`` bands from ``longest_m`` to the grid's Nyquist;
+    outside: < 0 or ≥ ``_N_BANDS``), the mask of those inside, and the fill's long-wave mask."""
+    omega = np.asarray(omega, dtype=np.float64)
+    key = (omega.tobytes(), spacing_m, longest_m)
+    hit = _FIT_GRIDS.get(key)
+    if hit is not None:
+        return hit
+    lam = 2.0 * math.pi * spacing_m / omega
+    long = (lam >= longest_m / _FILL_SPAN) & (lam <= longest_m)
+    w_min = 2.0 * math.pi * spacing_m / longest_m
+    edges = np.geomspace(w_min, math.pi * (1 + 1e-12), _N_BANDS + 1)
+    idx = np.searchsorted(edges, omega, side="right") - 1
+    out = (idx, (idx >= 0) & (idx < _N_BANDS), long)
+    for a in out:
+        a.flags.writeable = False  # shared by every fit on this grid
+    _FIT_GRIDS[key] = out
+    if len(_FIT_GRIDS) > _CACHE_SIZE:
+        _FIT_GRIDS.popitem(last=False)
+    return out
 
 
 def fit_error_band(omega: np.ndarray, S: np.ndarray, spacing_m: float, order: int = BAND_ORDER,
@@ -183,11 +225,9 @@ def fit_error_band(omega: np.ndarray, S: np.ndarray, spacing_m: float, order: in
     (order 0: white at the spectrum's mean level in the fitted range). ``S`` is filled first
     (:func:`filled_spectrum`, up to ``fill_ceiling``).
     """
-    S = filled_spectrum(omega, S, spacing_m, longest_m, fill_ceiling)
-    w_min = 2.0 * math.pi * spacing_m / longest_m
-    edges = np.geomspace(w_min, math.pi * (1 + 1e-12), _N_BANDS + 1)
-    idx = np.searchsorted(edges, omega, side="right") - 1
-    use = (idx >= 0) & (idx < _N_BANDS) & (S > 0)
+    idx, inside, long = _fit_grid(omega, spacing_m, longest_m)
+    S = _fill(S, long, fill_ceiling)
+    use = inside & (S > 0)
     counts = np.bincount(idx[use], minlength=_N_BANDS)
     sums = np.bincount(idx[use], weights=S[use], minlength=_N_BANDS)
     wsum = np.bincount(idx[use], weights=omega[use], minlength=_N_BANDS)
@@ -200,7 +240,7 @@ def fit_error_band(omega: np.ndarray, S: np.ndarray, spacing_m: float, order: in
         for _ in range(6):  # reweighting: the relative misfit P·S − 1 tends to the log misfit
             c, *_ = np.linalg.lstsq(X * weight[:, None], weight, rcond=None)
             weight = 1.0 / np.maximum(X @ c, 1e-3)
-        if c is not None and np.min(band_symbol(c, _OMEGA_CHECK)) > 0:
+        if c is not None and np.min(_check_symbol(c)) > 0:
             var = band_variance(c)
             return math.sqrt(var), c * var
     raise ArithmeticError("fit_error_band: no positive definite fit")  # p = 0 cannot fail with S > 0
@@ -209,8 +249,7 @@ def fit_error_band(omega: np.ndarray, S: np.ndarray, spacing_m: float, order: in
 def white_equivalent(sd_m: float, band: np.ndarray) -> float:
     """The white sd that the MAD of second differences (``edge.pipeline.ap_sigma``) reads on this
     model: ``sqrt(var(Δ²e) / 6)``, from ``(1/π) ∫ |2 − 2 cos ω|² S(ω) dω``."""
-    w = _OMEGA_CHECK
-    var_d2 = np.trapezoid((2.0 - 2.0 * np.cos(w)) ** 2 * sd_m**2 / band_symbol(band, w), w) / math.pi
+    var_d2 = np.trapezoid(_D2_GAIN * sd_m**2 / _check_symbol(band), _OMEGA_CHECK) / math.pi
     return math.sqrt(var_d2 / 6.0)
 
 

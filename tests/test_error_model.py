@@ -321,3 +321,47 @@ def test_long_wave_band_shares_follow_the_segment_model():
     bands = [ma[0] - ma[1], ma[1] - ma[2], ma[2]]
     emp = np.array([np.var(b[500:-500]) for b in bands])
     assert np.allclose(error_band_shares(em, widths), emp, rtol=0.15)
+
+
+# -- the edge's cost: cached unit spectra and the tabulated symbol change nothing ----------------------
+
+
+def test_cached_error_model_is_the_uncached_one(monkeypatch):
+    """The unit spectra are cached per (inverse, speed bucket, spacing, drift width) and the fit's
+    symbol is tabulated on its check grid (edge CPU per segment, issue #3's real-time latency): a
+    half-car pass (two channels, so the per-segment noise mix matters) gives the same error model
+    with a warm cache as with none, and the tabulated variance and white equivalent are the direct
+    quadrature of ``band_symbol`` for every order the edge allows."""
+    import edge.error_model as em
+
+    system = vehicle_from_params("half_car", TABLE_2_1).system()
+    model = build_inverse(system, 0.002)
+    rng = np.random.default_rng(11)
+    n, v = 15_000, 15.0  # 30 s, 450 m: several tiles at two speeds (two cache buckets)
+    levels = {"body_acc": 0.004, "body_pitch_rate": 1.5e-4}
+    speed = np.where(np.arange(n) < n // 2, v, 1.3 * v)
+    chainage = np.concatenate([[0.0], np.cumsum(speed[:-1] * 0.002)])
+    chunks = [SensorChunk(vehicle_id="veh-1", pass_id="p", route_id="R1", vehicle_model="half_car", seq=seq,
+                          t0=i * 0.002, sample_rate_hz=500.0, chainage=chainage[i : i + 500], speed=speed[i : i + 500],
+                          channels={c: (lvl * rng.standard_normal(min(500, n - i))).astype(np.float32)
+                                    for c, lvl in levels.items()}, final=i + 500 >= n)
+              for seq, i in enumerate(range(0, n, 500))]
+    em._CACHE.clear()
+    warm = _segments(model, "half_car", chunks)
+    warm_again = _segments(model, "half_car", chunks)  # every spectrum now a cache hit
+    monkeypatch.setattr(em, "_CACHE_SIZE", 0)  # nothing is kept: each segment computes its own
+    em._CACHE.clear()
+    cold = _segments(model, "half_car", chunks)
+    with_model = [s for s in cold if s.error_model.size]
+    assert len(with_model) >= 8
+    for a, b, c in zip(warm, warm_again, cold, strict=True):
+        np.testing.assert_array_equal(a.error_model, c.error_model)
+        np.testing.assert_array_equal(b.error_model, c.error_model)
+    w = em._OMEGA_CHECK
+    for p in range(0, 9):
+        c = fit_error_band(np.linspace(0.01, math.pi, 400), 1.0 + rng.uniform(1, 50) * np.linspace(0, 1, 400) ** 2,
+                           SP, order=p)[1]
+        P = band_symbol(c, w)
+        assert em.band_variance(c) == pytest.approx(np.trapezoid(1.0 / P, w) / math.pi, rel=1e-12)
+        direct = math.sqrt(np.trapezoid((2 - 2 * np.cos(w)) ** 2 * 4.0 / P, w) / math.pi / 6.0)
+        assert em.white_equivalent(2.0, c) == pytest.approx(direct, rel=1e-12)
