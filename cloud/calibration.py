@@ -93,12 +93,13 @@ class RemapSettings:
     each pass is a nuisance, profiled out of the misfit (its free responses projected away, as
     :class:`PassChannels` does for the joint step). ``predict_gamma``: Newmark γ of the prediction
     under candidate parameters (the reconstruction keeps the edge's, so the round trip is exact).
-    The half-car keeps the edge's γ = 0.8 although its numerical damping at the wheel hop moves a
-    fit against the *true* profile by up to 12 % (Kt/ms +12 %, Cs/ms −8 %; γ = ½: < 0.3 %): the
-    consensus is made of APs from that same inverse and carries the same distortion, which the
-    edge's γ undoes (exactly for the vehicle's own AP). road-hc seed 0 through the system: γ = ½
-    let the fleet settle with every vehicle off the same way (noise-free: Cs2/ms +24 %, Kt2/ms
-    −22 %), γ = 0.8 within 12 %.
+    The edge's γ = 0.8 damps a half-car's wheel hop numerically: against the *true* profile a fit
+    predicting at 0.8 is off by up to 12 % (Kt/ms +12 %, Cs/ms −8 %; γ = ½: < 0.3 %). Predicting
+    at 0.8 against a consensus of 0.8 APs left a fleet-shared bias (each AP distorted by its own
+    vehicle and speed; road-hc seed 1 Cs1/ms median 16.7 %), at ½ against it worse (seed 0, every
+    vehicle off alike: Cs2/ms +24 %). The half-car therefore predicts at ½ against a consensus of
+    continuous-time APs (:func:`continuous_ap`, :data:`cloud.fleet_calibration.CONTINUOUS_CONSENSUS`);
+    its own channels are still reconstructed at the edge's γ (exact round trip).
     """
 
     lowpass_cpm: float | None = None
@@ -107,9 +108,9 @@ class RemapSettings:
 
 
 #: Per model; the default (the quarter-car's, tuned on road-qc) changes nothing. Half-car, road-hc
-#: seed 0 (1 % noise) through the system: profile 13.9 %, ratios' medians ≤ 5.1 %, max 11 %
-#: (tests/test_halfcar_calibration.py; the joint AP-space step: 46 %, medians up to 72 %).
-REMAP_SETTINGS = {"half_car": RemapSettings(lowpass_cpm=1.5, free_start=True)}
+#: seeds 0/1 (1 % noise) through the system: profile 14.3/15.7 %, ratios' medians ≤ 4.7/4.4 %,
+#: max 7.1/7.6 % (tests/test_halfcar_calibration.py; the joint AP-space step: 46 %, medians up to 72 %).
+REMAP_SETTINGS = {"half_car": RemapSettings(lowpass_cpm=1.5, free_start=True, predict_gamma=0.5)}
 
 
 def calibration_names(model: str) -> list[str]:
@@ -556,6 +557,59 @@ def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray, gamma: floa
     force = (ap_t * system.kc) @ system.G.T
     u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
     return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
+
+
+def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0) -> np.ndarray:
+    """The pass's AP (n_points, n_contacts) as an exact inverse of the continuous-time vehicle
+    ``params`` would have made it from the same channels: ``T⁻¹H`` applied to the edge's AP, ``H``
+    the edge inverse's discrete Newmark transfer (its γ), ``T`` the continuous one.
+
+    The edge's γ = 0.8 damps a half-car's wheel hop numerically, and how much depends on each
+    vehicle's parameters and speed: a consensus of such APs is a blend of different distortions of
+    the road, against which no vehicle's own distortion matches. Undone per pass before fusing, the
+    consensus is the road again (up to noise), and a vehicle step can predict with continuous physics.
+    The contacts are corrected together on the pass's time grid (constant speed), on their common
+    extent (straight line removed, zero-padded FFT), faded to identity between ``cutoff_hz`` and 1.5×
+    it; points outside that extent keep the edge's value, NaN stays NaN."""
+    from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
+
+    system = vehicle_from_params(model, params).system()
+    values = np.asarray(ap.values, float)
+    n_points, n_contacts = values.shape
+    if len(system.channels) != n_contacts:
+        raise ValueError(f"continuous_ap: {model} measures {len(system.channels)} channels for {n_contacts} contacts")
+    h, v = ap.spacing_m, ap.speed_mps
+    x = (ap.start_index + np.arange(n_points)) * h
+    off = system.offsets_m
+    ok = np.isfinite(values)
+    if (ok.sum(axis=0) < 16).any() or not v > 0:
+        return values.copy()
+    lo = max(x[ok[:, i]][0] - off[i] for i in range(n_contacts))
+    hi = min(x[ok[:, i]][-1] - off[i] for i in range(n_contacts))
+    t = np.arange(0.0, (hi - lo) / v, REMAP_DT) if hi > lo else np.zeros(0)
+    if t.size < 64:
+        return values.copy()
+    series = np.stack([np.interp(lo + off[i] + v * t, x[ok[:, i]], values[ok[:, i], i]) for i in range(n_contacts)],
+                      axis=1)
+    k = np.arange(t.size, dtype=float)
+    trend = np.stack([np.polyval(np.polyfit(k, series[:, i], 1), k) for i in range(n_contacts)], axis=1)
+    n_fft = 1 << int(math.ceil(math.log2(2 * t.size)))
+    spec = np.fft.rfft(series - trend, n_fft, axis=0)
+    f = np.fft.rfftfreq(n_fft, REMAP_DT)
+    fade = np.clip((1.5 * cutoff_hz - f) / (0.5 * cutoff_hz), 0.0, 1.0)
+    use = (f > 0) & (fade > 0)
+    eye = np.eye(n_contacts)
+    corr = np.broadcast_to(eye, (f.size, n_contacts, n_contacts)).astype(complex)
+    H = newmark_transfer(system, f[use], REMAP_DT, edge_gamma(model))
+    T = continuous_transfer(system, f[use])
+    corr[use] = eye + fade[use, None, None] * (np.linalg.solve(T, H) - eye)
+    fixed = np.fft.irfft(np.einsum("fij,fj->fi", corr, spec), n_fft, axis=0)[: t.size] + trend
+    out = values.copy()
+    for i in range(n_contacts):
+        x_cg = x - off[i]
+        inside = ok[:, i] & (x_cg >= lo) & (x_cg <= lo + v * t[-1])
+        out[inside, i] = np.interp(x_cg[inside], lo + v * t, fixed[:, i])
+    return out
 
 
 class PassRemap:

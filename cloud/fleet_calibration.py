@@ -35,6 +35,7 @@ profile) — road-qc seed 0's c/M −3.4 % ± 0.7 % came from there, not from th
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import logging
@@ -45,8 +46,8 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from .calibration import (REFERENCE, PassAp, VehicleFit, calibration_names, class_prior, fit_fleet, fit_vehicle,
-                          from_calibration, to_calibration)
+from .calibration import (REFERENCE, PassAp, VehicleFit, calibration_names, class_prior, continuous_ap, fit_fleet,
+                          fit_vehicle, from_calibration, to_calibration)
 
 log = logging.getLogger(__name__)
 
@@ -60,14 +61,32 @@ REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle roun
 #: AP-space step (measured on road-qc, 30 vehicles: k/M median/max 2.3/4.4 % against 4.5/12 %;
 #: also as a start for it, 3.0/7.9 % after 12 rounds), whose AP misfit the inverse's noise
 #: amplification at short wavelengths weighs wrongly. Half-cars too (road-hc, 6 vehicles, 1 % noise,
-#: seeds 0/1: profile 13.9/15.3 % against the joint step's 46 % (seed 0), coverage 1.00/0.98 against
-#: 0.62, ratios' medians ≤ 5.1/16.7 % against up to 72 %; see :data:`cloud.calibration.REMAP_SETTINGS`).
+#: seeds 0/1: profile 14.3/15.7 % against the joint step's 46 % (seed 0), coverage 1.00/0.99 against
+#: 0.62, ratios' medians ≤ 4.7/4.4 %, max 7.1/7.6 %, against medians up to 72 %; see
+#: :data:`cloud.calibration.REMAP_SETTINGS` and :data:`CONTINUOUS_CONSENSUS`).
 PER_VEHICLE = frozenset({"quarter_car", "half_car"})
 #: Per-vehicle models whose fleet-common change is over-relaxed (:meth:`FleetCalibrator._common_relaxation`).
 #: Not half-cars: on road-hc the common change then grew round on round (±0.1 in log by round 8,
 #: every round at the 0.15 step limit; profile 21 % against 15 % without; measured before the
 #: prediction kept the edge's γ, seed 0).
 OVER_RELAXED = frozenset({"quarter_car"})
+#: Per-vehicle models whose vehicle step runs against a consensus of continuous-time APs
+#: (:func:`cloud.calibration.continuous_ap`: the edge inverse's discretisation undone per pass under
+#: the vehicle's own parameters, in a copy of the profile estimator) and predicts with continuous
+#: physics (``RemapSettings.predict_gamma`` ½). The edge's γ = 0.8 distorts each half-car's AP at
+#: the wheel hop by its own parameters and speed (2–4 % of the road in 1.5 c/m – 30 m, noise-free);
+#: against a blend of the others' distortions road-hc seed 1 ended with Cs1/ms median/max
+#: 16.7/24.0 %; with it (and :data:`COMMON_GAIN`) 4.4/7.6 %.
+CONTINUOUS_CONSENSUS = frozenset({"half_car"})
+#: Per model not over-relaxed: the fraction of the fleet-common change a refinement applies. And
+#: per-vehicle models whose refinement steps are halved at each reversal (as the joint step's).
+#: Half-cars, road-hc seeds 0/1 (6 vehicles, 1 % noise) with the continuous consensus: the full
+#: common change swung ±0.11 in Kt1/ms round on round, never settled in 12 rounds (worst ratio
+#: 15.0/14.4 %); 0.5 or 0.3 of it alone: 10.8/10.8, 11.7/8.1 %, still unsettled; 0.3 with the
+#: reversal halving: settled in 10/9 rounds, worst 7.1/7.6 %, profile 14.3/15.7 %; the full change
+#: with the halving: worst 7.7/15.6 %, profile 15.9/24.3 %.
+COMMON_GAIN = {"half_car": 0.3}
+REVERSAL_DAMPED = frozenset({"half_car"})
 
 
 @dataclasses.dataclass
@@ -258,19 +277,27 @@ class FleetCalibrator:
         self.refinements += 1
         self._trend(model, {s.pass_id for vid in vids for s in by_vehicle[vid]})
         steps = {}
+        estimator, cont = self.estimator, {}
+        if model in CONTINUOUS_CONSENSUS:
+            estimator, cont = self._continuous_estimator(model, vids, by_vehicle)
         for vid in vids:
-            fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid])
+            fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid))
             if fit is not None:
                 current = np.log([to_calibration(model, self.vehicles[vid].params)[n] for n in fit.names])
                 steps[vid] = (np.log(fit.mean) - current, fit)
         if not steps:
             return [], 0.0
         common = np.mean([d for d, _ in steps.values()], axis=0)
-        relax = self._common_relaxation(model, common) if model in OVER_RELAXED else np.ones_like(common)
+        relax = (self._common_relaxation(model, common) if model in OVER_RELAXED
+                 else np.full_like(common, COMMON_GAIN.get(model, 1.0)))
         out, biggest, applied = [], 0.0, []
         for vid, (delta, fit) in steps.items():
             st = self.vehicles[vid]
             step = np.clip(delta + (relax - 1.0) * common, -REFINE_STEP, REFINE_STEP)
+            if model in REVERSAL_DAMPED:
+                if st.last_step is not None and st.last_step.shape == step.shape and step @ st.last_step < 0:
+                    st.damping *= 0.5  # as the joint step: a reversal halves this vehicle's later moves
+                step = st.damping * step
             biggest = max(biggest, float(np.max(np.abs(step))))
             st.fit = fit
             # As in the joint step: a change well inside the vehicle's posterior spread is round-to-
@@ -366,14 +393,57 @@ class FleetCalibrator:
             items.append(PassAp(lo, ss[0].spacing_m, vals, speed))
         return items
 
-    def _vehicle_step(self, st: VehicleState, segs: list[ApSegment]) -> VehicleFit | None:
-        for s in segs:
-            self.estimator.retract(s)
+    def _continuous_estimator(self, model: str, vids: list[str], by_vehicle: dict):
+        """A copy of the profile estimator with ``vids``' segments replaced by their continuous-time
+        APs (:func:`cloud.calibration.continuous_ap`, per pass under the vehicle's parameters), and
+        those segments per vehicle."""
+        est = copy.deepcopy(self.estimator)
+        out = {}
+        for vid in vids:
+            st = self.vehicles[vid]
+            passes: dict[str, list[ApSegment]] = {}
+            for s in by_vehicle[vid]:
+                passes.setdefault(s.pass_id, []).append(s)
+            n_axles = max(s.axle for s in by_vehicle[vid])
+            new = []
+            for ss in passes.values():
+                lo, hi = min(s.start_index for s in ss), max(s.end_index for s in ss)
+                vals = np.full((hi - lo, n_axles), np.nan)
+                for s in ss:
+                    vals[s.start_index - lo : s.end_index - lo, s.axle - 1] = s.values
+                try:
+                    fixed = continuous_ap(model, st.params, PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps))
+                except (ValueError, np.linalg.LinAlgError) as e:
+                    log.warning("continuous AP failed for %s: %s", vid, e)
+                    fixed = vals
+                for s in ss:
+                    v = fixed[s.start_index - lo : s.end_index - lo, s.axle - 1]
+                    if not np.all(np.isfinite(v)):
+                        v = np.where(np.isfinite(v), v, s.values)
+                    c = ApSegment.make(v, s.sigma, vehicle_id=s.vehicle_id, pass_id=s.pass_id, route_id=s.route_id,
+                                       tile=s.tile, axle=s.axle, start_index=s.start_index, spacing_m=s.spacing_m,
+                                       calib_version=s.calib_version, speed_mps=s.speed_mps, t_first=s.t_first,
+                                       t_last=s.t_last, seq=s.seq, n_segments_in_pass=s.n_segments_in_pass,
+                                       flags=s.flags, error_model=s.error_model)
+                    est.retract(s)
+                    est.update(c)
+                    new.append(c)
+            out[vid] = new
+        return est, out
+
+    def _vehicle_step(self, st: VehicleState, segs: list[ApSegment], estimator=None,
+                      held: list[ApSegment] | None = None) -> VehicleFit | None:
+        """``estimator``: the profile the consensus comes from (default this calibrator's), holding
+        ``held`` for the vehicle's own segments (default ``segs``)."""
+        estimator = self.estimator if estimator is None else estimator
+        held = segs if held is None else held
+        for s in held:
+            estimator.retract(s)
         try:
-            snaps = self.estimator.snapshot()
+            snaps = estimator.snapshot()
         finally:
-            for s in segs:
-                self.estimator.update(s)
+            for s in held:
+                estimator.update(s)
         passes: dict[str, list[ApSegment]] = {}
         for s in segs:
             passes.setdefault(s.pass_id, []).append(s)
