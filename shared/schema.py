@@ -295,6 +295,9 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
         raise DecodeError("oversize", f"payload of {len(payload)} B > {MAX_PAYLOAD_BYTES} B")
     if len(payload) == 0:
         raise DecodeError("not_arrow", "empty payload")
+    fast = _read_our_batch(payload)
+    if fast is not None:
+        return fast
     try:
         _refuse_compressed(payload)
         reader = pa.ipc.open_stream(pa.py_buffer(payload))
@@ -330,7 +333,75 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
 
 
 _U8, _U16, _U32, _I32, _I64 = (struct.Struct(f) for f in ("<B", "<H", "<I", "<i", "<q"))
-_DICTIONARY_BATCH, _RECORD_BATCH = 2, 3  # Arrow's MessageHeader union
+_SCHEMA, _DICTIONARY_BATCH, _RECORD_BATCH = 1, 2, 3  # Arrow's MessageHeader union
+_CONTINUATION = 0xFFFFFFFF
+_MAX_CACHED_SCHEMA_BYTES = 64 * 1024  # bounds what the schema cache holds (64 entries)
+
+
+def _read_our_batch(payload) -> tuple[str, int, pa.RecordBatch] | None:
+    """The fast path of :func:`_read_batch`, for payloads laid out exactly as :func:`_encode` writes them.
+
+    That is: a schema message, one uncompressed record-batch message, the end-of-stream marker,
+    and nothing else. The schema message repeats byte for byte across a stream's chunks, so its
+    parse and checks (header, duplicate names) are cached on its bytes; only the batch message is
+    read per call, with the same full validation and size cap as the general path. Anything else
+    -- other framing, a schema or batch Arrow refuses, any check failing -- returns None and the
+    general path decides, so errors (reason and text) come from one place and stay the same.
+    """
+    view = memoryview(payload)
+    try:
+        n = len(view)
+        if n < 24 or _fb(_U32, view, 0) != _CONTINUATION:
+            return None
+        schema_end = 8 + _fb(_U32, view, 4)
+        if schema_end > _MAX_CACHED_SCHEMA_BYTES or schema_end + 16 > n or _fb(_U32, view, schema_end) != _CONTINUATION:
+            return None
+        plan = _schema_plan(view[:schema_end].tobytes())
+        if plan is None:
+            return None
+        schema, kind, version, max_rows = plan
+        start = schema_end + 8
+        meta = view[start : start + _fb(_U32, view, schema_end + 4)]
+        root = _fb(_U32, meta, 0)
+        header_type = _fb_field(meta, root, 1)
+        header = _fb_field(meta, root, 2)
+        body = _fb_field(meta, root, 3)
+        if header_type is None or _fb(_U8, meta, header_type) != _RECORD_BATCH or header is None or body is None:
+            return None
+        if _fb_field(meta, header + _fb(_U32, meta, header), 3) is not None:
+            return None  # compressed: refused by the general path before anything inflates
+        body_length = _fb(_I64, meta, body)
+        end = start + len(meta) + body_length
+        if body_length < 0 or end + len(_END_OF_STREAM) != n or view[end:] != _END_OF_STREAM:
+            return None
+        batch = pa.ipc.read_record_batch(pa.ipc.read_message(pa.py_buffer(view[schema_end:end])), schema)
+        batch.validate(full=True)  # before anything else touches it, as in the general path
+        if batch.get_total_buffer_size() > MAX_DECODED_BYTES or not 1 <= batch.num_rows <= max_rows:
+            return None
+        return kind, version, batch
+    except Exception:  # noqa: BLE001 -- any failure: the general path reads it again and says why
+        return None
+
+
+@functools.lru_cache(maxsize=64)
+def _schema_plan(message: bytes) -> tuple[pa.Schema, str, int, int] | None:
+    """``(schema, kind, version, max_rows)`` of a well-formed schema message of ours, else None (cached)."""
+    try:
+        meta = memoryview(message)[8:]
+        root = _fb(_U32, meta, 0)
+        header_type, body = _fb_field(meta, root, 1), _fb_field(meta, root, 3)
+        if header_type is None or _fb(_U8, meta, header_type) != _SCHEMA:
+            return None
+        if body is not None and _fb(_I64, meta, body) != 0:
+            return None  # a schema with a body: the general path follows its framing
+        schema = pa.ipc.read_schema(pa.py_buffer(message))
+        names = schema.names
+        kind, version = _header((schema.metadata or {}).get(META_KEY))
+    except Exception:  # noqa: BLE001 -- not ours: the general path reports it
+        return None
+    if len(set(names)) != len(names):
+        return None
+    return schema, kind, version, _MAX_ROWS.get(kind, 1)
 
 
 def _fb(fmt: struct.Struct, buf, pos: int) -> int:
@@ -599,9 +670,9 @@ class SensorChunk(_Message):
         n = chainage.size
         if speed.size != n:
             _fail("bad_shape", f"speed has {speed.size} samples, chainage {n}")
-        if n and np.max(np.abs(chainage)) > MAX_ABS_CHAINAGE_M:
+        if n and np.abs(chainage).max() > MAX_ABS_CHAINAGE_M:
             _fail("bad_value", f"|chainage| > {MAX_ABS_CHAINAGE_M} m")
-        if n and np.max(np.abs(speed)) > MAX_SPEED_MPS:
+        if n and np.abs(speed).max() > MAX_SPEED_MPS:
             _fail("bad_value", f"|speed| > {MAX_SPEED_MPS} m/s")
         if not isinstance(self.channels, Mapping):
             _fail("bad_type", "channels must be a mapping name -> array")

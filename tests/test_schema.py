@@ -521,3 +521,35 @@ def test_constructor_rejects(make, reason):
         make()
     assert info.value.reason == reason
     assert not isinstance(info.value, DecodeError)
+
+
+def _outcome(payload):
+    try:
+        return ("ok", decode(payload))
+    except DecodeError as e:
+        return (e.reason, str(e))
+
+
+def test_the_fast_read_agrees_with_the_general_read(monkeypatch):
+    """`_read_batch` reads payloads laid out as ours through a cached-schema fast path and
+    everything else through Arrow's stream reader: both give the same message or the same error."""
+    assert schema._read_our_batch(CHUNK) is not None and schema._read_our_batch(AP) is not None
+    cols, meta = _table(CHUNK)
+    batch = pa.RecordBatch.from_arrays(list(cols.values()), schema=pa.schema(
+        [pa.field(k, v.type) for k, v in cols.items()], metadata=meta))
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, batch.schema, options=pa.ipc.IpcWriteOptions(compression="zstd")) as w:
+        w.write_batch(batch)
+    payloads = [CHUNK, AP, CHUNK[:-8], CHUNK + b"\0" * 8, CHUNK[:-8] + CHUNK[-16:], _write(cols, meta, batches=2),
+                _write({k: pa.concat_arrays([v, v]) for k, v in cols.items()}, meta),
+                sink.getvalue().to_pybytes(), _with_header(CHUNK, {"kind": "sensor_chunk", "version": 2})]
+    rng = np.random.default_rng(3)
+    for _ in range(150):  # single-byte damage anywhere
+        p = bytearray(CHUNK)
+        p[rng.integers(len(p))] ^= int(rng.integers(1, 256))
+        payloads.append(bytes(p))
+    fast = [_outcome(p) for p in payloads]
+    monkeypatch.setattr(schema, "_read_our_batch", lambda payload: None)
+    general = [_outcome(p) for p in payloads]
+    assert fast == general
+    assert sum(f[0] == "ok" for f in fast) >= 2 and sum(f[0] != "ok" for f in fast) >= 5
