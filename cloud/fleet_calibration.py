@@ -89,6 +89,16 @@ COMMON_GAIN = {"half_car": 0.3}
 REVERSAL_DAMPED = frozenset({"half_car"})
 
 
+def _pass_values(segs: list[ApSegment], n_axles: int) -> tuple[int, np.ndarray]:
+    """One pass's segments on its grid slice: the first grid index and the values (points, axles),
+    NaN where no segment holds a point."""
+    lo, hi = min(s.start_index for s in segs), max(s.end_index for s in segs)
+    vals = np.full((hi - lo, n_axles), np.nan)
+    for s in segs:
+        vals[s.start_index - lo : s.end_index - lo, s.axle - 1] = s.values
+    return lo, vals
+
+
 @dataclasses.dataclass
 class VehicleState:
     model: str
@@ -378,10 +388,7 @@ class FleetCalibrator:
         n_axles = max(s.axle for s in segs)
         items = []
         for ss in passes.values():
-            lo, hi = min(s.start_index for s in ss), max(s.end_index for s in ss)
-            vals = np.full((hi - lo, n_axles), np.nan)
-            for s in ss:
-                vals[s.start_index - lo : s.end_index - lo, s.axle - 1] = s.values
+            lo, vals = _pass_values(ss, n_axles)
             if (np.isfinite(vals).sum(axis=0) < 200).any():
                 continue
             # The time base: chainage covered over time taken (the aligned frame's speed when the
@@ -407,10 +414,7 @@ class FleetCalibrator:
             n_axles = max(s.axle for s in by_vehicle[vid])
             new = []
             for ss in passes.values():
-                lo, hi = min(s.start_index for s in ss), max(s.end_index for s in ss)
-                vals = np.full((hi - lo, n_axles), np.nan)
-                for s in ss:
-                    vals[s.start_index - lo : s.end_index - lo, s.axle - 1] = s.values
+                lo, vals = _pass_values(ss, n_axles)
                 try:
                     fixed = continuous_ap(model, st.params, PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps))
                 except (ValueError, np.linalg.LinAlgError) as e:
