@@ -285,7 +285,7 @@ class FleetCalibrator:
         common part of the changes over-relaxed (alternation's slow mode is the fleet drifting
         together)."""
         self.refinements += 1
-        self._trend(model, {s.pass_id for vid in vids for s in by_vehicle[vid]})
+        self._start_round(model, vids, {s.pass_id for vid in vids for s in by_vehicle[vid]})
         steps = {}
         estimator, cont = self.estimator, {}
         if model in CONTINUOUS_CONSENSUS:
@@ -327,6 +327,15 @@ class FleetCalibrator:
         log.info("refinement %d (%s): common change %s, relaxation %s", self.refinements, model,
                  np.round(common, 4).tolist(), np.round(relax, 2).tolist())
         return out, biggest
+
+    def _start_round(self, model: str, vids: list[str], pass_ids: set[str]) -> None:
+        """Before a refinement on ``pass_ids``: when they are new (a larger epoch), the common-mode
+        trend begins afresh (:meth:`_trend`) and, for :data:`REVERSAL_DAMPED` models, so do the
+        vehicles' step halvings — they were for straddling the old passes' optimum; kept, a daemon
+        that gets passes for months would move its half-cars ever more slowly."""
+        if not self._trend(model, pass_ids) and model in REVERSAL_DAMPED:
+            for vid in vids:
+                self.vehicles[vid].damping, self.vehicles[vid].last_step = 1.0, None
 
     def _trend(self, model: str, pass_ids: set[str]) -> list:
         """The common-mode trend of ``model``, begun afresh when the round's passes are not those the

@@ -250,6 +250,28 @@ def test_common_mode_trend_restarts_when_the_rounds_passes_change():
     assert restored._trend("quarter_car", {"p1", "p2"}) == []
 
 
+def test_half_car_step_halvings_restart_with_new_passes():
+    """Half-cars halve a vehicle's steps at each reversal (a converging sequence around one epoch's
+    optimum); new passes move the optimum, so the halvings start over — never a vehicle frozen by
+    the reversals of epochs long gone. Quarter-cars do not halve."""
+    from cloud.fleet_calibration import FleetCalibrator, VehicleState
+    from shared.registry import Route, Site
+
+    c = FleetCalibrator(Site(routes=(Route("R1", 100.0),)), None)
+    for vid, model in (("h", "half_car"), ("q", "quarter_car")):
+        c.vehicles[vid] = VehicleState(model=model, version=1, params={}, last_step=np.ones(3), damping=0.25)
+    c._start_round("half_car", ["h"], {"p1", "p2"})  # the first round of an epoch
+    assert c.vehicles["h"].damping == 1.0 and c.vehicles["h"].last_step is None
+    c.vehicles["h"].damping, c.vehicles["h"].last_step = 0.5, np.ones(3)
+    c.common_trend["half_car"].append(([0.0], [0.0], [0.0]))  # what a round leaves behind
+    c._start_round("half_car", ["h"], {"p1", "p2"})  # same passes: the halving stands
+    assert c.vehicles["h"].damping == 0.5
+    c._start_round("half_car", ["h"], {"p1", "p2", "p3"})  # a larger epoch
+    assert c.vehicles["h"].damping == 1.0
+    c._start_round("quarter_car", ["q"], {"p1"})
+    assert c.vehicles["q"].damping == 0.25
+
+
 def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
     """road-qc on a 3-D carpet (lane drawn per pass), small: 8 vehicles, one pass each, through
     the edge and cloud code in process. Each vehicle's channels come from its own lane, the
