@@ -14,6 +14,7 @@ from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
 from shared.registry import load_site
 from shared.track_quality import d1_longitudinal_level
 from simfleet.cli import main as sim_main
+from simfleet.reproduce_rail import load_runs
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
 
@@ -27,13 +28,8 @@ def batch(tmp_path_factory):
     scenario = dataclasses.replace(SCENARIOS["rail-track"], route_length_m=100.0)
     generate(scenario, out, seed=5, passes=N_RUNS, workers=2, progress=False)
     truth = json.loads((out / "truth.json").read_text())
-    site = load_site(out / "site.toml")
-    runs = []
-    for path in list_drive_logs(out / "logs"):
-        log = read_drive_log(path)
-        z = np.stack([log.channels[c] for c in MODEL_CHANNELS["carriage"]], axis=1).astype(float)
-        runs.append(RailRun(log.meta.pass_id, z, log.meta.dt, float(np.mean(log.speed)), float(log.chainage[0])))
-    return out, truth, site, runs
+    runs, _, _ = load_runs(out)
+    return out, truth, load_site(out / "site.toml"), runs
 
 
 def test_scenarios_listed(capsys):
@@ -129,13 +125,8 @@ def _batch_of(tmp_path, seed, length_m):
     out = tmp_path / f"seed{seed}"
     generate(dataclasses.replace(SCENARIOS["rail-track"], route_length_m=length_m), out, seed=seed, passes=N_RUNS,
              workers=2, progress=False)
-    site = load_site(out / "site.toml")
-    runs = []
-    for path in list_drive_logs(out / "logs"):
-        log = read_drive_log(path)
-        z = np.stack([log.channels[c] for c in MODEL_CHANNELS["carriage"]], axis=1).astype(float)
-        runs.append(RailRun(log.meta.pass_id, z, log.meta.dt, float(np.mean(log.speed)), float(log.chainage[0])))
-    return json.loads((out / "truth.json").read_text()), site, runs
+    runs, _, _ = load_runs(out)
+    return json.loads((out / "truth.json").read_text()), load_site(out / "site.toml"), runs
 
 
 def test_common_mass_error_is_what_the_priors_explain_over_seeds(batch, fit, tmp_path):
