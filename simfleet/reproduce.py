@@ -335,8 +335,15 @@ def band_rmse(est: np.ndarray, truth: np.ndarray, x: np.ndarray, window: tuple[f
     return float(np.sqrt(np.mean(f[k:-k] ** 2)))
 
 
+def issue_band_rmse(est: np.ndarray, truth: np.ndarray, x: np.ndarray, window: tuple[float, float]) -> float:
+    """:func:`band_rmse` in the issues' own convention, wavelengths 0.5–50 m (as
+    :func:`simfleet.evaluate.score_profile`); on a window shorter than 50 m it keeps every wave the
+    window holds but its level."""
+    return band_rmse(est, truth, x, window, band_m=(0.5, 50.0))
+
+
 #: How the profile estimates are scored against the truth (see :func:`time_to_equal_accuracy`).
-METRICS = {"band_0.5_10m": band_rmse, "detrended": detrended_rmse}
+METRICS = {"band_0.5_10m": band_rmse, "band_0.5_50m": issue_band_rmse, "detrended": detrended_rmse}
 
 
 def time_to_equal_accuracy(problem: RoadProblem, n_iter: int = 2000, seed: int = 0, tolerance: float = 0.10,
@@ -345,9 +352,9 @@ def time_to_equal_accuracy(problem: RoadProblem, n_iter: int = 2000, seed: int =
 
     The MCMC runs with the thesis's settings (τ₁ = 1e5, σ₁² = 0.001, s_profile = 1 mm) and the
     vehicles held at their true parameters, so its target is exactly the exact posterior's. Its
-    estimate after i iterations is the mean of iterations i/2..i. Two scores (:data:`METRICS`): the
-    error band-passed to 0.5–10 m, and the error with only a line removed (which keeps the long
-    waves, where single-site updates mix slowest). "Equal accuracy" is reached when the MCMC's
+    estimate after i iterations is the mean of iterations i/2..i. Three scores (:data:`METRICS`): the
+    error band-passed to 0.5–10 m, to 0.5–50 m (the issues' convention), and with only a line
+    removed (the last two keep the long waves, where single-site updates mix slowest). "Equal accuracy" is reached when the MCMC's
     error comes within ``tolerance`` of ours; if it never does within ``n_iter`` iterations or
     ``time_budget_s``, the ratio is a lower bound (``reached`` False).
     """
@@ -754,7 +761,8 @@ def _section_mcmc(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
         "Time to equal accuracy (the MCMC's error within 10 % of ours):",
         "",
     ]
-    for metric, what_m in ((band, "0.5–10 m"), (det, "detrended")):
+    for metric, what_m in ((band, "0.5–10 m"), ("band_0.5_50m", "0.5–50 m (the issues' convention)"),
+                           (det, "detrended")):
         for name, what in (("exact", "exact posterior"), ("production", "production path")):
             v = tte["ratios"][metric][name]
             if v["reached"]:
@@ -840,7 +848,7 @@ def _summary(results: dict) -> list[str]:
     try:
         r = results["mcmc"]["ratios"]
         parts = []
-        for metric, what in (("band_0.5_10m", "0.5–10 m"), ("detrended", "detrended")):
+        for metric, what in (("band_0.5_10m", "0.5–10 m"), ("band_0.5_50m", "0.5–50 m"), ("detrended", "detrended")):
             v = r[metric]["production"]
             parts.append(f"{what}: {'' if v['reached'] else '> '}{v['ratio']:,.0f}×")
         out.append("* MCMC reference time to our production path's accuracy: " + "; ".join(parts) + ".")
