@@ -12,9 +12,24 @@ fairer figure; BLAS pinned to one thread for both, as ``benchmarks.profile`` doe
 * ``rail.batch_calibration_50_runs``: ours at production settings (what the daemon and
   ``driveby reproduce rail`` run);
 * ``rail.batch_calibration_50_runs.time_to_ce_accuracy``: ours at a cheaper setting (the first two
-  stages only: no waves shorter than 6 m), reported only as what it is — its line says whether it
-  is at least as accurate as CE on *every* property; if it is not, it is no time-to-CE's-accuracy
-  and the ratio is not claimed (``ratio_is``).
+  stages only, no waves shorter than 6 m, the second stopped after three iterations), reported only
+  as what it is — its line says whether it is at least as accurate as CE on *every* property; if it
+  is not, it is no time-to-CE's-accuracy and the ratio is not claimed (``ratio_is``).
+
+The accuracy also gives what no calibration at all scores (``no_calibration_median_abs_pct``: the
+class means of mv and Iv, the GNSS speed), the floor any calibration should beat: CE at the
+settings below does not beat it on mv and Iv on this batch (measured: CE 7.1 / 7.0 %, class means
+6.7 / 6.9 %; CE's speed 0.28 % against GNSS 1.35 %).
+
+CE (:func:`cloud.rail_calibration.cross_entropy_batch` defaults) against thesis §3.4.1: the objective
+(3.11)–(3.12), normal sampling, the 10 % elite, restarts that keep the mean and reset the sd to its
+initial value, globals held at the class means — as the thesis states. Not stated there, so ours to
+choose: the population (60 trial vectors of the 3·n_b = 150 unknowns), the number of restarts (3),
+the convergence rule (sd collapsed below 2 % of its initial value, or no improvement for 8
+generations; at most 200 generations); and beyond the thesis: the elite's mean and sd smoothed
+(α = 0.7, the usual CE practice), a restart starts from the best trial so far (the thesis: "the
+vector mean is retained"), each run mapped to space with its own trial speed (the thesis: to the
+batch's mean speed), and the same low-pass, window and cubic removal as ours.
 
 When ours is at least as accurate on every property, the ratio is a lower bound of the fair one
 (ours would reach CE's accuracy no later than its own end). The batch is simulated once and cached
@@ -33,8 +48,9 @@ import numpy as np
 SCENARIO = "rail-track"
 PASSES = 50
 PROPS = ("mv", "Iv", "v")
-#: The cheaper setting of ours: stop after the 6 m stage (calibrate_batch's stages_m).
-CHEAP = {"stages_m": (16.0, 6.0)}
+#: The cheaper setting of ours: stop after three iterations of the 6 m stage (calibrate_batch's
+#: stages_m, max_iter).
+CHEAP = {"stages_m": (16.0, 6.0), "max_iter": 3}
 
 
 def _batch(work: Path, passes: int):
@@ -66,6 +82,9 @@ def run(work: Path | None = None, passes: int = PASSES):
     calibrate_batch(runs[:2], cls.mean, cls.std, max_iter=1)  # warm-up: numba kernels, caches
     ce, ce_s, ce_cpu = _timed(lambda: cross_entropy_batch(runs, cls.mean, cls.std, np.random.default_rng(0)))
     ref = calibration_errors(ce, truth)
+    passes = truth["passes"]
+    floor = {k: float(100 * np.median([abs(cls.mean[k] / p[k] - 1) for p in passes])) for k in ("mv", "Iv")}
+    floor["v"] = float(100 * np.median([abs(p["v_gnss"] / p["v"] - 1) for p in passes]))
     for name, kw in ((f"rail.batch_calibration_{len(runs)}_runs", {}),
                      (f"rail.batch_calibration_{len(runs)}_runs.time_to_ce_accuracy", CHEAP)):
         fit, s, cpu = _timed(lambda: calibrate_batch(runs, cls.mean, cls.std, **kw))
@@ -74,6 +93,7 @@ def run(work: Path | None = None, passes: int = PASSES):
         acc = {f"{k}_median_abs_pct": {"ours": ours[f"{k}_median_abs_pct"], "cross_entropy": ref[f"{k}_median_abs_pct"]}
                for k in PROPS}
         acc["gnss_v_median_abs_pct"] = ours["v_gnss_median_abs_pct"]
+        acc["no_calibration_median_abs_pct"] = floor  # class means of mv, Iv; the GNSS speed
         yield {"name": name, "value": s, "unit": "s",
                "ratio_to": {"cross_entropy": ce_s / s, "cross_entropy_cpu": ce_cpu / cpu},
                "context": {"setting": kw or "production (calibrate_batch defaults)", "ours_cpu_s": cpu,

@@ -34,10 +34,15 @@ properties' uncertainty marginalised.
 
 Cost (the thesis's CE needs thousands of batch evaluations; this needs tens): the early stages see
 no short waves, so their channels are decimated to ~20 samples per period of the stage's cut-off
-and compared on a coarser grid; the finite-difference Jacobian (9 inverses per run) is refreshed
-every third accepted step, with chord steps (1 inverse per run) in between; samples past what the
-window needs are not inverted; and every trial of every run is one compiled inverse call
-(:func:`carriage_aps_runs`) and one interpolation (:meth:`_Mapper.map_runs`).
+and compared on a coarser grid; the Jacobian is exact, the AP's derivatives in the 8 inverse
+parameters carried through the inverse's recursion in forward mode (:func:`carriage_aps_sensitivities`:
+one pass per run at ~3 inverses' cost, where finite differences took 9 and were only good to their
+step), the speed's column a finite difference of the mapping alone; it is refreshed every third
+accepted step, with chord steps (1 inverse per run) in between; samples past what the window needs
+are not inverted; every trial of every run is one compiled inverse call (:func:`carriage_aps_runs`)
+and one interpolation (:meth:`_Mapper.map_runs`); the low-pass is one compiled zero-phase filter per
+run (:func:`_sosfiltfilt`). Measured on the benchmark's 50-run batch (``python -m benchmarks rail``,
+one BLAS thread, shared machine): 0.26–0.36 s CPU, against 0.73 s with finite differences.
 
 Pure functions on arrays: no I/O, no transport.
 """
@@ -50,8 +55,8 @@ import time
 from typing import Sequence
 
 import numpy as np
+import scipy.fft
 from numba import njit
-from scipy.signal import sosfiltfilt
 
 from shared.vehicles.carriage import Carriage
 
@@ -77,7 +82,18 @@ GRID_M = 0.1  # finest comparison grid spacing, m
 SPEED_SEARCH_M = 6.0  # shortest wavelength of the speed's grid search (:func:`_speed_from_wheels`), m
 SPEED_STEP = 0.01  # its step in log speed
 EDGE_M = 1.5  # margin kept from the wheels' coverage (trial speeds move it), m
-FD_LOG_STEP = 1e-3
+FD_LOG_STEP = 1e-3  # the speed's Jacobian column: a finite difference of the mapping, log speed
+#: The stages before the last stop on steps below this (log): they only bring the last one into its
+#: basin, which it then converges from to ``tol`` (the stage's optimum is not the last stage's).
+STAGE_TOL_LOG = 1e-3
+#: A Jacobian's runs are differentiated and mapped this many at a time (a few MB of work arrays
+#: that stay in cache and are reused, instead of ~40 MB fresh pages per Jacobian).
+JACOBIAN_CHUNK_RUNS = 8
+#: The last stage's Jacobian may be this far (log, every coordinate) from the optimum: the Laplace
+#: intervals then use it instead of a fresh one at the end. J moves ~1 % over such a step; the
+#: intervals' widths on the blind test's 14 batches moved < 0.5 % with this and everything else of
+#: the exact Jacobian together.
+LAPLACE_REUSE_LOG = 0.01
 Z95 = 1.959963984540054
 
 
@@ -137,8 +153,60 @@ def _lowpass(run: RailRun, min_wavelength_m: float = 2.0) -> np.ndarray:
     nyq = 0.5 / run.dt
     fc = run.speed_mps / min_wavelength_m
     if fc < 0.9 * nyq:
-        z = sosfiltfilt(_butter4_sos(fc / nyq), z, axis=0)
+        z = _sosfiltfilt(_butter4_sos(fc / nyq), np.ascontiguousarray(z))
     return z
+
+
+@njit(cache=True)
+def _sosfiltfilt(sos, x):
+    """``scipy.signal.sosfiltfilt(sos, x, axis=0)`` with its defaults (odd extension of 3·(2·sections
+    + 1) samples, each pass started in the steady state of its first sample), for sections without
+    zero coefficients: the same arithmetic, to rounding. scipy's ~0.35 ms a call, mostly Python,
+    was ~10 % of a production batch calibration (one call per run and stage)."""
+    n, nch = x.shape
+    ns = sos.shape[0]
+    edge = 3 * (2 * ns + 1)
+    if n <= edge:
+        raise ValueError("_sosfiltfilt: the record is shorter than the filter's padding")
+    # sosfilt_zi: each section's lfilter_zi (the 2x2 solve of its companion form), scaled by the
+    # DC gain of the sections before it
+    zi = np.empty((ns, 2))
+    scale = 1.0
+    for q in range(ns):
+        b0, b1, b2, a1, a2 = sos[q, 0] / sos[q, 3], sos[q, 1] / sos[q, 3], sos[q, 2] / sos[q, 3], \
+            sos[q, 4] / sos[q, 3], sos[q, 5] / sos[q, 3]
+        r1, r2 = b1 - a1 * b0, b2 - a2 * b0
+        # (I - A) zi = B with A = companion(a).T: [[1 + a1, -1], [a2, 1]]
+        z0 = (r1 + r2) / (1.0 + a1 + a2)
+        zi[q, 0] = scale * z0
+        zi[q, 1] = scale * (r2 - a2 * z0)
+        scale *= (b0 + b1 + b2) / (1.0 + a1 + a2)
+    m = n + 2 * edge
+    ext = np.empty((m, nch))  # channels side by side: four independent recursions interleave
+    for k in range(edge):
+        for ch in range(nch):
+            ext[k, ch] = 2.0 * x[0, ch] - x[edge - k, ch]
+            ext[n + edge + k, ch] = 2.0 * x[n - 1, ch] - x[n - 2 - k, ch]
+    ext[edge:edge + n] = x
+    st = np.empty((ns, 2, nch))
+    for direction in range(2):
+        first = 0 if direction == 0 else m - 1
+        for q in range(ns):
+            for ch in range(nch):
+                st[q, 0, ch] = zi[q, 0] * ext[first, ch]
+                st[q, 1, ch] = zi[q, 1] * ext[first, ch]
+        for kk in range(m):
+            k = kk if direction == 0 else m - 1 - kk
+            for ch in range(nch):
+                v = ext[k, ch]
+                for q in range(ns):
+                    out = sos[q, 0] * v + st[q, 0, ch]
+                    st[q, 0, ch] = sos[q, 1] * v - sos[q, 4] * out + st[q, 1, ch]
+                    st[q, 1, ch] = sos[q, 2] * v - sos[q, 5] * out
+                    v = out
+                ext[k, ch] = v
+    y = ext[edge:edge + n].copy()
+    return y
 
 
 def _butter4_sos(wn: float) -> np.ndarray:
@@ -232,18 +300,46 @@ _FREE = np.arange(2)  # the body's bounce and pitch
 
 
 def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: float, z: np.ndarray,
-                      lengths: np.ndarray, dts: np.ndarray) -> np.ndarray:
+                      lengths: np.ndarray, dts: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """APs (T, N, 4) under T parameter sets ``theta`` (T, 8) in :data:`INVERSE_NAMES` order, trial t
     on run ``run_of[t]``'s channels ``z`` (R, N, 4) (the first ``lengths[r]`` samples, step
     ``dts[r]``; the rest of its AP is zero). Same result as :func:`cloud.reference.cross_entropy.
     population_aps` per run; the carriage's matrices are assembled in array form — M, C, K are
     linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`) — and the whole
-    batch is one compiled call, instead of a ``Carriage`` per trial and a call per run."""
+    batch is one compiled call, instead of a ``Carriage`` per trial and a call per run.
+
+    ``out``: a (≥ T, 4, N) C-contiguous work array to write into (its first T rows; past a run's
+    length left as they were, not zeroed): a calibration reuses one across its evaluations."""
     from shared.dynamics.newmark import newmark_constants
 
     theta = np.asarray(theta, dtype=float)
     run_of = np.asarray(run_of, dtype=np.int64)
     dts = np.asarray(dts, dtype=float)
+    T = len(theta)
+    kp, cp = theta[:, 4], theta[:, 5]
+    M, C, K, G, _, _ = _carriage_matrices(theta, Lb, Lv)
+    c = newmark_constants(float(dts.min()), INVERSE_GAMMA)
+    dt = dts[run_of][:, None, None]
+    S = np.concatenate([M[:, :, :2] + c.gamma * dt * C[:, :, :2] + c.beta * dt * dt * K[:, :, :2],
+                        np.broadcast_to(-G, (T, 6, 4))], axis=2)
+    if out is None:
+        out = np.zeros((T, 4, z.shape[1]))  # wheel-major: what the mapping reads in one piece
+    else:
+        out = out[:T]
+        if out.shape[1:] != (4, z.shape[1]) or not out.flags.c_contiguous:
+            raise ValueError(f"carriage_aps_runs: out must be a C-contiguous (>= {T}, 4, {z.shape[1]}) array")
+    # the four contacts are the primary suspensions (kp, cp)
+    inverse_runs(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.repeat(kp[:, None], 4, axis=1),
+                 np.repeat(cp[:, None], 4, axis=1), _MEASURED, _IS_ACC, _FREE, run_of,
+                 np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta,
+                 out)
+    return out.transpose(0, 2, 1)
+
+
+def _carriage_matrices(theta: np.ndarray, Lb: float, Lv: float):
+    """M, C, K (T, 6, 6) of T parameter sets (:data:`INVERSE_NAMES` order), the contact matrix G
+    (6, 4) and the secondary and primary suspensions' patterns ``sec``, ``prim`` (6, 6): M, C, K are
+    linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`)."""
     T = len(theta)
     mv, Iv, mb, Ib, kp, cp, ks, cs = theta.T
     s1 = np.array([1.0, Lv, -1.0, 0.0, 0.0, 0.0])
@@ -258,18 +354,186 @@ def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: floa
     M = np.zeros((T, 6, 6))
     for j, m in enumerate((mv, Iv, mb, Ib, mb, Ib)):
         M[:, j, j] = m
-    c = newmark_constants(float(dts.min()), INVERSE_GAMMA)
-    dt = dts[run_of][:, None, None]
-    S = np.concatenate([M[:, :, :2] + c.gamma * dt * C[:, :, :2] + c.beta * dt * dt * K[:, :, :2],
-                        np.broadcast_to(-G, (T, 6, 4))], axis=2)
-    out = np.zeros((T, 4, z.shape[1]))  # wheel-major: what the mapping reads in one piece
-    # the four contacts are the primary suspensions (kp, cp)
-    inverse_runs(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.repeat(kp[:, None], 4, axis=1),
-                 np.repeat(cp[:, None], 4, axis=1), _MEASURED, _IS_ACC, _FREE, run_of,
-                 np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta,
-                 out)
-    return out.transpose(0, 2, 1)
+    return M, C, K, G, sec, prim
 
+
+def carriage_aps_sensitivities(theta: np.ndarray, Lb: float, Lv: float, z: np.ndarray, lengths: np.ndarray,
+                               dts: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """APs and their derivatives in the log parameters: (R, 9, N, 4), [r, 0] the AP of run r's
+    channels ``z[r]`` (the first ``lengths[r]`` samples at step ``dts[r]``) under ``theta[r]``
+    (R, 8; :data:`INVERSE_NAMES` order) exactly as :func:`carriage_aps_runs` gives it, [r, 1 + j]
+    its derivative in log θ_j — forward mode through the same Newmark-β recursion (exact to
+    rounding, no finite-difference step) in one pass per run (:func:`_tangent_kernel`), at ~the
+    cost of 3 of the 9 inverses a one-sided finite-difference Jacobian takes. ``out``: a (≥ R, N, 9,
+    4) C-contiguous work array (past a run's length left as it was)."""
+    from shared.dynamics.newmark import newmark_constants
+
+    theta = np.asarray(theta, dtype=float)
+    dts = np.asarray(dts, dtype=float)
+    R, N = len(theta), z.shape[1]
+    M, C, K, G, sec, prim = _carriage_matrices(theta, Lb, Lv)
+    c = newmark_constants(float(dts.min()), INVERSE_GAMMA)
+    dt = dts[:, None, None]
+    S = np.concatenate([M[:, :, :2] + c.gamma * dt * C[:, :, :2] + c.beta * dt * dt * K[:, :, :2],
+                        np.broadcast_to(-G, (R, 6, 4))], axis=2)
+    Sinv = np.linalg.inv(S)
+    if out is None:
+        out = np.zeros((R, N, 9, 4))  # time-major: a step's 36 values in one piece
+    else:
+        out = out[:R]
+        if out.shape[1:] != (N, 9, 4) or not out.flags.c_contiguous:
+            raise ValueError(f"carriage_aps_sensitivities: out must be a C-contiguous (>= {R}, {N}, 9, 4) array")
+    _tangent_kernel(Sinv, M, C, K, Sinv @ C[:, :, :2], Sinv @ K[:, :, :2], Sinv @ prim, Sinv @ sec, theta,
+                    np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts, c.gamma,
+                    c.beta, out)
+    return out.transpose(0, 2, 1, 3)
+
+
+@njit(cache=True)
+def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, z, lengths, dts, gamma, beta, out):
+    """The carriage's inverse step (:func:`cloud.batched_inverse.inverse_runs` with the carriage's
+    structure: DOFs 2–5 measured, accelerations and pitch rates alternately; 0–1 the body, free;
+    four contacts, the primary suspensions kp, cp), one parameter set per run, with the
+    forward-mode derivatives in the 8 log parameters carried alongside. The measured DOFs' states
+    are data, so only the body's and the contacts' states have derivatives. Differentiating
+    M a + C v + K u − G g = 0 in log θ_j: S [ds_f; dg] = −(b_j + C_f dvp_f + K_f dup_f), with
+    b_j = θ_j (∂_j M a + ∂_j C v + ∂_j K u) at the step's state — a few entries per parameter
+    (mv, Iv, mb, Ib a diagonal entry each; kp, cp the primary pattern ``prim``; ks, cs the
+    secondary ``sec``), pre-multiplied by S⁻¹: ``PC``/``PK`` = S⁻¹C/K on the free columns,
+    ``SP``/``SS`` = S⁻¹ prim / S⁻¹ sec."""
+    R = Sinv.shape[0]
+    nd = 8
+    u = np.zeros(6)
+    v = np.zeros(6)
+    a = np.zeros(6)
+    up = np.zeros(6)
+    vp = np.zeros(6)
+    s = np.zeros(6)
+    known = np.zeros(6)
+    y = np.zeros(4)
+    yd = np.zeros(4)
+    du = np.zeros((2, nd))
+    dv = np.zeros((2, nd))
+    da = np.zeros((2, nd))
+    dup = np.zeros((2, nd))
+    dvp = np.zeros((2, nd))
+    ds = np.zeros((6, nd))
+    dy = np.zeros((4, nd))
+    dyd = np.zeros((4, nd))
+    dyn = np.zeros(nd)
+    for r in range(R):
+        dt = dts[r]
+        bdt2 = beta * dt * dt
+        gdt = gamma * dt
+        mv, Iv, mb, Ib, kp, cp, ks, cs = theta[r]
+        two_dt = 2.0 / dt
+        inv_kp = 1.0 / kp
+        inv_den = 1.0 / (kp + 2.0 * cp / dt)
+        u[:] = 0.0
+        v[:] = 0.0
+        a[:] = 0.0
+        y[:] = 0.0
+        yd[:] = 0.0
+        du[:] = 0.0
+        dv[:] = 0.0
+        da[:] = 0.0
+        dy[:] = 0.0
+        dyd[:] = 0.0
+        for q in range(9):
+            for c in range(4):
+                out[r, 0, q, c] = 0.0
+        a[2] = z[r, 0, 0]
+        v[3] = z[r, 0, 1]
+        a[4] = z[r, 0, 2]
+        v[5] = z[r, 0, 3]
+        for k in range(1, lengths[r]):
+            for i in range(6):
+                up[i] = u[i] + dt * v[i] + dt * dt * (0.5 - beta) * a[i]
+                vp[i] = v[i] + dt * (1.0 - gamma) * a[i]
+            for f in range(2):
+                for j in range(nd):
+                    dup[f, j] = du[f, j] + dt * dv[f, j] + dt * dt * (0.5 - beta) * da[f, j]
+                    dvp[f, j] = dv[f, j] + dt * (1.0 - gamma) * da[f, j]
+            for m in range(4):
+                i = 2 + m
+                if m % 2 == 0:
+                    a[i] = z[r, k, m]
+                else:  # a measured rate: the acceleration Newmark's velocity update implies
+                    a[i] = (z[r, k, m] - vp[i]) / gdt
+                u[i] = up[i] + bdt2 * a[i]
+                v[i] = vp[i] + gdt * a[i]
+            # the primal solve, as inverse_runs: S [s_f; g] = −known
+            for row in range(6):
+                acc = 0.0
+                for i in range(2, 6):
+                    acc += M[r, row, i] * a[i] + C[r, row, i] * v[i] + K[r, row, i] * u[i]
+                for i in range(2):
+                    acc += C[r, row, i] * vp[i] + K[r, row, i] * up[i]
+                known[row] = acc
+            for q in range(6):
+                acc = 0.0
+                for row in range(6):
+                    acc -= Sinv[r, q, row] * known[row]
+                s[q] = acc
+            for f in range(2):
+                a[f] = s[f]
+                u[f] = up[f] + bdt2 * s[f]
+                v[f] = vp[f] + gdt * s[f]
+            # the eight right-hand sides b_j, pre-multiplied by −S⁻¹, at the updated state
+            for q in range(6):
+                sp_u = 0.0
+                sp_v = 0.0
+                ss_u = 0.0
+                ss_v = 0.0
+                for i in range(2, 6):  # prim: the bogies' DOFs only
+                    sp_u += SP[r, q, i] * u[i]
+                    sp_v += SP[r, q, i] * v[i]
+                for i in (0, 1, 2, 4):  # sec: the body's and the bogies' bounce
+                    ss_u += SS[r, q, i] * u[i]
+                    ss_v += SS[r, q, i] * v[i]
+                ds[q, 0] = -mv * Sinv[r, q, 0] * a[0]
+                ds[q, 1] = -Iv * Sinv[r, q, 1] * a[1]
+                ds[q, 2] = -mb * (Sinv[r, q, 2] * a[2] + Sinv[r, q, 4] * a[4])
+                ds[q, 3] = -Ib * (Sinv[r, q, 3] * a[3] + Sinv[r, q, 5] * a[5])
+                ds[q, 4] = -kp * sp_u
+                ds[q, 5] = -cp * sp_v
+                ds[q, 6] = -ks * ss_u
+                ds[q, 7] = -cs * ss_v
+                p0 = PC[r, q, 0]
+                p1 = PC[r, q, 1]
+                k0 = PK[r, q, 0]
+                k1 = PK[r, q, 1]
+                for j in range(nd):
+                    ds[q, j] -= p0 * dvp[0, j] + p1 * dvp[1, j] + k0 * dup[0, j] + k1 * dup[1, j]
+            for f in range(2):
+                for j in range(nd):
+                    da[f, j] = ds[f, j]
+                    du[f, j] = dup[f, j] + bdt2 * ds[f, j]
+                    dv[f, j] = dvp[f, j] + gdt * ds[f, j]
+            for c in range(4):
+                g = s[2 + c]
+                if cp == 0.0:
+                    ynew = g / kp
+                    for j in range(nd):
+                        dy[c, j] = ds[2 + c, j] * inv_kp
+                    dy[c, 4] -= ynew  # d/dlog kp of g/kp
+                    y[c] = ynew
+                else:  # kc·y + cc·ẏ = g by the trapezoidal rule (the primal as inverse_runs has it)
+                    den = kp + 2.0 * cp / dt
+                    hist = 2.0 * y[c] / dt + yd[c]
+                    ynew = (g + cp * hist) / den
+                    for j in range(nd):  # (reciprocals: divisions were a quarter of the kernel)
+                        dyn[j] = (ds[2 + c, j] + cp * (two_dt * dy[c, j] + dyd[c, j])) * inv_den
+                    dyn[4] -= ynew * kp * inv_den  # the contact's stiffness is kp
+                    dyn[5] += cp * (hist - two_dt * ynew) * inv_den  # and its damping cp
+                    for j in range(nd):
+                        dyd[c, j] = two_dt * (dyn[j] - dy[c, j]) - dyd[c, j]
+                        dy[c, j] = dyn[j]
+                    yd[c] = 2.0 * (ynew - y[c]) / dt - yd[c]
+                    y[c] = ynew
+                out[r, k, 0, c] = y[c]
+                for j in range(nd):
+                    out[r, k, 1 + j, c] = dy[c, j]
 
 def carriage_aps(theta: np.ndarray, Lb: float, Lv: float, z: np.ndarray, dt: float) -> np.ndarray:
     """APs (T, n, 4) of one run's channels ``z`` (n, 4) under T parameter sets (:func:`carriage_aps_runs`)."""
@@ -303,43 +567,66 @@ def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, 
     return steps[np.argmin(cost, axis=1)]
 
 
-def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1):
-    """Levenberg-damped Gauss–Newton on ‖e(x)‖²/(2σ²) + ½‖x − μ‖²_P, σ² re-estimated each step.
+def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1, final_jacobian=True):
+    """Levenberg-damped Gauss–Newton on ‖e(x)‖²/(2σ²) + ½‖x − μ‖²_P, σ² re-estimated each step;
+    converged when the damped step is below ``tol`` (log) in every coordinate (not taken), or
+    after ``max_iter`` iterations.
 
-    ``jacobian_every``: the Jacobian (finite differences: 9 inverses per run) is refreshed after
-    every so many accepted steps and reused in between (chord steps: one inverse per run each,
-    the damping's descent test unchanged), ending on a refreshed one whenever the loop stops early.
+    ``jacobian_every``: the Jacobian is refreshed after every so many accepted steps and reused in
+    between (chord steps: one inverse per run each, the damping's descent test unchanged; JᵀJ is
+    formed once per Jacobian). ``final_jacobian`` (the last stage): the returned D, which the Laplace
+    intervals use, was taken within :data:`LAPLACE_REUSE_LOG` of the optimum in every coordinate
+    — if the J at convergence is older, it is refreshed and the iteration goes on (a chord step's
+    gradient is its J's, so its fixed point moves a little with J). Otherwise D is whichever was
+    computed last.
     """
     e, D, A = evaluate(x, True)
+    x_jac = x
     lam = 1e-3
     kappa = _correlation_factor(e)
     sigma2 = float((e**2).mean()) * kappa
     it = 0
+    JtJ = None
     for it in range(1, max_iter + 1):
 
         def neglogpost(e, x):
             return 0.5 * float((e**2).sum()) / sigma2 + 0.5 * float((((x - mu) ** 2) * P).sum())
 
-        JtJ, Jte = normal_equations(e, D)
+        JtJ, Jte = normal_equations(e, D, JtJ)
         H = JtJ / sigma2 + np.diag(P)
         grad = Jte / sigma2 + (x - mu) * P
         f0 = neglogpost(e, x)
         e_new = A_new = None
         while True:
             step = np.clip(np.linalg.solve(H + lam * np.diag(np.diag(H)), -grad), -0.2, 0.2)
+            if np.abs(step).max() < tol:  # converged: a step this small is not worth an evaluation
+                step = None
+                break
             e_new, _, A_new = evaluate(x + step, False)
             if neglogpost(e_new, x + step) <= f0:
                 lam = max(lam / 3, 1e-7)
                 break
-            lam *= 10
-            if lam > 1e6:
-                step = np.zeros_like(step)
+            lam *= 10  # (a rejected step shrinks until it is below tol: then stop)
+        if step is None:  # x stands (e, A are its own)
+            if not (final_jacobian and np.abs(x - x_jac).max() > LAPLACE_REUSE_LOG):
                 break
-        x = x + step
-        done = np.abs(step).max() < tol or lam > 1e6 or it == max_iter
-        if it % jacobian_every == 0 or done:
+            # a chord step's gradient is the old J's: its fixed point moves with J; go on from a
+            # J taken here (which the intervals then use)
             e, D, A = evaluate(x, True)
-        elif lam <= 1e6:
+            x_jac, JtJ = x, None
+            kappa = _correlation_factor(e)
+            sigma2 = float((e**2).mean()) * kappa
+            continue
+        x = x + step
+        done = it == max_iter
+        if done:
+            refresh = final_jacobian and np.abs(x - x_jac).max() > LAPLACE_REUSE_LOG
+        else:
+            refresh = it % jacobian_every == 0
+        if refresh:
+            e, D, A = evaluate(x, True)
+            x_jac, JtJ = x, None
+        else:
             e, A = e_new, A_new
         kappa = _correlation_factor(e)
         sigma2 = float((e**2).mean()) * kappa
@@ -353,7 +640,8 @@ def _correlation_factor(e: np.ndarray) -> float:
     independent piece of information."""
     flat = e.reshape(-1, e.shape[-1])
     flat = flat[:: max(1, len(flat) // 64)]  # ~64 rows estimate it as well as all, at a fraction of the FFTs
-    f = np.fft.rfft(flat, 2 * flat.shape[1], axis=1)
+    # zero-padded to a fast length (≥ 2K − 1: no wrap-around); the grids' lengths are often prime-ish
+    f = np.fft.rfft(flat, scipy.fft.next_fast_len(2 * flat.shape[1], real=True), axis=1)
     ac = np.fft.irfft(np.abs(f) ** 2, axis=1)[:, : flat.shape[1]].sum(axis=0)
     rho = ac / ac[0]
     cut = int(np.argmax(rho <= 0)) if np.any(rho <= 0) else len(rho)
@@ -379,7 +667,7 @@ def calibrate_batch(
     not used: each run's reported speed is its prior, with relative sd ``speed_rel_sd``).
     ``window_m``: restrict the comparison to this chainage range (e.g. off a bridge). Returns the
     run estimates with 95 % intervals (the global properties' uncertainty marginalised).
-    ``jacobian_every``: refresh the finite-difference Jacobian after every so many accepted steps
+    ``jacobian_every``: refresh the Jacobian after every so many accepted steps
     (:func:`_gauss_newton`); ``final_decimation``: the last stage's channels at every so many
     samples (1: the logger's rate; at 2 the inverse's own discretisation error grew enough to move
     mv by ~1.4 points on a 4-run, 100 m batch);
@@ -431,33 +719,44 @@ def calibrate_batch(
         loc, glob = unpack(x)
         p = np.exp(loc)  # (n, 3): mv, Iv, v
         theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob), (n, n_g))])  # INVERSE_NAMES order
-        T = 1
-        if with_jac:  # trial 0 as is, then each of mv, Iv and the globals stepped in turn
-            T = 1 + theta.shape[1]
-            theta = np.repeat(theta[:, None], T, axis=1)
-            theta[:, 1:] *= 1.0 + (h - 1.0) * np.eye(T - 1)
-        aps = carriage_aps_runs(theta.reshape(n * T, -1), np.repeat(np.arange(n), T), fixed["Lb"], fixed["Lv"],
-                                stage["z"], stage["lengths"], stage["dts"]).reshape(n, T, -1, 4)
-        mapped = mapper.map_runs(aps, stage["dts"], x0s, p[:, 2:3], stage["lengths"], offsets)[:, :, 0]
-        A = mapped[:, 0]  # (n, 4, K)
-        e = A - A.mean(axis=(0, 1))
+        z, lengths, dts, N_t = stage["z"], stage["lengths"], stage["dts"], stage["z"].shape[1]
         if not with_jac:
-            return e, None, A
-        faster = mapper.map_runs(aps[:, :1], stage["dts"], x0s, p[:, 2:3] * h, stage["lengths"], offsets)[:, 0, 0]
-        D = np.empty((n, 3 + n_g) + A.shape[1:])  # written in place: ~20 MB a Jacobian at 50 runs
-        np.subtract(mapped[:, 1:3], A[:, None], out=D[:, :2])
-        np.subtract(faster, A, out=D[:, 2])
-        np.subtract(mapped[:, 3:], A[:, None], out=D[:, 3:])
-        D /= FD_LOG_STEP
-        return e, D, A
+            aps = carriage_aps_runs(theta, np.arange(n), fixed["Lb"], fixed["Lv"], z, lengths, dts,
+                                    stage["work"][: n * 4 * N_t].reshape(n, 4, N_t))
+            A = mapper.map_runs(aps[:, None], dts, x0s, p[:, 2:3], lengths, offsets)[:, 0, 0]
+            return A - A.mean(axis=(0, 1)), None, A
+        A = np.empty((n, 4, len(mapper.grid)))
+        D = np.empty((n, 3 + n_g) + A.shape[1:])  # ~20 MB at 50 runs, written in place
+        # The AP and its derivatives in mv, Iv and the globals, exact (carriage_aps_sensitivities),
+        # a chunk of runs at a time (a few MB of work array instead of ~40); the speed's column by
+        # a finite difference of the mapping (no inverse).
+        for r0 in range(0, n, JACOBIAN_CHUNK_RUNS):
+            rs = slice(r0, min(n, r0 + JACOBIAN_CHUNK_RUNS))
+            c = rs.stop - r0
+            sens = carriage_aps_sensitivities(theta[rs], fixed["Lb"], fixed["Lv"], z[rs], lengths[rs], dts[rs],
+                                              stage["work"][: c * N_t * 36].reshape(c, N_t, 9, 4))
+            args = (dts[rs], x0s[rs])
+            mapped = mapper.map_runs(sens, *args, p[rs, 2:3], lengths[rs], offsets)[:, :, 0]  # (c, 9, 4, K)
+            A[rs] = mapped[:, 0]
+            faster = mapper.map_runs(sens[:, :1], *args, p[rs, 2:3] * h, lengths[rs], offsets)[:, 0, 0]
+            D[rs, :2] = mapped[:, 1:3]
+            np.subtract(faster, A[rs], out=D[rs, 2])
+            D[rs, 2] /= FD_LOG_STEP
+            D[rs, 3:] = mapped[:, 3:]
+        return A - A.mean(axis=(0, 1)), D, A
 
-    def normal_equations(e, D):
-        """JᵀJ and Jᵀe of the profiled consensus residual (J = ∂e/∂x), from the per-run blocks."""
+    def normal_equations(e, D, JtJ=None):
+        """JᵀJ and Jᵀe of the profiled consensus residual (J = ∂e/∂x), from the per-run blocks
+        (``JtJ``: the one already formed from this D)."""
         # Products over (wheel, grid point) as batched matrix products (BLAS), not einsum loops.
         Dl, Dg = D[:, :3], D[:, 3:]
+        Fl = Dl.reshape(n, 3, -1)
+        ev = e.reshape(n, -1, 1)
+        Jte = np.concatenate([(Fl @ ev).ravel(), (Dg.reshape(n, n_g, -1) @ ev).sum(axis=0).ravel()])
+        if JtJ is not None:
+            return JtJ, Jte
         g = Dl.sum(axis=2)  # (n, 3, K)
         Dgc = Dg - Dg.mean(axis=(0, 2), keepdims=True)  # global columns, consensus removed
-        Fl = Dl.reshape(n, 3, -1)
         Fg = Dgc.reshape(n, n_g, -1)
         JtJ = np.zeros((n_par, n_par))
         Hl = Fl @ Fl.transpose(0, 2, 1)
@@ -469,8 +768,6 @@ def calibrate_batch(
         JtJ[: 3 * n, 3 * n:] = cross
         JtJ[3 * n:, : 3 * n] = cross.T
         JtJ[3 * n:, 3 * n:] = (Fg @ Fg.transpose(0, 2, 1)).sum(axis=0)
-        ev = e.reshape(n, -1, 1)
-        Jte = np.concatenate([(Fl @ ev).ravel(), (Dg.reshape(n, n_g, -1) @ ev).sum(axis=0).ravel()])
         return JtJ, Jte
 
     staged = {}
@@ -491,7 +788,8 @@ def calibrate_batch(
         z = np.zeros((n, lengths.max(), 4))
         for r, c in enumerate(chans):
             z[r, : lengths[r]] = c[0]
-        return {"z": z, "lengths": lengths, "dts": np.array([c[1] for c in chans])}
+        return {"z": z, "lengths": lengths, "dts": np.array([c[1] for c in chans]),
+                "work": np.empty(max(4 * n, 36 * JACOBIAN_CHUNK_RUNS) * z.shape[1])}  # chord / Jacobian
 
     def mapper_for(min_wavelength):
         return _Mapper(grid[:: max(1, int(round(min_wavelength / POINTS_PER_WAVELENGTH / GRID_M)))])
@@ -506,7 +804,8 @@ def calibrate_batch(
         mapper = mapper_for(min_wavelength)
         stage = stage_channels(min_wavelength, final_decimation if last else None)
         x, e, D, A, sigma2, kappa, n_it = _gauss_newton(evaluate, normal_equations, x, mu, P,
-                                                         max_iter if last else 8, tol, jacobian_every)
+                                                         max_iter if last else 8,
+                                                         tol if last else max(tol, STAGE_TOL_LOG), jacobian_every, last)
         it += n_it
     JtJ, _ = normal_equations(e, D)
     H = JtJ / sigma2 + np.diag(P)

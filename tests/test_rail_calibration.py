@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -231,3 +232,55 @@ def test_batched_inverse_is_the_reference_inverse():
         ref = population_aps("carriage", trials, z[r], float(dts[r]), gamma=INVERSE_GAMMA)[0]
         n = len(z[r])
         assert np.abs(got[3 * r:3 * r + 3, :n] - ref).max() <= 1e-12 * np.abs(ref).max()
+
+
+def test_sensitivities_are_the_derivatives_of_the_inverse():
+    """carriage_aps_sensitivities (forward mode through the inverse's recursion, the calibration's
+    Jacobian) gives carriage_aps_runs' AP exactly and its derivatives in every log parameter as a
+    central difference of carriage_aps_runs does (to the difference's own error, ~1e-7 here), runs
+    of different lengths and steps included, damped and undamped contacts."""
+    from cloud.rail_calibration import INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
+    from shared.vehicles.carriage import TABLE_3_1
+
+    rng = np.random.default_rng(2)
+    Z = np.zeros((3, 700, 4))
+    lengths = np.array([700, 450, 300])
+    for r, n in enumerate(lengths):  # a random walk: low-frequency content like a bogie's
+        Z[r, :n] = np.cumsum(rng.standard_normal((n, 4)), axis=0) * [0.1, 0.001, 0.1, 0.001]
+    dts = np.array([0.002, 0.004, 0.003])
+    trials = [dict(TABLE_3_1, mv=30e3, Iv=1.8e6), dict(TABLE_3_1, mv=34e3, Iv=2.1e6, ks=0.9e6, cs=3e4),
+              dict(TABLE_3_1, mv=31e3, cp=0.0)]
+    theta = np.array([[t[k] for k in INVERSE_NAMES] for t in trials])
+    Lb, Lv = TABLE_3_1["Lb"], TABLE_3_1["Lv"]
+    sens = carriage_aps_sensitivities(theta, Lb, Lv, Z, lengths, dts)
+    base = carriage_aps_runs(theta, np.arange(3), Lb, Lv, Z, lengths, dts)
+    h = 1e-5
+    for r, n in enumerate(lengths):
+        assert np.abs(sens[r, 0, :n] - base[r, :n]).max() <= 1e-12 * np.abs(base[r, :n]).max()
+        for j, name in enumerate(INVERSE_NAMES):
+            if name == "cp" and theta[r, j] == 0.0:
+                continue
+            pm = np.repeat(theta[r][None], 2, axis=0)
+            pm[0, j] *= math.exp(h)
+            pm[1, j] *= math.exp(-h)
+            ap = carriage_aps_runs(pm, np.array([r, r]), Lb, Lv, Z, lengths, dts)
+            fd = (ap[0, :n] - ap[1, :n]) / (2 * h)
+            assert np.abs(fd).max() > 0, name
+            assert np.abs(sens[r, 1 + j, :n] - fd).max() <= 1e-5 * np.abs(fd).max(), (r, name)
+
+
+def test_lowpass_is_scipys_zero_phase_filter():
+    """The compiled zero-phase low-pass is scipy.signal.sosfiltfilt (odd padding, steady-state
+    starts) on the closed-form Butterworth sections, to rounding, short records included."""
+    from scipy.signal import butter, sosfiltfilt
+
+    from cloud.rail_calibration import _butter4_sos, _sosfiltfilt
+
+    rng = np.random.default_rng(3)
+    for wn in (0.01, 0.06, 0.3):
+        sos = _butter4_sos(wn)
+        np.testing.assert_allclose(sos, butter(4, wn, output="sos"), rtol=1e-10, atol=1e-15)
+        for n in (16, 100, 2600):
+            x = np.cumsum(rng.standard_normal((n, 4)), axis=0) + 5.0
+            want = sosfiltfilt(sos, x, axis=0)
+            assert np.abs(_sosfiltfilt(sos, x) - want).max() <= 1e-12 * np.abs(want).max(), (wn, n)
