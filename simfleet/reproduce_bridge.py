@@ -221,7 +221,7 @@ def weakest_element(case: Case, e) -> dict:
     the damage the hypotheses report when a crack is the most probable damage (``reported_*``: the
     element at the crack's posterior mean location, the crack model's peak element loss) — what
     the alarm publishes. The GMRF prior's smoothness spreads a crack's 18 % over its neighbours
-    (measured, crack10-10m, 300 passes: 12.8 % in the GMRF view, 19.3 % from the crack hypothesis)."""
+    (measured, crack10-10m, 300 passes: 11.9 % in the GMRF view, 18.9 % from the crack hypothesis)."""
     truth = true_ratio(case)
     est = np.asarray(e.posterior.stiffness_ratio)
     i = int(np.argmin(est))

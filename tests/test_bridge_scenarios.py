@@ -41,16 +41,19 @@ def estimate(name: str, passes: int = PASSES, nominal: str = "class"):
 def test_healthy_bridge_reads_within_one_and_a_half_points_and_raises_no_alarm():
     """Issue: mean stiffness ratio within ±1.5 points, every element within ±5 points, no alarm.
     The elements were 7.6 points off (a ±7 ramp along the span) until the fleet-common calibration
-    error was integrated out (:mod:`cloud.bridge.vehicle_error`): measured 2.9 points on this case.
-    Not a property of every case: the Cramér–Rao element sd with the GMRF prior is 3.2–8.6 points
-    at 30 passes (largest at the span's ends)."""
+    error was integrated out (:mod:`cloud.bridge.vehicle_error`). Pinned tighter here, at ±3: with
+    the elements' prior about the design value alone (no common level, :class:`~cloud.bridge.static.StiffnessPrior`) the
+    data-poor end elements read 4.7 points soft on this case (the span's level was right to 0.2);
+    drawn towards the span's level they read 2.3 (bridge-healthy seeds 0–3: 2.3–2.9, they were
+    3.5–5.0). Not a property of every case: the Cramér–Rao element sd with the prior is 3.1–6.4
+    points at 30 passes (largest at the span's ends)."""
     e, case = estimate("bridge-healthy")
     post = e.posterior
     truth = true_ratio(case)
     assert post.n_passes == PASSES
     assert abs(np.mean(post.stiffness_ratio) - np.mean(truth)) < 0.015, post.stiffness_ratio
     assert abs(post.effective_ratio - true_effective(case)) < 0.015, post.effective_ratio
-    assert np.max(np.abs(post.stiffness_ratio - truth)) < 0.05, post.stiffness_ratio - truth
+    assert np.max(np.abs(post.stiffness_ratio - truth)) < 0.03, post.stiffness_ratio - truth
     assert not e.assessment.alarm, (e.assessment.best, e.assessment.loss_probability)
 
 
