@@ -49,6 +49,7 @@ from scipy.signal import butter, sosfiltfilt
 from shared.dynamics.forward import measured_channels, trapezoid_rate
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
 from shared.dynamics.newmark import integrate, newmark_constants
+from shared.schema import ApSegment
 from shared.vehicles import MODELS, vehicle_from_params
 
 log = logging.getLogger(__name__)
@@ -208,11 +209,12 @@ def _lowpass_grid(values: np.ndarray, spacing_m: float, cutoff_cpm: float) -> np
     return out
 
 
-def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, scale: np.ndarray) -> np.ndarray:
+def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, scale: np.ndarray,
+                         gamma: float | None = None) -> np.ndarray:
     """Orthonormal basis (n_samples − skip) · n_channels × 2 n_dof of the channels' free responses of
-    the ``params0`` vehicle from a unit displacement or velocity of each degree of freedom, at the
-    edge's γ, in the units of :meth:`PassRemap.residual`: what a wrong start state adds to the
-    reconstructed channels."""
+    the ``params0`` vehicle from a unit displacement or velocity of each degree of freedom, at Newmark
+    ``gamma`` (default the edge's), in the units of :meth:`PassRemap.residual`: what a wrong start
+    state adds to the reconstructed channels."""
     system = vehicle_from_params(model, params0).system()
     n_dof = system.n_dof
     zero = np.zeros((n_samples, system.G.shape[1]))
@@ -221,7 +223,8 @@ def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, s
         e = np.zeros(n_dof)
         e[d] = 1.0
         for u0, v0 in ((e, None), (np.zeros(n_dof), e)):
-            free = _forward_channels(system, zero, REMAP_DT, edge_gamma(model), u0=u0, v0=v0)
+            free = _forward_channels(system, zero, REMAP_DT, edge_gamma(model) if gamma is None else gamma,
+                                     u0=u0, v0=v0)
             cols.append((free[skip:] / scale).ravel())
     A = np.stack(cols, axis=1)
     q, _ = np.linalg.qr(A / np.maximum(np.linalg.norm(A, axis=0), 1e-300))
@@ -559,8 +562,108 @@ def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray, gamma: floa
     return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
 
 
-def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0) -> np.ndarray:
+#: Hz: :func:`continuous_ap` corrects up to here, faded to identity by 1.5× it. The edge's AP is off by
+#: up to 3 % in gain (quarter-car, γ 0.6) and 20° in phase (half-car, γ 0.8) at 60 Hz, and 0.5 m (the
+#: shortest wavelength the profile is scored on) is 60 Hz at 30 m/s. Noise-free passes from finer
+#: physics (γ ½ at 0.5 ms), 20–25 m/s, error against the road at 0.5–1 m: half-car 18–26 % → 0.65 %
+#: (a 30 Hz cut-off left 4–14 %), quarter-car 4.5–5.4 % → 0.6 %. ``|T⁻¹H|`` stays 0.86–1.0 on the
+#: diagonal below 100 Hz (the half-car's cross term grows to 0.37 at 80 Hz), so no noise is amplified.
+CONTINUOUS_CUTOFF_HZ = 60.0
+MEMORY_S = 2.0  # s: how far past a pass's ends :func:`continuous_ap` continues it (mirrored, tapered)
+
+
+def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTINUOUS_CUTOFF_HZ) -> np.ndarray:
     """The pass's AP (n_points, n_contacts) as an exact inverse of the continuous-time vehicle
+    ``params`` would have made it from the same channels: ``T⁻¹H`` applied to the edge's AP, ``H``
+    the edge inverse's discrete Newmark transfer (its γ), ``T`` the continuous one.
+
+    The edge's γ > ½ damps the wheel hop numerically, and how much depends on each vehicle's
+    parameters and speed: a consensus of such APs is a blend of different distortions of the road,
+    against which no vehicle's own distortion matches. Undone per pass before fusing, the consensus
+    is the road again (up to noise), and a vehicle step can predict with continuous physics.
+
+    Applied on the route grid itself, in wavenumber ``κ`` (the transfers at ``f = vκ``, constant
+    speed ``v``): contact i meets chainage x at the time contact j meets ``x + off_j − off_i``, so
+    ``Â'_i(κ) = Σ_j C_ij(vκ) e^{2πiκ(off_j − off_i)} Â_j(κ)``. (Resampling to the time grid and back,
+    as a first version did, loses 3–6 % of the AP at 0.5–1 m to the linear interpolation, more than
+    the correction itself.) Each contact on its own extent (holes bridged linearly, a straight line
+    removed, continued past its ends mirrored and tapered), faded to identity between ``cutoff_hz``
+    and 1.5× it; NaN stays NaN.
+    A pass's ends (within the correction's memory, ~0.5 s, and a wheelbase) are approximate: what
+    the other contacts would add there was not driven."""
+    from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
+
+    system = vehicle_from_params(model, params).system()
+    values = np.asarray(ap.values, float)
+    n_points, n_contacts = values.shape
+    if len(system.channels) != n_contacts:
+        raise ValueError(f"continuous_ap: {model} measures {len(system.channels)} channels for {n_contacts} contacts")
+    h, v = ap.spacing_m, ap.speed_mps
+    off = np.asarray(system.offsets_m, float)
+    ok = np.isfinite(values)
+    if (ok.sum(axis=0) < 64).any() or not v > 0:
+        return values.copy()
+    first = [int(np.flatnonzero(ok[:, i])[0]) for i in range(n_contacts)]
+    last = [int(np.flatnonzero(ok[:, i])[-1]) + 1 for i in range(n_contacts)]
+    # The correction's memory (the body mode's ~1 s) reaches past a contact's ends: there each contact
+    # continues as its mirror image, tapered to zero (an abrupt end would ring through the 1–2 % of
+    # ``T⁻¹H − 1`` at the body mode: 3× the edge's own error over a pass's first 15 m, half-car, 25 m/s).
+    ext = int(math.ceil(MEMORY_S * v / h))
+    a, b = min(first) - ext, max(last) + ext
+    series = np.zeros((b - a, n_contacts))
+    trend = np.zeros((b - a, n_contacts))
+    kk = np.arange(a, b, dtype=float)
+    for i in range(n_contacts):
+        idx = np.flatnonzero(ok[:, i])
+        k = np.arange(first[i], last[i])
+        y = np.interp(k, idx, values[idx, i])
+        line = np.polyfit(k.astype(float), y, 1)
+        trend[:, i] = np.polyval(line, kk)
+        y = y - trend[first[i] - a : last[i] - a, i]
+        m = min(ext, y.size - 1)
+        taper = 0.5 * (1.0 + np.cos(math.pi * np.arange(1, m + 1) / (m + 1)))
+        lo, hi = first[i] - a, last[i] - a
+        series[lo:hi, i] = y
+        series[lo - m : lo, i] = (y[1 : m + 1] * taper)[::-1]
+        series[hi : hi + m, i] = y[-2 : -m - 2 : -1] * taper
+    # The mirrored ends, tapered to zero, keep the circular wrap harmless: no zero-padding beyond the
+    # contacts' shifts.
+    pad = int(math.ceil(np.ptp(off) / h)) if n_contacts > 1 else 0
+    n_fft = 1 << int(math.ceil(math.log2((b - a) + 2 * pad)))
+    spec = np.fft.rfft(series, n_fft, axis=0)
+    kappa = np.fft.rfftfreq(n_fft, h)  # cycles per metre
+    f = v * kappa
+    fade = np.clip((1.5 * cutoff_hz - f) / (0.5 * cutoff_hz), 0.0, 1.0)
+    use = np.flatnonzero((f > 0) & (fade > 0))
+    H = newmark_transfer(system, f[use], REMAP_DT, edge_gamma(model))
+    T = continuous_transfer(system, f[use])
+    if n_contacts == 1:  # (a sprung mass, a quarter-car: scalars, no shifts)
+        spec[use, 0] *= 1.0 + fade[use] * (H[:, 0, 0] / T[:, 0, 0] - 1.0)
+    else:
+        eye = np.eye(n_contacts)
+        corr = eye + fade[use, None, None] * (np.linalg.solve(T, H) - eye)
+        shift = np.exp(2j * math.pi * kappa[use, None, None] * (off[None, None, :] - off[None, :, None]))
+        rest = np.setdiff1d(np.arange(f.size), use)
+        out_spec = np.zeros_like(spec)
+        out_spec[use] = np.einsum("fij,fj->fi", corr * shift, spec[use])
+        out_spec[rest] = spec[rest]  # identity (the shifts cancel on the diagonal)
+        spec = out_spec
+    fixed = np.fft.irfft(spec, n_fft, axis=0)[: b - a] + trend
+    out = values.copy()
+    for i in range(n_contacts):
+        j = np.flatnonzero(ok[:, i])
+        out[j, i] = fixed[j - a, i]
+    return out
+
+
+def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0) -> np.ndarray:
+    """:func:`continuous_ap` as first written: through the pass's time grid (resampled linearly from
+    the route grid and back, which loses 3–6 % of the AP at 0.5–1 m), up to 30 Hz. Kept for the
+    half-car's corrected consensus (cloud.fleet_calibration.CONTINUOUS_CONSENSUS), whose common gain
+    and step halving were tuned on it: with :func:`continuous_ap` instead, road-hc seed 1's Cs1/ms
+    reached 18.2 % (7.6 % with this). Retuning the half-car for the exact correction is open.
+
+    The pass's AP (n_points, n_contacts) as an exact inverse of the continuous-time vehicle
     ``params`` would have made it from the same channels: ``T⁻¹H`` applied to the edge's AP, ``H``
     the edge inverse's discrete Newmark transfer (its γ), ``T`` the continuous one.
 
@@ -612,6 +715,70 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0)
     return out
 
 
+#: Vehicle models whose passes the cloud fuses as continuous-time APs (:func:`continuous_segments`).
+#: Rail models are left out (their cloud re-runs the dynamics from the edge's AP, cloud.rail), and so
+#: is the sprung mass (its joint step, :func:`fit_fleet`, reconstructs at the edge's γ; not measured).
+#: Half-cars too, measured: fused corrected, road-hc's profile got worse (true parameters, seed 0:
+#: 12.6 → 13.9 %, more shrinkage and error at 1–5 m; fleet seeds 0/2: 14.3 → 21.1 %, 11.4 → 18.4 %,
+#: measured with zero-padded rather than mirrored pass ends) and seed 1's Cs1/ms reached 16.7 %,
+#: though every seed's worst ratio otherwise improved (0: 7.1 → 5.2 %, 2: 7.3 → 6.5 %). They keep the
+#: corrected consensus in their vehicle step only (cloud.fleet_calibration.CONTINUOUS_CONSENSUS).
+CONTINUOUS_MODELS = frozenset({"quarter_car"})
+#: Points weighted down this much or more (the edge's σ × 100: invalid points, zeroed, and the
+#: inverse's warm-up) are holes for the correction (bridged, and kept as sent): a filter would spread them.
+_HOLE_WEIGHT = 50.0
+
+
+def pass_values(segs: list[ApSegment], n_axles: int) -> tuple[int, np.ndarray]:
+    """One pass's segments on its grid slice: the first grid index and the values (points, axles),
+    NaN where no segment holds a point."""
+    lo, hi = min(s.start_index for s in segs), max(s.end_index for s in segs)
+    vals = np.full((hi - lo, n_axles), np.nan)
+    for s in segs:
+        vals[s.start_index - lo : s.end_index - lo, s.axle - 1] = s.values
+    return lo, vals
+
+
+def pass_speed(segs: list[ApSegment]) -> float:
+    """The pass's time base (m/s): chainage its lead axle covered over the time taken (the aligned
+    frame's when the cloud re-gridded it), else the speed the edge reported."""
+    lead = [s for s in segs if s.axle == 1 and s.t_last > s.t_first]
+    dx = sum((s.end_index - 1 - s.start_index) * s.spacing_m for s in lead)
+    dt = sum(s.t_last - s.t_first for s in lead)
+    return dx / dt if dt > 0 and dx > 0 else segs[0].speed_mps
+
+
+def continuous_segments(model: str, params: dict, segs: list[ApSegment]) -> list[ApSegment]:
+    """One pass's segments (all axles) as continuous-time APs (:func:`continuous_ap` under the
+    vehicle's ``params``), same identities, sigma and error model, in the order given.
+
+    Why: the edge's inverse runs Newmark at γ > ½ for stability, and its AP carries that scheme's
+    gain and phase error against the road (a quarter-car at γ 0.6: +2.5–3 % at 0.5–2 m, 20 m/s; a
+    half-car at γ 0.8: 13–26 % error at 0.5–2 m, noise-free). Every vehicle of a class shares it, so
+    fused as sent it biases the profile, its IRI and the fleet calibration alike (road-qc: k/M +2 %,
+    c/M −1.6 % on every vehicle). The error model is kept: ``|T⁻¹H|`` is 0.86–1.0 on the diagonal in
+    the corrected band (class means; the half-car's rear-to-front cross term ≤ 0.37), so the edge's
+    noise spectrum stays about right, if anything conservative (by ≤ 25 % in power)."""
+    n_axles = max(s.axle for s in segs)
+    lo, vals = pass_values(segs, n_axles)
+    floor = min(float(np.min(s.sigma)) for s in segs)
+    for s in segs:
+        sigma = np.asarray(s.sigma)
+        hole = sigma >= _HOLE_WEIGHT * floor
+        vals[s.start_index - lo : s.end_index - lo, s.axle - 1][hole] = np.nan
+    fixed = continuous_ap(model, params, PassAp(lo, segs[0].spacing_m, vals, pass_speed(segs)))
+    out = []
+    for s in segs:
+        v = fixed[s.start_index - lo : s.end_index - lo, s.axle - 1]
+        v = np.where(np.isfinite(v), v, s.values)
+        out.append(ApSegment.make(v, s.sigma, vehicle_id=s.vehicle_id, pass_id=s.pass_id, route_id=s.route_id,
+                                  tile=s.tile, axle=s.axle, start_index=s.start_index, spacing_m=s.spacing_m,
+                                  calib_version=s.calib_version, speed_mps=s.speed_mps, t_first=s.t_first,
+                                  t_last=s.t_last, seq=s.seq, n_segments_in_pass=s.n_segments_in_pass,
+                                  flags=s.flags, error_model=s.error_model))
+    return out
+
+
 class PassRemap:
     """One pass prepared for the vehicle step, in acceleration space.
 
@@ -624,7 +791,8 @@ class PassRemap:
 
     WARMUP_S = 2.0  # both signals start from an assumed rest state: skip the transient
 
-    def __init__(self, model: str, params0: dict, ap: PassAp, consensus: np.ndarray, offsets_m=None):
+    def __init__(self, model: str, params0: dict, ap: PassAp, consensus: np.ndarray, offsets_m=None,
+                 ap_gamma: float | None = None):
         self.model = model
         n_points, n_contacts = ap.values.shape
         x = (ap.start_index + np.arange(n_points)) * ap.spacing_m
@@ -637,19 +805,26 @@ class PassRemap:
         vals = np.where(np.isfinite(ap.values), ap.values, 0.0)
         cons = np.where(np.isfinite(consensus), consensus, 0.0)
         self.settings = REMAP_SETTINGS.get(model, RemapSettings())
+        # ``ap_gamma``: the Newmark γ whose inverse the AP is exact for — the edge's (default), or ½ for
+        # a continuous-time AP (:func:`continuous_segments`; γ = ½ has no numerical damping, and its
+        # small frequency warping is common to the reconstruction and the prediction, so it cancels).
+        self.ap_gamma = edge_gamma(model) if ap_gamma is None else ap_gamma
+        self.predict_gamma = self.settings.predict_gamma if self.settings.predict_gamma is not None else (
+            None if ap_gamma is None else ap_gamma)
         if self.settings.lowpass_cpm:
             vals, cons = (_lowpass_grid(a, ap.spacing_m, self.settings.lowpass_cpm) for a in (ap.values, consensus))
         ap_t = np.stack([np.interp(xt + off[i], x, vals[:, i]) for i in range(n_contacts)], axis=1)
         self.profile_t = np.stack([np.interp(xt + off[i], x, cons[:, i]) for i in range(n_contacts)], axis=1)
-        self.z = _forward_channels_at(model, params0, ap_t)
+        self.z = _forward_channels_at(model, params0, ap_t, self.ap_gamma)
         self.skip = int(self.WARMUP_S / REMAP_DT)
         self.n = max(self.z.shape[0] - self.skip, 0)
         self.scale = np.std(self.z[self.skip:], axis=0) + 1e-12  # channels in comparable units
-        self.start_basis = (_free_response_basis(model, params0, self.z.shape[0], self.skip, self.scale)
+        self.start_basis = (_free_response_basis(model, params0, self.z.shape[0], self.skip, self.scale,
+                                                 self.ap_gamma)
                             if self.settings.free_start else None)
 
     def residual(self, params: dict) -> np.ndarray:
-        pred = _forward_channels_at(self.model, params, self.profile_t, self.settings.predict_gamma)
+        pred = _forward_channels_at(self.model, params, self.profile_t, self.predict_gamma)
         r = ((pred - self.z)[self.skip:] / self.scale).ravel()
         if self.start_basis is not None:  # the unknown start state, profiled out
             r = r - self.start_basis @ (self.start_basis.T @ r)
@@ -657,14 +832,14 @@ class PassRemap:
 
 
 def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray]],
-                prior: tuple[np.ndarray, np.ndarray], ref_value: float) -> VehicleFit:
+                prior: tuple[np.ndarray, np.ndarray], ref_value: float, ap_gamma: float | None = None) -> VehicleFit:
     """The per-vehicle refinement step, in acceleration space (sensor noise white there).
     ``passes``: (AP under ``params0``, leave-one-out consensus on the same grid slice, shape
     (n_points, n_contacts)). A local method: start it near the answer (:func:`fit_fleet`).
-    Returns ratios with 95 % intervals."""
+    ``ap_gamma``: see :class:`PassRemap` (½ for continuous-time APs). Returns ratios with 95 % intervals."""
     names = calibration_names(model)
     offsets = vehicle_from_params(model, params0).system().offsets_m
-    remaps = [PassRemap(model, params0, ap, cons, offsets) for ap, cons in passes]
+    remaps = [PassRemap(model, params0, ap, cons, offsets, ap_gamma) for ap, cons in passes]
     mu, sd = prior
     theta0 = np.log(np.array([to_calibration(model, params0)[n] for n in names]))
     n_res = sum(r.n * r.z.shape[1] for r in remaps)

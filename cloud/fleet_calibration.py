@@ -30,7 +30,12 @@ road's spectrum left free at every frequency (so from the passes' disagreement a
 error that stays is therefore a *model* bias every vehicle shares: the edge's inverse and the
 vehicle step at Newmark γ = 0.8 and 2 ms add numerical damping that, against the continuous
 physics, moves a quarter-car's fit by c/M −4.4 %, m/M +4.7 %, k/M +6.8 % (noise-free, true
-profile) — road-qc seed 0's c/M −3.4 % ± 0.7 % came from there, not from the prior.
+profile) — road-qc seed 0's c/M −3.4 % ± 0.7 % came from there, not from the prior. At the edge's
+γ = 0.6 it was still k/M +1.9 %, c/M −1.3 %, m/M +1.1 %; quarter-car rounds therefore run on
+continuous-time APs (the cloud corrects each pass, cloud.node.CONTINUOUS_APS; the step reconstructs
+and predicts at γ ½: ≤ 0.25 %, tests/test_discretisation.py). Road-qc seed 0, k/M median/max
+2.0/3.6 % → 1.0/2.3 %; what common error remains (k/M +1 %, c/M −1.3 %, m/M −0.8 %) is not the
+step's model.
 """
 
 from __future__ import annotations
@@ -46,8 +51,9 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from .calibration import (REFERENCE, PassAp, VehicleFit, calibration_names, class_prior, continuous_ap, fit_fleet,
-                          fit_vehicle, from_calibration, to_calibration)
+from .calibration import (CONTINUOUS_MODELS, REFERENCE, PassAp, VehicleFit, calibration_names, class_prior,
+                          continuous_ap_resampled, fit_fleet, fit_vehicle, from_calibration, pass_speed, pass_values,
+                          to_calibration)
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +77,7 @@ PER_VEHICLE = frozenset({"quarter_car", "half_car"})
 #: prediction kept the edge's γ, seed 0).
 OVER_RELAXED = frozenset({"quarter_car"})
 #: Per-vehicle models whose vehicle step runs against a consensus of continuous-time APs
-#: (:func:`cloud.calibration.continuous_ap`: the edge inverse's discretisation undone per pass under
+#: (:func:`cloud.calibration.continuous_ap_resampled`: the edge inverse's discretisation undone per pass under
 #: the vehicle's own parameters, in a copy of the profile estimator) and predicts with continuous
 #: physics (``RemapSettings.predict_gamma`` ½). The edge's γ = 0.8 distorts each half-car's AP at
 #: the wheel hop by its own parameters and speed (2–4 % of the road in 1.5 c/m – 30 m, noise-free);
@@ -87,16 +93,6 @@ CONTINUOUS_CONSENSUS = frozenset({"half_car"})
 #: with the halving: worst 7.7/15.6 %, profile 15.9/24.3 %.
 COMMON_GAIN = {"half_car": 0.3}
 REVERSAL_DAMPED = frozenset({"half_car"})
-
-
-def _pass_values(segs: list[ApSegment], n_axles: int) -> tuple[int, np.ndarray]:
-    """One pass's segments on its grid slice: the first grid index and the values (points, axles),
-    NaN where no segment holds a point."""
-    lo, hi = min(s.start_index for s in segs), max(s.end_index for s in segs)
-    vals = np.full((hi - lo, n_axles), np.nan)
-    for s in segs:
-        vals[s.start_index - lo : s.end_index - lo, s.axle - 1] = s.values
-    return lo, vals
 
 
 @dataclasses.dataclass
@@ -129,6 +125,10 @@ class FleetCalibrator:
         self.budget_from = 0  # the round count when the last new pass arrived
         self.settled = True
         self.dirty = False  # new data since the last round
+        #: The segments a round is given are continuous-time APs for :data:`CONTINUOUS_MODELS`
+        #: (the cloud corrected them, cloud.node): the vehicle step then reconstructs and predicts
+        #: at γ ½ (:class:`cloud.calibration.PassRemap`) and needs no corrected copy of the consensus.
+        self.continuous_aps = False
 
     # -- durable state (cloud/durable.py journals it after every round) ---------------------------
     def state(self) -> dict:
@@ -288,7 +288,7 @@ class FleetCalibrator:
         self._start_round(model, vids, {s.pass_id for vid in vids for s in by_vehicle[vid]})
         steps = {}
         estimator, cont = self.estimator, {}
-        if model in CONTINUOUS_CONSENSUS:
+        if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
             estimator, cont = self._continuous_estimator(model, vids, by_vehicle)
         for vid in vids:
             fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid))
@@ -397,21 +397,19 @@ class FleetCalibrator:
         n_axles = max(s.axle for s in segs)
         items = []
         for ss in passes.values():
-            lo, vals = _pass_values(ss, n_axles)
+            lo, vals = pass_values(ss, n_axles)
             if (np.isfinite(vals).sum(axis=0) < 200).any():
                 continue
-            # The time base: chainage covered over time taken (the aligned frame's speed when the
-            # cloud re-gridded the pass), else the speed the edge reported.
-            lead = [s for s in ss if s.axle == 1 and s.t_last > s.t_first]
-            dx = sum((s.end_index - 1 - s.start_index) * s.spacing_m for s in lead)
-            dt = sum(s.t_last - s.t_first for s in lead)
-            speed = dx / dt if dt > 0 and dx > 0 else ss[0].speed_mps
-            items.append(PassAp(lo, ss[0].spacing_m, vals, speed))
+            items.append(PassAp(lo, ss[0].spacing_m, vals, pass_speed(ss)))
         return items
+
+    def _continuous(self, model: str) -> bool:
+        """Whether a round's segments of ``model`` are continuous-time APs already."""
+        return self.continuous_aps and model in CONTINUOUS_MODELS
 
     def _continuous_estimator(self, model: str, vids: list[str], by_vehicle: dict):
         """A copy of the profile estimator with ``vids``' segments replaced by their continuous-time
-        APs (:func:`cloud.calibration.continuous_ap`, per pass under the vehicle's parameters), and
+        APs (:func:`cloud.calibration.continuous_ap_resampled`, per pass under the vehicle's parameters), and
         those segments per vehicle."""
         est = copy.deepcopy(self.estimator)
         out = {}
@@ -423,9 +421,10 @@ class FleetCalibrator:
             n_axles = max(s.axle for s in by_vehicle[vid])
             new = []
             for ss in passes.values():
-                lo, vals = _pass_values(ss, n_axles)
-                try:
-                    fixed = continuous_ap(model, st.params, PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps))
+                lo, vals = pass_values(ss, n_axles)
+                try:  # (the first, resampled correction: what the half-car's settings were tuned on)
+                    fixed = continuous_ap_resampled(model, st.params, PassAp(lo, ss[0].spacing_m, vals,
+                                                                             ss[0].speed_mps))
                 except (ValueError, np.linalg.LinAlgError) as e:
                     log.warning("continuous AP failed for %s: %s", vid, e)
                     fixed = vals
@@ -482,7 +481,8 @@ class FleetCalibrator:
         cls = self.site.vehicle_class(st.model)
         ref, _ = REFERENCE[st.model]
         try:
-            return fit_vehicle(st.model, st.params, items, class_prior(st.model, cls.mean, cls.std), st.params[ref])
+            return fit_vehicle(st.model, st.params, items, class_prior(st.model, cls.mean, cls.std), st.params[ref],
+                               ap_gamma=0.5 if self._continuous(st.model) else None)
         except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
             log.warning("vehicle step failed: %s", e)
             return None

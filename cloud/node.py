@@ -37,6 +37,7 @@ from .estimators.mean_profile import MeanProfile
 from .journal import Journal, JournalError
 from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
                      profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
+from .calibration import CONTINUOUS_MODELS, continuous_segments
 from .fleet_calibration import FleetCalibrator
 from .segment_store import DEFAULT_MAX_RESIDENT, SegmentStore
 from .rail import RailBatches
@@ -48,6 +49,16 @@ TILE_M = 50.0
 #: None leaves the drift to the band's measured long-wave term. The posterior, its τ and drift level are a
 #: function of the held segments alone, not of their history (tests/test_pass_drift.py), so replays agree.
 DRIFT_KNOT_M: float | None = 25.0
+#: Fuse road passes as continuous-time APs: the edge's inverse (Newmark γ 0.6 / 0.8, for stability)
+#: distorts every AP of a vehicle class alike, so the profile, its IRI and the fleet calibration would
+#: all carry that bias. Each complete pass is corrected in the cloud under the parameters the edge
+#: computed it with (cloud.calibration.continuous_segments): the cloud has the whole pass (the
+#: correction is non-causal), and the edge's AP stays the inverse's exact output, which the remap,
+#: the bridge (its own correction, cloud/bridge/passdata.py) and rail rebuild the channels from.
+#: A recalibrated pass is recomputed by the edge, acknowledged again and corrected again. The correction
+#: (~0.5 ms a segment, 5× the rest of ingest) is idle work (Cloud.fuse_pending): done when the bus is
+#: quiet, and before a calibration round or an export, never on the ingest path.
+CONTINUOUS_APS = True
 ALIGN_MIN_SCORE = 0.5  # correlation below this: the pass and the consensus do not overlap well enough
 ALIGN_MIN_PASSES = 3  # fewer passes do not define a frame worth centring on
 ALIGN_ITERATIONS = 6
@@ -123,6 +134,9 @@ class Cloud:
             # drift assembled at snapshot time): bounded the same way.
             self.profile.segments = SegmentStore(max_resident, spill_dir)
         self.calibrator = FleetCalibrator(site, self.consensus) if calibration == "fleet" else None
+        if self.calibrator is not None:
+            self.calibrator.continuous_aps = CONTINUOUS_APS
+        self._unfused: dict[tuple[str, str], None] = {}  # acknowledged passes whose correction is due (ordered)
         self.calibrations_applied = 0  # sharded: calibrations of vehicles another shard owns, applied here
         self.calibration_conflicts = 0  # …and ones at a version this shard had issued differently
         self.align = align  # chainage alignment of passes (GNSS error); costs ~30 ms per pass per sweep
@@ -198,6 +212,8 @@ class Cloud:
         for ack in acks:
             if self.align:
                 self._reapply_alignment((ack.vehicle_id, ack.pass_id))
+            if CONTINUOUS_APS:
+                self._unfused[(ack.vehicle_id, ack.pass_id)] = None
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
             first = ps is not None and ps.times_acked == 1
             if self.calibrator is not None and ps is not None and ps.model:
@@ -223,6 +239,46 @@ class Cloud:
         if acks:
             self.status_due = True
             self.flush_status()
+
+    def _continuous_pass(self, key: tuple[str, str]) -> dict | None:
+        """A complete road pass's held segments as continuous-time APs, {slot: segment}, or None (not
+        a corrected model, no parameters). Computed afresh (~12 ms a 200 m pass): nothing kept per pass."""
+        agg = self.aggregator
+        ps = agg.passes.get(key)
+        if not CONTINUOUS_APS or ps is None or not ps.acked or ps.model not in CONTINUOUS_MODELS:
+            return None
+        slots = [sl for sl in sorted(ps.slots) if sl in agg.held]
+        params = ps.params or self._bridge_params(key[0], ps.model, ps.calib_version)
+        if not slots or params is None:
+            return None
+        try:
+            fixed = continuous_segments(ps.model, params, [agg.held[sl] for sl in slots])
+        except (ValueError, np.linalg.LinAlgError) as e:
+            log.warning("continuous-time AP of %s/%s failed: %s", key[0], key[1], e)
+            return None
+        return dict(zip(slots, fixed))
+
+    def fuse_pending(self, budget_s: float | None = None) -> int:
+        """Idle work: the profile posterior takes acknowledged passes' continuous-time APs in place of
+        the edge's (same identities: an update replaces, and the aggregator's later retraction removes
+        them), in acknowledgement order, within ``budget_s`` (None: all). Returns how many remain."""
+        t0 = time.monotonic()
+        while self._unfused and (budget_s is None or time.monotonic() - t0 < budget_s):
+            key = next(iter(self._unfused))
+            del self._unfused[key]
+            for seg in (self._continuous_pass(key) or {}).values():
+                self.profile.update(seg)
+        return len(self._unfused)
+
+    def fused_segments(self) -> list:
+        """The held segments as the profile posterior holds them (continuous-time where corrected)."""
+        return self._as_fused(self.aggregator.held.values())
+
+    def _as_fused(self, segs) -> list:
+        if not CONTINUOUS_APS:
+            return list(segs)
+        store = self.profile.segments
+        return [store.get(seg.identity) if seg.identity in store else seg for seg in segs]
 
     def flush_spill(self, budget_s: float = FLUSH_BUDGET_S) -> None:
         """Idle work: encode resident segments into the spill index ahead of time, so that neither
@@ -282,13 +338,19 @@ class Cloud:
             return False
         self.align_due = False
         new_passes = any(key not in self.alignments for key, ps in self.aggregator.passes.items() if ps.acked)
+        swept = False
         for _ in range(ALIGN_ITERATIONS if new_passes else 2):  # against the others' improving consensus
             moved = self._align_once(max_stretch=ALIGN_MAX_STRETCH)
             if moved is None:
-                self.publish_status()
-                return False
+                break
+            swept = True
             if moved < ALIGN_TOL_M:
                 break
+        if swept and CONTINUOUS_APS:  # re-gridded (or restored) passes: their continuous-time APs afresh
+            self._unfused.update(dict.fromkeys(self.aggregator.passes))
+        if moved is None:
+            self.publish_status()
+            return False
         if self.calibrator is not None:
             self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
         self.publish_status()
@@ -518,6 +580,9 @@ class Cloud:
         if self.align:  # a pass not (yet) placed in chainage would teach the vehicles a shifted road
             # (Too few placed passes: the round fits nothing and waits for new data, never spins.)
             segs = {sl: s for sl, s in segs.items() if (s.vehicle_id, s.pass_id) in self.alignments}
+        # The vehicle step sees what the posterior fuses: continuous-time APs (FleetCalibrator.continuous_aps).
+        self.fuse_pending()
+        segs = dict(zip(segs, self._as_fused(segs.values())))
         # The leave-one-out consensus of the round: the epoch's passes only, summed in a fixed order
         # (the running consensus holds passes beyond the epoch and rounding from its history).
         consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
@@ -687,17 +752,18 @@ class Cloud:
         """The profile posterior per route; its band also holds the passes' non-white error (the
         drift and calibration error each pass adds beyond the likelihood's white noise, measured band
         by band from their disagreement: :mod:`cloud.estimators.long_wave`)."""
-        segs = list(self.aggregator.held.values())  # what the estimators hold (chainage-aligned)
+        segs = self.fused_segments()  # what the posterior holds (chainage-aligned, continuous-time)
         # With the drift nuisance on, the passes' scatter adds only what exceeds its learnt level.
         return {rid: with_long_wave_band(s, segs, drift=drift_of(self.profile, rid))
                 for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:
+        self.fuse_pending()  # what the export holds is a function of the held segments, not of idle time
         if self.has_rail():
             self.rail.step(self, force=True)  # every acknowledged carriage run calibrated and re-keyed
         snaps = self.snapshot()
         tables = {"profile": profile_table(snaps)}
-        segs = list(self.aggregator.held.values())
+        segs = self.fused_segments()
         rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0), self.profile.spacing_m)
                  for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
         if rough:
@@ -894,6 +960,7 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                     quiet = time.monotonic() - last_input >= QUIET_S
                     cloud.flush_status(force=quiet)
                     if quiet:  # align, calibrate and estimate bridges when the bus is quiet
+                        cloud.fuse_pending()
                         if cloud.maybe_align():
                             cloud.bridge_sync_due = True  # the passes' held segments may have moved
                         else:

@@ -112,7 +112,10 @@ def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spa
     replay(logs, publish, "net")
     pump()
     rounds = 0
-    while cloud.maybe_align() or cloud.maybe_calibrate():
+    while True:
+        cloud.fuse_pending()  # the daemon's idle work when the bus is quiet
+        if not (cloud.maybe_align() or cloud.maybe_calibrate()):
+            break
         rounds += 1
         pump()
     if export_dir is not None:
