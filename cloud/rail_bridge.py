@@ -24,7 +24,17 @@ Across independent batches (different runs, as the thesis's) the per-batch slope
 lever arm is the wheel load's ~7 % spread (25 runs against 25: ±20 points in D). The batch mean
 of the AP per unit load is not, and the profile is common to every batch on the track, so
 :func:`damage_from_batch_means` takes the change of that mean between the healthy and the current
-batch and only the scale from the healthy batch's slope.
+batch and only the scale from the healthy batch's slope. That change is only profile-free if the
+two batches' chainages agree to a millimetre or two: each batch's calibrated speeds share an error
+(~0.01 %, ~1 cm at the span), so the current batch is first registered to the healthy one on the
+wheels' time-synchronous difference beside the span (:func:`_difference_shift`). On the blind
+test (largest error over 12 states × D1/D2) this took the carriage's reading from 2.0 to 1.1 points
+and the half-car's J⁰ reading from 7.1 to 2.3 (seed 0; with the true shift, 0.9 and 2.2), and on a
+second set of journeys, tracks and spans (seed 1) from 2.3 to 2.4 and 26.9 to 3.7 (the true shift:
+2.2 and 2.9). What remains is mostly the scale from the healthy batch's load regression: even on
+the true AP with the true loads it reads D 1–2 points off (dynamic wheel loads and speeds that
+follow the load within 50 runs), and with the scale from the design drawings instead
+(:func:`design_scale`) the carriage's reading is within 0.9/0.8 points on seeds 0/1.
 
 The AP comes from the carriage inverse (all four channels) or from the 2-DOF bogie half-car of
 App. A.3 (the leading bogie's two channels). The half-car ignores the body's force through the
@@ -32,10 +42,10 @@ secondary suspension; the body's response to the track depends on its mass, so t
 error is correlated with the wheel load and the regression's slope is biased (on our batches it
 even has the wrong sign): the half-car cannot separate the profile this way. The two wheels'
 time-synchronous difference is free of that force (it acts at the bogie's centre), so on the
-difference (:attr:`BogieInfluence.difference`, the matrix method for J⁰) the half-car and the
-carriage give the same line — but one difference of two noisy wheels is too noisy for ±3 points.
-The third reading, ``leading_bogie`` (:func:`leading_bogie_ap`), keeps the half-car's data (the
-leading bogie's two channels) and models the body's force: the carriage's body, driven by the
+difference (:attr:`BogieInfluence.difference`, the matrix method for J⁰ — the thesis's own reading
+for both models, eq. 3.16–3.23) the half-car and the carriage give the same line, and the half-car
+is read that way (one bogie's two channels and the calibrated run properties). The third reading,
+``leading_bogie`` (:func:`leading_bogie_ap`), keeps the half-car's data (the leading bogie's two channels) and models the body's force: the carriage's body, driven by the
 leading bogie and by a trailing bogie simulated over the AP the leading wheels found. Every
 inverse here runs at the batch calibration's Newmark γ (:data:`cloud.rail_calibration.
 INVERSE_GAMMA`), the one its properties were fitted under.
@@ -70,6 +80,14 @@ APPROACH_M = 10.0  # AP kept either side of the span, m
 #: (~14 Hz at 30 m/s: ~2 m) rides on the line; a 10 m span's static line has nothing below ~5 m.
 #: The thesis low-passes its mean MR-IL too (FIR, §3.5.3) before reading the mid-span ordinate.
 MIN_WAVELENGTH_M = 4.0
+#: Track used to register two batches' chainage on the wheels' difference (:func:`_difference_shift`),
+#: m before and after the span (less where a batch's runs do not cover it); the last
+#: ``REGISTER_EDGE_M`` of each end are left out (the filters' end effects), and waves longer than
+#: ``REGISTER_MAX_WAVELENGTH_M`` (the inverses' drift) are removed first.
+REGISTER_BEFORE_M = 40.0
+REGISTER_AFTER_M = 20.0
+REGISTER_EDGE_M = 2.0
+REGISTER_MAX_WAVELENGTH_M = 20.0
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -90,9 +108,14 @@ class BogieInfluence:
     #: difference, by the matrix method: what :func:`damage_from_batch_means` compares.
     mean_line: MrIl | None = None
     difference_mean: MrIl | None = None
-    #: The batch-mean AP line over the span and its approaches (x from the first support), m: what
-    #: registers two batches' chainage off the bridge (:func:`damage_from_batch_means`).
+    #: The batch-mean AP line over the span and its approaches (x from the first support), m.
     approach_line: MrIl | None = None
+    #: The batch mean of the wheels' time-synchronous AP difference −(y_1 − y_2) over the span and its
+    #: approaches, at wheel 1's chainage x (from the first support), m, neither filtered nor chorded:
+    #: what registers two batches' chainage (:func:`damage_from_batch_means`) and, shifted, what the
+    #: registered J⁰ is read from.
+    difference_line: MrIl | None = None
+    wheelbase_m: float | None = None  # the leading bogie's wheel spacing 2·Lb the difference is taken over
 
 
 def _leading_bogie_ap(run: RailRun, est, globals_: dict[str, float], class_mean: dict[str, float],
@@ -187,7 +210,16 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
         raise ValueError(f"bogie_influence: unknown model {model!r} ({', '.join(MODELS)})")
     a, b = start_m, start_m + span_m
     x = np.arange(a - APPROACH_M, b + APPROACH_M + 1e-9, GRID_M)
-    Y, W, DIFF = [], [], []
+    # The registration window: as much of REGISTER_BEFORE_M/AFTER_M as every run covers (whole grid steps).
+    lead = class_mean["Lv"] + class_mean["Lb"]  # wheel 1 ahead of the body's centre of gravity, m
+    front = [run.x0_m + lead for run in runs]
+    end = [run.x0_m + (len(run.channels) - 1) * run.dt * e.mean["v"] + lead for run, e in zip(runs, fit.runs)]
+    before = GRID_M * np.floor(min(REGISTER_BEFORE_M, a - max(front) - 0.5) / GRID_M)
+    after = GRID_M * np.floor(min(REGISTER_AFTER_M, min(end) - b - 0.5) / GRID_M)
+    if before < APPROACH_M or after < APPROACH_M:
+        raise ValueError(f"bogie_influence: the runs cover less than {APPROACH_M:g} m either side of the span")
+    xr = a + np.arange(-round(before / GRID_M), round((b - a + after) / GRID_M) + 1) * GRID_M
+    Y, W, DIFF, DX = [], [], [], []
     M_span = c = None
     for run, est in zip(runs, fit.runs):
         ap, off, v, load = _leading_bogie_ap(run, est, fit.globals_, class_mean, model)
@@ -201,6 +233,7 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
         # the ends (both wheels off the span, before and after) removes the run's drift.
         dd = np.interp((xd - run.x0_m - off[0]) / v, t, ap[:, 0] - ap[:, 1])
         DIFF.append(dd - (dd[0] + (dd[-1] - dd[0]) * (xd - a) / (xd[-1] - a)))
+        DX.append(np.interp((xr - run.x0_m - off[0]) / v, t, ap[:, 0] - ap[:, 1]))
         ys = []
         for i in (0, 1):
             ti = (x - run.x0_m - off[i]) / v
@@ -230,7 +263,7 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
                           _difference_mril(xd - a, g_unseparated, M_span, c, len(runs)),
                           MrIl(x[on] - a, J_mean[on], len(runs)),
                           _difference_mril(xd - a, -DIFF.mean(axis=0), M_span, c, len(runs)),
-                          MrIl(x - a, J_mean, len(runs)))
+                          MrIl(x - a, J_mean, len(runs)), MrIl(xr - a, -np.mean(DX, axis=0), len(runs)), h * c)
 
 
 def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fundamental: bool = False,
@@ -245,35 +278,113 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
     lever arm is the wheel load's ~7 % spread); here it only sets the scale. (Differencing the batch
     means of Y/W instead, J_H + mean_D(Y/W) − mean_H(Y/W), leaves p·(mean_D(1/W) − mean_H(1/W)):
     ~1 % of p between independent batches, and p relative to the supports' chord is as large as
-    the deflection — about a point of D.) ``register``: first align the current batch's chainage to
-    the healthy batch's on the approaches (:func:`_shift`; on the blind test's profile 1 this
-    took the largest error over its six states from 1.8 to 1.7 points and the mean from 1.2 to 0.8,
-    shifts of −11…+1 mm).
-    ``fundamental``: the same on the wheels' difference (J⁰, free of a force at the bogie centre),
-    not registered (registered by the same shift, profile 1's largest error went from 5.4 to 5.0
-    points but state 2's from 0.5 to 4.0: no better)."""
+    the deflection — about a point of D.)
+
+    ``register``: first shift the current batch's chainage onto the healthy batch's
+    (:func:`_difference_shift`): each batch's calibrated speeds share an error of ~0.01 % (the
+    carriage's bogie spacing is known only so well), a few millimetres to a centimetre at the span,
+    and the unloaded profile's slope times a centimetre is a few per cent of the deflection. The
+    shift is read off the wheels' time-synchronous difference on the approaches, which the body's
+    force cannot move (it acts at the bogie's centre) — unlike the batch-mean AP lines, whose
+    long-wave errors differ between batches (blind test, against the shift the true speeds give: rms
+    error 0.4 mm on seed 0 and 1.1 mm on seed 1 from the difference, 3.4 mm on seed 0 from the AP
+    lines, profile 1's −4 mm on average). Both readings are registered by it (only the wheels' difference is needed, so the
+    bogie half-car's data register themselves).
+    ``fundamental``: the same on the wheels' difference (J⁰, free of a force at the bogie centre):
+    J⁰ of each batch mean by the matrix method from the registered difference line, the healthy
+    batch's regression J⁰ for the scale."""
     from .bridge.mril import damage_indicators
 
-    ref, h, c = ((healthy.difference, healthy.difference_mean, current.difference_mean) if fundamental
-                 else (healthy.mril, healthy.mean_line, current.mean_line))
+    ref = healthy.difference if fundamental else healthy.mril
     w_h, w_c = float(np.mean(healthy.wheel_load_n)), float(np.mean(current.wheel_load_n))
-    c_J, h_J = c.J, h.J
-    if not fundamental and register and healthy.approach_line is not None and current.approach_line is not None:
-        delta = _shift(healthy.approach_line, current.approach_line, float(healthy.mril.x_m[-1]))
+    lines = (healthy.difference_line, current.difference_line)
+    delta = 0.0
+    if register:
+        if None in lines or healthy.wheelbase_m is None:
+            raise ValueError("damage_from_batch_means: registering needs both batches' difference lines")
+        delta = _difference_shift(*lines, float(healthy.mril.x_m[-1]), healthy.wheelbase_m)
+    if fundamental:
+        if None in lines:
+            c_J, h_J = current.difference_mean.J, healthy.difference_mean.J
+        else:
+            c_J, h_J = (_registered_fundamental(line, shift, float(healthy.mril.x_m[-1]), healthy.wheelbase_m)
+                        for line, shift in ((current.difference_line, delta), (healthy.difference_line, 0.0)))
+    elif healthy.approach_line is not None and current.approach_line is not None:
         c_J, h_J = _on_span(current.approach_line, ref.x_m, delta), _on_span(healthy.approach_line, ref.x_m, 0.0)
+    else:
+        c_J, h_J = current.mean_line.J, healthy.mean_line.J
     return damage_indicators(ref, MrIl(ref.x_m, (c_J - h_J) / w_c + ref.J * w_h / w_c, current.mril.n_passes))
 
 
-def _shift(healthy: MrIl, current: MrIl, span_m: float) -> float:
-    """The chainage shift δ (m) of ``current``'s batch-mean line against ``healthy``'s, from the
-    approaches (off the span). Each batch's calibrated speeds carry a common error of ~0.01 % (a
-    centimetre 130 m on), and the unloaded profile's slope times a centimetre is a few per cent of
-    the span's deflection: a point or two of D. Off the span the two batch means differ by that
-    shift (δ·Ȳ_H'), a line (the chords) and the loads' difference times the track's compliance."""
+def design_scale(bridge, healthy: BogieInfluence) -> BogieInfluence:
+    """``healthy`` with its deflection per unit load (:attr:`BogieInfluence.mril`, J⁰ + J¹ of the
+    leading bogie's two equal loads) and its J⁰ (:attr:`BogieInfluence.difference`) replaced by the
+    design span's static lines (the registry's E·I, span; :func:`cloud.bridge.mril.design_beam`),
+    chorded and low-passed as the data's are: the scale :func:`damage_from_batch_means` takes from the
+    healthy batch's load regression, from the drawings instead. The regression's scale is the
+    reading's largest error once the batches are registered (its lever arm is the loads' ~7 %
+    spread, and AP errors that follow the load — calibration, dynamic wheel loads — bias it by
+    5–15 %, even on the true AP); the drawings' is as good as the design is of the healthy span (on
+    our simulated spans within ~0.5 %: their 5 % element scatter averages out; on a real bridge
+    often 10–30 % off, which moves D by as many per cent of D). ``bridge``: :class:`shared.registry.Bridge`."""
+    from scipy import linalg
+
+    from shared.fe.beam import _stiffness, contact_matrix, influence_line
+
+    from .bridge.mril import design_beam
+
+    beam = design_beam(bridge)
+    x, span, wb = healthy.approach_line.x_m, float(healthy.mril.x_m[-1]), float(healthy.wheelbase_m)
+    n1, n2 = contact_matrix(beam, np.clip(x, 0.0, span)), contact_matrix(beam, np.clip(x - wb, 0.0, span))
+    J = np.einsum("ij,ji->i", n1, linalg.solve(_stiffness(beam), (n1 + n2).T, assume_a="pos"))
+    J = _lowpassed(MrIl(x, J * ((x >= 0.0) & (x <= span)), 0))
+    on = (x >= -1e-9) & (x <= span + 1e-9)
+    xs, J = x[on], J[on]
+    xd = healthy.difference.x_m
+    J0 = _lowpassed(MrIl(xd, influence_line(beam, np.clip(xd, 0.0, span)), 0))
+    return dataclasses.replace(healthy, mril=MrIl(xs, J - (J[0] + (J[-1] - J[0]) * xs / span), 0),
+                               difference=MrIl(xd, J0, 0))
+
+
+def _lowpassed(line: MrIl) -> np.ndarray:
+    h = float(line.x_m[1] - line.x_m[0])
+    return sosfiltfilt(butter(4, h / (0.5 * MIN_WAVELENGTH_M), output="sos"), line.J)
+
+
+def _difference_shift(healthy: MrIl, current: MrIl, span_m: float, wheelbase_m: float) -> float:
+    """The chainage shift δ (m) at mid-span of ``current``'s batch-mean wheel difference against
+    ``healthy``'s (``current(x − δ) ≈ healthy(x)``), from the track either side of the span: where
+    neither wheel is on the span, the difference is the unloaded profile's p(x) − p(x − 2·Lb) plus
+    the track's, so the two batches differ by the shift times its slope, plus drift and noise. The
+    shift grows along the track (it is a speed error: δ(x) = δ + ε·(x − x_mid)), so a stretch ε is
+    fitted with it; waves beyond :data:`REGISTER_MAX_WAVELENGTH_M` (drift) and below
+    :data:`MIN_WAVELENGTH_M` are filtered out of both lines first."""
+    def band(y: np.ndarray, h: float) -> np.ndarray:
+        y = sosfiltfilt(butter(4, h / (0.5 * MIN_WAVELENGTH_M), output="sos"), y)
+        return y - sosfiltfilt(butter(2, h / (0.5 * REGISTER_MAX_WAVELENGTH_M), output="sos"), y)
+
+    # Both lines on the same stretch of grid before filtering, so the filters' end effects match.
     x = healthy.x_m
-    off = (x < -1.0) | (x > span_m + 1.0)
-    X = np.stack([np.gradient(healthy.J, x), np.ones_like(x), x], axis=1)[off]
-    return float(np.linalg.lstsq(X, (current.J - healthy.J)[off], rcond=None)[0][0])
+    x = x[(x >= current.x_m[0] - 1e-9) & (x <= current.x_m[-1] + 1e-9)]
+    step = float(x[1] - x[0])
+    h, c = band(np.interp(x, healthy.x_m, healthy.J), step), band(np.interp(x, current.x_m, current.J), step)
+    off = ((x < -1.0) | (x > span_m + wheelbase_m + 1.0)) & (x > x[0] + REGISTER_EDGE_M) & (x < x[-1] - REGISTER_EDGE_M)
+    slope = np.gradient(h, x)
+    X = np.stack([slope, (x - 0.5 * span_m) * slope], axis=1)[off]
+    return float(np.linalg.lstsq(X, (c - h)[off], rcond=None)[0][0])
+
+
+def _registered_fundamental(line: MrIl, shift: float, span_m: float, wheelbase_m: float) -> np.ndarray:
+    """J⁰ on the span (the grid of :func:`bogie_influence`'s ``difference``) from a batch-mean
+    wheel difference line read at x − ``shift``: chorded between the ends (both wheels off the
+    span), then the matrix method (:func:`_difference_mril`)."""
+    c = max(1, int(round(wheelbase_m / GRID_M)))
+    h = wheelbase_m / c
+    M = int(np.floor(span_m / h + 1e-9)) + 1
+    xd = h * np.arange(M + c)
+    g = np.interp(xd - shift, line.x_m, line.J)
+    g = g - (g[0] + (g[-1] - g[0]) * xd / xd[-1])
+    return _difference_mril(xd, g, M, c, line.n_passes).J
 
 
 def _on_span(line: MrIl, x_span: np.ndarray, shift: float) -> np.ndarray:

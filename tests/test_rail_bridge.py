@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cloud.bridge.mril import damage_indicators
-from cloud.rail_bridge import MODELS, bogie_influence, damage_from_batch_means
+from cloud.rail_bridge import MODELS, _difference_shift, bogie_influence, damage_from_batch_means
 from cloud.rail_calibration import calibrate_batch
 from simfleet.rail import RailBridgeSpec
 from simfleet.reproduce_rail import load_runs, true_effective_levels
@@ -20,24 +20,38 @@ from simfleet.sim import generate
 N_RUNS = 10
 
 
-def influences(tmp_path, name, loss):
-    """Both models' influence of a quick batch, and the batch's truth (read only to score)."""
+def calibrated_batch(tmp_path, name, loss):
+    """A quick batch (runs, its calibration off the bridge, class, bridge) and its truth (read only to score)."""
     scenario = dataclasses.replace(SCENARIOS["rail-bridge-state7-profile1"], route_length_m=70.0, batch=0,
                                    bridge=RailBridgeSpec(start_m=40.2, global_loss=loss))  # same runs for both
     generate(scenario, tmp_path / name, seed=3, passes=N_RUNS, workers=2, progress=False)
     runs, cls, bridge = load_runs(tmp_path / name)
     fit = calibrate_batch(runs, cls.mean, cls.std, window_m=(0.0, bridge.start_chainage_m - 2.0))  # off the bridge
-    out = {m: bogie_influence(runs, fit, cls.mean, bridge.start_chainage_m, bridge.span_m, model=m) for m in MODELS}
-    return out, json.loads((tmp_path / name / "truth.json").read_text())
+    return (runs, fit, cls, bridge), json.loads((tmp_path / name / "truth.json").read_text())
 
 
-def test_damage_level_from_a_healthy_and_a_damaged_batch(tmp_path):
+def influences_of(runs, fit, cls, bridge):
+    return {m: bogie_influence(runs, fit, cls.mean, bridge.start_chainage_m, bridge.span_m, model=m) for m in MODELS}
+
+
+def influences(tmp_path, name, loss):
+    """All models' influence of a quick batch, and the batch's truth."""
+    batch, truth = calibrated_batch(tmp_path, name, loss)
+    return influences_of(*batch), truth
+
+
+@pytest.fixture(scope="module")
+def healthy_batch(tmp_path_factory):
+    return calibrated_batch(tmp_path_factory.mktemp("rail_bridge"), "healthy", 0.0)
+
+
+def test_damage_level_from_a_healthy_and_a_damaged_batch(tmp_path, healthy_batch):
     """Same track and runs, the span's E·I 13 % lower (its 5 % per-element scatter is the bridge's
     own, in both states, so D1/D2 of its static line against the healthy span's are 13 % exactly).
     Measured (seed 3, 10 runs): regression over the calibrated wheel loads with the carriage inverse
     D1 14.0 %, D2 14.1 %; from the batch means 13.4 % / 13.5 % — the spread of a small batch. The
     indicators' bounds are ±5 points here (the blind test's 50 runs: ``driveby reproduce rail``)."""
-    healthy, _ = influences(tmp_path, "healthy", 0.0)
+    healthy = influences_of(*healthy_batch[0])
     damaged, truth = influences(tmp_path, "damaged", 0.13)
     h, d = healthy["carriage"], damaged["carriage"]
     # Deflection per unit wheel load (m/N) of the order of a 10 m span plus its track: ~1e-8.
@@ -70,6 +84,39 @@ def test_damage_level_from_a_healthy_and_a_damaged_batch(tmp_path):
         assert off["leading_bogie"] < 0.25 * off["bogie_half_car"], off
     means = damage_from_batch_means(healthy["leading_bogie"], damaged["leading_bogie"])
     assert abs(means.D1_pct - effective[0]) < 5.0 and abs(means.D2_pct - effective[1]) < 5.0, (means, effective)
+
+
+def test_batches_are_registered_on_the_wheels_difference(healthy_batch):
+    """Two batches' chainage differs by their calibrated speeds' common error (~1 cm at the span);
+    the registration reads it off the leading bogie's time-synchronous wheel difference beside the
+    span. The same runs reported 12 mm further along and 0.01 % faster (expected shift at mid-span
+    −15.5 mm) give −13.9 mm back (seed 3, 10 runs, 29 m before the span; the blind test's 50 runs
+    over 40 m: 98 % of a pure shift), the same from the bogie half-car's channels as from the
+    carriage's (the body's force, which the half-car leaves out, cancels in the difference). And
+    12 mm alone moves D1/D2 of the same runs by −2.6/−3.7 points unregistered, −0.3/−0.3 registered
+    (carriage); the half-car's J⁰ reading −3.3/−3.7 and 1.1/1.9."""
+    (runs, fit, cls, bridge), _ = healthy_batch
+    mid = bridge.start_chainage_m + 0.5 * bridge.span_m - (cls.mean["Lv"] + cls.mean["Lb"])  # wheel 1 at mid-span
+    a = influences_of(runs, fit, cls, bridge)
+    span = float(a["carriage"].mril.x_m[-1])
+    for shift, stretch in ((0.012, 1e-4), (0.012, 0.0)):
+        moved = [dataclasses.replace(r, x0_m=r.x0_m + shift) for r in runs]
+        fit_moved = dataclasses.replace(fit, runs=[dataclasses.replace(e, mean={**e.mean, "v": e.mean["v"] * (1 + stretch)})
+                                                   for e in fit.runs])
+        b = influences_of(moved, fit_moved, cls, bridge)
+        found = {m: _difference_shift(a[m].difference_line, b[m].difference_line, span, a[m].wheelbase_m)
+                 for m in ("carriage", "bogie_half_car")}
+        # b(x) = a(x − shift − stretch·(x − x0 − offset)): with current(x − δ) ≈ healthy(x), δ ≈ −(that).
+        expected = -(shift + stretch * mid)
+        assert found["carriage"] == pytest.approx(expected, rel=0.15), (found, expected)
+        assert found["bogie_half_car"] == pytest.approx(found["carriage"], abs=1e-9)
+    worst = {}
+    for m, fundamental in (("carriage", False), ("bogie_half_car", True)):
+        for register in (True, False):
+            d = damage_from_batch_means(a[m], b[m], fundamental=fundamental, register=register)
+            worst[m, register] = max(abs(d.D1_pct), abs(d.D2_pct))
+    assert worst["carriage", True] < 0.5 and worst["carriage", False] > 3 * worst["carriage", True], worst
+    assert worst["bogie_half_car", True] < 0.7 * worst["bogie_half_car", False], worst
 
 
 def test_true_effective_level_of_a_uniform_loss_is_the_loss():
