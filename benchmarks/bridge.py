@@ -15,6 +15,31 @@ self-calibrated by the system (edge + cloud cores in process). Accuracy = |error
   pass per proposal: the time of one such simulation is measured and multiplied out). When the
   chain never reaches our accuracy the ratio is a lower bound (``"bound": "lower"``).
 
+The reference's data are each pass's drift-controlled deflection as our estimator's per-pass MR-IL
+reads it (fleet-common consensus trend, support steps and the bridge's dynamic excess modelled out —
+a favour to the reference). Until session 6 the raw AP − consensus went in: its mm step at the
+supports drove the class weights to 5× their mean by iteration 300, and the "0.92 at 2 000
+iterations" was a chain in transit (0.45 from 5 000 on, end elements at 0.1–0.25 % of I).
+
+Why the chain still does not settle on the truth — a property of the thesis's model on these data,
+not a sampler bug (the sampler matches a closed-form posterior in tests/test_bridge_reference.py).
+At 2 % acceleration noise each pass's deflection carries ~100 µm of correlated error against a
+0.2 mm signal (σ₃² = 1e-11 assumes 3 µm): fitted alone at the true I, the 30 passes' loads read
+−0.55…2.92 × the class mean (sd 0.80). The likelihood is exactly invariant along W → cW, I → cI, so
+the scale c is set by the priors alone, and both pull it down: (a) each one-pass vehicle's weight
+absorbs its pass's error (spread 7–10 class sds, some at W ≈ 0), and a Gaussian class prior on so
+spread a fleet is smallest at c* = Σr/Σr² ≈ 0.53–0.75 (r = W/w̄), not 1; (b) with σ₃² that small
+the end elements take the near-support errors (I → 0.3–0.6 % of design from 20 000 iterations on) and
+the GMRF prior (eq. 4.34), being on I in m⁴ rather than on relative changes, charges these steps
+τ₂/2·ΣΔI² ≈ 2 000–6 000 nats, which shrink as c². Measured d log p/d ln c at iterations 2 000 /
+20 000 / 60 000 / 120 000: weight prior −3 654 / −927 / −1 / +309, GMRF −12 318 / −8 491 /
+−5 566 / −4 180 (volume +49). The chain crawls down the ridge (s_I = 0.001 m⁴ is 0.08 % of I): the running
+mean of the effective ratio over the chain's second half is 1.009 at 2 000 iterations, 0.900 at
+5 000, 0.81 at 10 000, 0.72 at 20 000, 0.55 at 60 000, 0.46 at 120 000, still falling (σ₃² = 1e-8,
+the margins' noise, or τ₂ = 1 drift as well; weights pinned at the class mean hold it at 0.97). Its
+2 000-iteration answer is its start (design I, class-mean weights) plus drift, and it is within our
+accuracy only in transit (iterations 4 764–5 281), so the ratio is reported as a lower bound.
+
 Timings are wall-clock on a shared machine; ratios are measured in the same run. The simulated and
 self-calibrated passes are not what is timed: they are kept in ``$TMPDIR/driveby-bench-bridge`` and
 reused by the next run.
@@ -39,9 +64,29 @@ def _case(work: Path):
     return simulate_case(SCENARIO, work, passes=PASSES, seed=0)
 
 
+def _drift_controlled_deflections(est) -> tuple[list[np.ndarray], np.ndarray]:
+    """Each pass's deflection (m, down positive) on the span grid as the estimator's per-pass MR-IL
+    reads it (``BridgeEstimate.mril_passes``), captured at its one call of ``mril_single_axle``."""
+    import cloud.bridge.estimator as estimator_module
+
+    seen = {}
+    original = estimator_module.mril_single_axle
+
+    def capture(x_m, deltas, loads):
+        seen["x"], seen["deltas"] = np.asarray(x_m, float), [np.asarray(d, float) for d in deltas]
+        return original(x_m, deltas, loads)
+
+    estimator_module.mril_single_axle = capture
+    try:
+        est.estimate()
+    finally:
+        estimator_module.mril_single_axle = original
+    return seen["deltas"], seen["x"]
+
+
 def run(work: Path | None = None):
     from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
-    from cloud.bridge.passdata import Reference, group_segments, span_profile
+    from cloud.bridge.passdata import group_segments
     from cloud.reference.mcmc import mcmc_bridge_elements
     from shared.fe.beam import compliance_kernel
     from shared.vbi import simulate_vbi
@@ -80,16 +125,14 @@ def run(work: Path | None = None):
            "context": {"passes": PASSES, "full_estimate_s": full, "effective": e.posterior.effective_ratio,
                        "truth": truth, "abs_error": ours_err}}
 
-    # The thesis's MCMC on the same passes' deflections.
+    # The thesis's MCMC on the same passes' deflections: each pass's drift-controlled deflection with
+    # what is not deflection modelled out as our estimator does for its per-pass MR-IL (the fleet-common
+    # consensus trend μ, the pass's support steps, the bridge's dynamic excess). Raw AP − consensus
+    # carries a mm step at the supports that the thesis's model can only read as 5× the class weight.
+    defl, x = _drift_controlled_deflections(fresh)
     entries = list(fresh.passes.values())
-    ref = Reference.of([en.data for en in entries])
-    defl, vehicles, x = [], [], None
     ids = sorted({en.data.vehicle_id for en in entries})
-    for en in entries:
-        sp = span_profile(en.data, ref, smooth_deck=True)
-        x = sp.x_m
-        defl.append(-sp.y_m)
-        vehicles.append(ids.index(en.data.vehicle_id))
+    vehicles = [ids.index(en.data.vehicle_id) for en in entries]
     beam = fresh.setup.beam
     G = compliance_kernel(beam, np.clip(x, 0.0, beam.span_m))
     g_int = np.trapezoid(G, x, axis=0)
@@ -128,4 +171,6 @@ def run(work: Path | None = None):
                        "mcmc_abs_error": abs(final_mean - truth), "mcmc_iterations": res.stats["n_iter"],
                        "mcmc_seconds": secs[-1], "vbi_pass_s": t_sim, "passes": n_pass, "vehicles": n_veh,
                        "ours_full_estimate_s": full,
-                       "acceptance_elements": float(np.mean(res.stats["elements"]))}}
+                       "acceptance_elements": float(np.mean(res.stats["elements"])),
+                       "mcmc_weight_over_class_mean": float(res.weights[-1].mean() / prior.mean_n),
+                       "mcmc_weight_spread_over_class_sd": float(res.weights[-1].std() / prior.sd_n)}}
