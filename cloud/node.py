@@ -263,6 +263,7 @@ class Cloud:
         the edge's (same identities: an update replaces, and the aggregator's later retraction removes
         them), in acknowledgement order, within ``budget_s`` (None: all). Returns how many remain."""
         t0 = time.monotonic()
+        self.status_due = self.status_due or bool(self._unfused)  # "settled" waits for these
         while self._unfused and (budget_s is None or time.monotonic() - t0 < budget_s):
             key = next(iter(self._unfused))
             del self._unfused[key]
@@ -308,10 +309,11 @@ class Cloud:
             c = self.calibrator
             pending = len(self.completion_order) > self.epoch_size and len(self.completion_order) >= c.min_passes
             busy = pending or not self.epoch_finished()
-        busy = busy or self.align_due
+        busy = busy or self.align_due or bool(self._unfused)  # (estimates still to take their corrected passes)
         return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
                 "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0,
                 "calibration_epoch_passes": self.epoch_size,
+                "unfused_passes": len(self._unfused),  # acknowledged, their corrected APs not yet in the estimates
                 **({"calibrations_applied": self.calibrations_applied,
                     "calibration_conflicts": self.calibration_conflicts} if self.shard is not None else {})}
 

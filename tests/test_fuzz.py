@@ -376,6 +376,17 @@ def test_bad_payloads_through_zenoh_are_counted_and_change_nothing(tmp_path):
 
                 s.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
                 s.declare_subscriber(keys.ack_keyexpr(NET), lambda sample: acked.set())
+                settled = threading.Event()  # the pass acknowledged and fused as corrected (idle work): the estimate is final
+
+                def on_status(sample):
+                    try:
+                        st = json.loads(sample.payload.to_bytes())
+                    except ValueError:
+                        return
+                    if st.get("passes_current") == 1 and st.get("unfused_passes") == 0:
+                        settled.set()
+
+                s.declare_subscriber(keys.status_key(NET, "c1"), on_status)
                 assert up.wait(DAEMON_TIMEOUT_S), f"daemons did not come up: {(tmp_path / 'cloud.log').read_text()}"
 
                 # Some state first: a complete pass of three segments.
@@ -384,6 +395,7 @@ def test_bad_payloads_through_zenoh_are_counted_and_change_nothing(tmp_path):
                     put(keys.ap_key(NET, "R1", seq, "V1"), _segment(seq=seq, tile=seq).encode())
                 put(keys.done_key(NET, "V1"), PassDone("V1", "p1", "R1", 0, 3, "quarter_car").encode())
                 assert acked.wait(TIMEOUT_S), "the seeding pass was not acknowledged"
+                assert settled.wait(TIMEOUT_S), "the cloud did not settle after the seeding pass"
                 before = _get_json(s, keys.control_key(NET, "c1", "stats"))["stats"]
                 tiles = [_tile(s, t) for t in range(3)]
 

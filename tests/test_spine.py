@@ -129,11 +129,23 @@ def test_deployment_shape_and_bad_payloads(road, tmp_path):
 
                 s.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
                 s.declare_subscriber(keys.ack_keyexpr(NET), lambda sm: decode_ack(sm.payload.to_bytes()) and acked.set())
+                fused = threading.Event()  # the pass acknowledged and fused as corrected (idle work): the estimate is final
+
+                def on_status(sample):
+                    try:
+                        st = json.loads(sample.payload.to_bytes())
+                    except ValueError:
+                        return
+                    if st.get("passes_current") == 1 and st.get("unfused_passes") == 0:
+                        fused.set()
+
+                s.declare_subscriber(keys.status_key(NET, "c1"), on_status)
                 assert up.wait(TIMEOUT_S), "daemons did not come up"
 
                 log = read_drive_log(list_drive_logs(road / "logs")[0])
                 replay([log], lambda k, p: s.put(k, p, congestion_control=zenoh.CongestionControl.BLOCK), NET)
                 assert acked.wait(TIMEOUT_S), "pass was not acknowledged"
+                assert fused.wait(TIMEOUT_S), "the acknowledged pass was not fused"
                 before = _stats(s)["stats"]
                 tile1 = _tile(s, 1)
                 assert pa.ipc.open_stream(tile1).read_all().num_rows == 1000
