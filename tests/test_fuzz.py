@@ -44,6 +44,7 @@ from shared.schema import (
     SensorChunk,
 )
 from shared.transport import run_router, zenoh_config
+from tests.cloud_status import fused_event
 
 N_PAYLOADS = int(os.environ.get("DRIVEBY_FUZZ_PAYLOADS", "3000"))
 N_BUS = int(os.environ.get("DRIVEBY_FUZZ_BUS", max(300, N_PAYLOADS // 10)))  # per daemon, through Zenoh
@@ -376,17 +377,7 @@ def test_bad_payloads_through_zenoh_are_counted_and_change_nothing(tmp_path):
 
                 s.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
                 s.declare_subscriber(keys.ack_keyexpr(NET), lambda sample: acked.set())
-                settled = threading.Event()  # the pass acknowledged and fused as corrected (idle work): the estimate is final
-
-                def on_status(sample):
-                    try:
-                        st = json.loads(sample.payload.to_bytes())
-                    except ValueError:
-                        return
-                    if st.get("passes_current") == 1 and st.get("unfused_passes") == 0:
-                        settled.set()
-
-                s.declare_subscriber(keys.status_key(NET, "c1"), on_status)
+                settled = fused_event(s, NET, "c1", 1)  # the estimate is final once the pass is fused
                 assert up.wait(DAEMON_TIMEOUT_S), f"daemons did not come up: {(tmp_path / 'cloud.log').read_text()}"
 
                 # Some state first: a complete pass of three segments.

@@ -20,6 +20,7 @@ import pytest
 import zenoh
 
 from shared import keys
+from tests.cloud_status import fused_event
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.schema import ApSegment, decode_ack
 from shared.transport import run_router, zenoh_config
@@ -129,17 +130,7 @@ def test_deployment_shape_and_bad_payloads(road, tmp_path):
 
                 s.liveliness().declare_subscriber(keys.alive_keyexpr(NET), on_alive, history=True)
                 s.declare_subscriber(keys.ack_keyexpr(NET), lambda sm: decode_ack(sm.payload.to_bytes()) and acked.set())
-                fused = threading.Event()  # the pass acknowledged and fused as corrected (idle work): the estimate is final
-
-                def on_status(sample):
-                    try:
-                        st = json.loads(sample.payload.to_bytes())
-                    except ValueError:
-                        return
-                    if st.get("passes_current") == 1 and st.get("unfused_passes") == 0:
-                        fused.set()
-
-                s.declare_subscriber(keys.status_key(NET, "c1"), on_status)
+                fused = fused_event(s, NET, "c1", 1)  # the estimate is final once the pass is fused
                 assert up.wait(TIMEOUT_S), "daemons did not come up"
 
                 log = read_drive_log(list_drive_logs(road / "logs")[0])
