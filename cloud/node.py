@@ -962,7 +962,7 @@ def serve(session: zenoh.Session, cloud: Cloud, node_id: str, stop: threading.Ev
                     quiet = time.monotonic() - last_input >= QUIET_S
                     cloud.flush_status(force=quiet)
                     if quiet:  # align, calibrate and estimate bridges when the bus is quiet
-                        cloud.fuse_pending()
+                        cloud.fuse_pending(FLUSH_BUDGET_S)  # bounded: the next input waits on the lock
                         if cloud.maybe_align():
                             cloud.bridge_sync_due = True  # the passes' held segments may have moved
                         else:
