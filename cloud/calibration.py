@@ -572,6 +572,16 @@ CONTINUOUS_CUTOFF_HZ = 60.0
 MEMORY_S = 2.0  # s: how far past a pass's ends :func:`continuous_ap` continues it (mirrored, tapered)
 
 
+def _correction_inputs(model: str, params: dict, ap: PassAp):
+    """The vehicle's system, the pass's AP values (n_points, n_contacts) and where they are finite,
+    for the continuous-time corrections; one channel per contact or a ValueError."""
+    system = vehicle_from_params(model, params).system()
+    values = np.asarray(ap.values, float)
+    if len(system.channels) != values.shape[1]:
+        raise ValueError(f"continuous_ap: {model} measures {len(system.channels)} channels for {values.shape[1]} contacts")
+    return system, values, np.isfinite(values)
+
+
 def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTINUOUS_CUTOFF_HZ) -> np.ndarray:
     """The pass's AP (n_points, n_contacts) as an exact inverse of the continuous-time vehicle
     ``params`` would have made it from the same channels: ``T⁻¹H`` applied to the edge's AP, ``H``
@@ -593,14 +603,10 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
     the other contacts would add there was not driven."""
     from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
 
-    system = vehicle_from_params(model, params).system()
-    values = np.asarray(ap.values, float)
+    system, values, ok = _correction_inputs(model, params, ap)
     n_points, n_contacts = values.shape
-    if len(system.channels) != n_contacts:
-        raise ValueError(f"continuous_ap: {model} measures {len(system.channels)} channels for {n_contacts} contacts")
     h, v = ap.spacing_m, ap.speed_mps
     off = np.asarray(system.offsets_m, float)
-    ok = np.isfinite(values)
     if (ok.sum(axis=0) < 64).any() or not v > 0:
         return values.copy()
     first = [int(np.flatnonzero(ok[:, i])[0]) for i in range(n_contacts)]
@@ -676,15 +682,11 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
     it; points outside that extent keep the edge's value, NaN stays NaN."""
     from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
 
-    system = vehicle_from_params(model, params).system()
-    values = np.asarray(ap.values, float)
+    system, values, ok = _correction_inputs(model, params, ap)
     n_points, n_contacts = values.shape
-    if len(system.channels) != n_contacts:
-        raise ValueError(f"continuous_ap: {model} measures {len(system.channels)} channels for {n_contacts} contacts")
     h, v = ap.spacing_m, ap.speed_mps
     x = (ap.start_index + np.arange(n_points)) * h
     off = system.offsets_m
-    ok = np.isfinite(values)
     if (ok.sum(axis=0) < 16).any() or not v > 0:
         return values.copy()
     lo = max(x[ok[:, i]][0] - off[i] for i in range(n_contacts))
