@@ -234,8 +234,13 @@ def test_fleet_calibration_resumes_from_the_journal(road, tmp_path):
     assert store.reads > 0 and store.resident <= 5
     passes = crashed.aggregator.passes
     assert passes.reads > 0 and passes.resident <= 2 and len(passes) == 4
+    held_a, held_b = ref.profile.segments, crashed.profile.segments
+    assert held_a.keys() == held_b.keys() and held_a
+    for k, seg in held_a.items():
+        assert seg.calib_version == held_b[k].calib_version, k
+        assert np.array_equal(seg.values, held_b[k].values) and np.array_equal(seg.sigma, held_b[k].sigma), k
     sa, sb = ref.profile.snapshot()["R1"], crashed.profile.snapshot()["R1"]
-    # Every segment the two posteriors hold is the same to the bit; their τ is solved warm-started from
+    # Every segment the two posteriors hold is the same to the bit (above); their τ is solved warm-started from
     # each one's previous snapshot to 1e-10, and the two made their snapshots at different moments:
     # ~1e-14 of the profile's scale apart (a segment retracted inexactly would be ≥ 1e-3).
     scale = np.nanstd(sa.elevation_m)
