@@ -26,7 +26,21 @@ means, the run masses absorb the global errors (a 7 % error in ``ks`` moves ever
 while the batch — different masses and speeds over one track — identifies them; the class means of
 ``mv`` and ``Iv`` (known for a route, as in the thesis's blind test) pin the common scale.
 
-Gauss–Newton with Levenberg damping on all 3·n_b + 6 unknowns at once (the normal matrix of the
+Records need not start at rest. The inverse starts the body at rest, right for a record that
+starts in static equilibrium (a logger switched on at a standstill; our simulator's runs) and wrong
+for one that starts mid-motion: the body's free oscillation then rides every AP, and on Table 3.1's
+suspension it decays slowly (bounce 1.16 Hz, pitch 1.4 Hz, ζ ≈ 0.07–0.08: e-folding in ~2 s, 60 m
+at 30 m/s), so no start-up window a 150 m record can spare removes it (dropping the first 0.3–1 s of
+the benchmark's runs took mv's median error from 0.9 % to 5.3 %, Iv's to 7.0 %). Given θ the AP is
+affine in the body's initial state (:data:`BODY0_NAMES`), so each run carries it as a nuisance with
+a weak prior, its Jacobian columns exact from the same forward-mode pass. A free state costs
+information when the record did start at rest (mv 0.9 → 1.4 % on the benchmark), so before the last
+stage each run's fitted state is tested against rest (Wald χ², 4 dof, :data:`REST_CHI2`) and held
+at rest where consistent — a spike-and-slab prior decided per run. A mid-motion record's first
+chainage comes from the log (GNSS speed × time: ~0.3 m off after 0.5 s), so each run also carries a
+chainage shift (prior sd ``position_sd_m``).
+
+Gauss–Newton with Levenberg damping on all 8·n_b + 6 unknowns at once (the normal matrix of the
 profiled consensus has a closed form from per-run blocks, :func:`calibrate_batch`), in stages of
 decreasing shortest wavelength; σ² is re-estimated from the residual with its along-track
 correlation; the Gauss–Newton Hessian at the optimum gives Laplace 95 % intervals, with the global
@@ -35,16 +49,19 @@ properties' uncertainty marginalised.
 Cost (the thesis's CE needs thousands of batch evaluations; this needs tens): the early stages see
 no short waves, so their channels are decimated to ~20 samples per period of the stage's cut-off
 and compared on a coarser grid; the Jacobian is exact, the AP's derivatives in the 8 inverse
-parameters carried through the inverse's recursion in forward mode (:func:`carriage_aps_sensitivities`:
-one pass per run at ~3 inverses' cost, where finite differences took 9 and were only good to their
-step), the speed's column a finite difference of the mapping alone; it is refreshed every third
+parameters and the body's initial state carried through the inverse's recursion in forward mode
+(:func:`carriage_aps_sensitivities`: one pass per run at ~4 inverses' cost, where finite differences
+took 13 and were only good to their step; the state's columns are skipped once every run is held at
+rest), the speed's and shift's columns finite differences of the mapping alone; it is refreshed every third
 accepted step, with chord steps (1 inverse per run) in between; samples past what the window needs
 are not inverted; every trial of every run is one compiled inverse call (:func:`carriage_aps_runs`)
 and one interpolation (:meth:`_Mapper.map_runs`); the stage's low-pass is a compiled zero-phase
 filter of the mapped rows in space (:func:`_sosfiltfilt_rows`; on the channels before the inverse it
 biased the masses, :class:`_Mapper`). Measured on the benchmark's 50-run batch (``python -m
 benchmarks rail``, one BLAS thread, shared machine): 0.22–0.31 s CPU (0.25–0.42 s with the
-low-pass on the channels, which took more iterations), against 0.73 s with finite differences.
+low-pass on the channels, which took more iterations), against 0.73 s with finite differences;
+with the initial state and the shift, 0.44–0.50 s (15 iterations instead of 12, each with 8 unknowns
+per run instead of 3; the records of the same batch started mid-motion, 0.63 s and 24 iterations).
 
 Pure functions on arrays: no I/O, no transport.
 """
@@ -130,6 +147,10 @@ class RunEstimate:
     mean: dict[str, float]
     lo95: dict[str, float]
     hi95: dict[str, float]
+    #: :func:`calibrate_batch`: whether the record was found to start at rest (the body's initial
+    #: state then held at rest), and the Wald statistic of its fitted initial state (χ², 4 dof).
+    started_at_rest: bool | None = None
+    rest_wald: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -363,10 +384,46 @@ INVERSE_GAMMA = 0.5
 _MEASURED = np.arange(2, 6)  # the channels (RailRun order) measure the bogies' DOFs: acc, rate, acc, rate
 _IS_ACC = np.array([True, False, True, False])
 _FREE = np.arange(2)  # the body's bounce and pitch
+#: The body's state at a record's first sample, relative to the bogies' (m, rad, m/s, rad/s). The
+#: inverse's default start at rest is right only for a record that starts at rest; a record that
+#: starts mid-motion leaves the body's free oscillation in every AP, and the body modes decay
+#: slowly: bounce 1.16 Hz, pitch 1.4 Hz at ζ ≈ 0.07–0.08 with Table 3.1's suspension (e-folding
+#: in ~2 s, 60 m at 30 m/s) — no start-up window a 150 m record could spare removes it.
+BODY0_NAMES = ("u", "pitch", "u_dot", "pitch_rate")
+#: :func:`calibrate_batch` carries the initial state in these units (m, rad, m/s, rad/s): ~70× its
+#: posterior sd on the benchmark's batch, as a log unit is ~70× the masses' — the step tolerance
+#: then means the same for both (in mm and mm/s the state's steps never fell below it and the
+#: stages ran out of iterations). Its prior sd (same units as SI): weak, beyond a body's motion on a track.
+BODY0_UNIT = np.array([1e-2, 1e-3, 1e-1, 1e-2])
+BODY0_PRIOR_SD = np.array([0.05, 0.01, 0.2, 0.05])
+#: A run's unknowns in :func:`calibrate_batch`: log mv, log Iv, log v, the chainage shift of its
+#: record (m) and its body's initial state (BODY0_UNIT), in this order.
+N_LOCAL = len(RUN_NAMES) + 1 + len(BODY0_NAMES)
+_I_SHIFT, _I_BODY = len(RUN_NAMES), len(RUN_NAMES) + 1
+CHAINAGE_GAUGE_SD_M = 1e-3  # the runs' mean shift is held to the logs' (:func:`calibrate_batch`), m
+#: The shift's Jacobian column: a central difference of the mapping with this step, m — about a
+#: sample's length at speed, over which the linear interpolation's kinks average out (at 1 mm the
+#: column jumped from kink to kink and Gauss–Newton crawled), ~0.15 % off for the 2 m waves.
+SHIFT_FD_M = 0.03
+#: A run whose fitted initial state is within this of rest (Wald χ², 4 dof: the 99.9 % quantile) is
+#: held at rest (to ``REST_SD``, m, rad, m/s, rad/s: a tight prior, rest as the logger saw it).
+REST_CHI2 = 18.4668
+REST_SD = 1e-7
+N_SENS = 1 + len(INVERSE_NAMES) + len(BODY0_NAMES)  # carriage_aps_sensitivities' rows
+
+
+def _body0(body0: np.ndarray | None, T: int) -> np.ndarray:
+    if body0 is None:
+        return np.zeros((T, len(BODY0_NAMES)))
+    body0 = np.ascontiguousarray(body0, dtype=np.float64)
+    if body0.shape != (T, len(BODY0_NAMES)):
+        raise ValueError(f"body0 must be ({T}, {len(BODY0_NAMES)}), got {body0.shape}")
+    return body0
 
 
 def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: float, z: np.ndarray,
-                      lengths: np.ndarray, dts: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+                      lengths: np.ndarray, dts: np.ndarray, out: np.ndarray | None = None,
+                      body0: np.ndarray | None = None) -> np.ndarray:
     """APs (T, N, 4) under T parameter sets ``theta`` (T, 8) in :data:`INVERSE_NAMES` order, trial t
     on run ``run_of[t]``'s channels ``z`` (R, N, 4) (the first ``lengths[r]`` samples, step
     ``dts[r]``; the rest of its AP is zero). Same result as :func:`cloud.reference.cross_entropy.
@@ -375,7 +432,9 @@ def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: floa
     batch is one compiled call, instead of a ``Carriage`` per trial and a call per run.
 
     ``out``: a (≥ T, 4, N) C-contiguous work array to write into (its first T rows; past a run's
-    length left as they were, not zeroed): a calibration reuses one across its evaluations."""
+    length left as they were, not zeroed): a calibration reuses one across its evaluations.
+    ``body0`` (T, 4): the body's initial state of each trial (:data:`BODY0_NAMES`; default at rest,
+    the batched inverse's start), through :func:`_primal_kernel`."""
     from shared.dynamics.newmark import newmark_constants
 
     theta = np.asarray(theta, dtype=float)
@@ -394,12 +453,91 @@ def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: floa
         out = out[:T]
         if out.shape[1:] != (4, z.shape[1]) or not out.flags.c_contiguous:
             raise ValueError(f"carriage_aps_runs: out must be a C-contiguous (>= {T}, 4, {z.shape[1]}) array")
+    if body0 is not None:
+        _primal_kernel(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.ascontiguousarray(theta[:, 4:6]),
+                       _body0(body0, T), run_of, np.ascontiguousarray(z, dtype=np.float64),
+                       np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta, out)
+        return out.transpose(0, 2, 1)
     # the four contacts are the primary suspensions (kp, cp)
     inverse_runs(np.ascontiguousarray(np.linalg.inv(S)), M, C, K, np.repeat(kp[:, None], 4, axis=1),
                  np.repeat(cp[:, None], 4, axis=1), _MEASURED, _IS_ACC, _FREE, run_of,
                  np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta,
                  out)
     return out.transpose(0, 2, 1)
+
+
+@njit(cache=True)
+def _primal_kernel(Sinv, M, C, K, kpcp, body0, run_of, z, lengths, dts, gamma, beta, out):
+    """:func:`cloud.batched_inverse.inverse_runs` for the carriage (DOFs 2–5 measured, accelerations
+    and pitch rates alternately; 0–1 the body, free; four contacts on kp, cp) with the body started
+    from ``body0[t]`` (u, θ, u̇, θ̇) instead of rest: the same arithmetic (the primal of
+    :func:`_tangent_kernel`). ``out`` (T, 4, N)."""
+    T = M.shape[0]
+    u = np.zeros(6)
+    v = np.zeros(6)
+    a = np.zeros(6)
+    up = np.zeros(6)
+    vp = np.zeros(6)
+    known = np.zeros(6)
+    y = np.zeros(4)
+    yd = np.zeros(4)
+    for t in range(T):
+        r = run_of[t]
+        dt = dts[r]
+        bdt2 = beta * dt * dt
+        gdt = gamma * dt
+        kp, cp = kpcp[t, 0], kpcp[t, 1]
+        u[:] = 0.0
+        v[:] = 0.0
+        a[:] = 0.0
+        y[:] = 0.0
+        yd[:] = 0.0
+        u[0] = body0[t, 0]
+        u[1] = body0[t, 1]
+        v[0] = body0[t, 2]
+        v[1] = body0[t, 3]
+        for c in range(4):
+            out[t, c, 0] = 0.0
+        a[2] = z[r, 0, 0]
+        v[3] = z[r, 0, 1]
+        a[4] = z[r, 0, 2]
+        v[5] = z[r, 0, 3]
+        for k in range(1, lengths[r]):
+            for i in range(6):
+                up[i] = u[i] + dt * v[i] + dt * dt * (0.5 - beta) * a[i]
+                vp[i] = v[i] + dt * (1.0 - gamma) * a[i]
+            for m in range(4):
+                i = 2 + m
+                if m % 2 == 0:
+                    a[i] = z[r, k, m]
+                else:  # a measured rate: the acceleration Newmark's velocity update implies
+                    a[i] = (z[r, k, m] - vp[i]) / gdt
+                u[i] = up[i] + bdt2 * a[i]
+                v[i] = vp[i] + gdt * a[i]
+            for row in range(6):
+                acc = 0.0
+                for i in range(2, 6):
+                    acc += M[t, row, i] * a[i] + C[t, row, i] * v[i] + K[t, row, i] * u[i]
+                for i in range(2):
+                    acc += C[t, row, i] * vp[i] + K[t, row, i] * up[i]
+                known[row] = acc
+            for q in range(6):
+                acc = 0.0
+                for row in range(6):
+                    acc -= Sinv[t, q, row] * known[row]
+                if q < 2:
+                    a[q] = acc
+                    u[q] = up[q] + bdt2 * acc
+                    v[q] = vp[q] + gdt * acc
+                else:
+                    c = q - 2
+                    if cp == 0.0:
+                        y[c] = acc / kp
+                    else:  # kc·y + cc·ẏ = g by the trapezoidal rule
+                        ynew = (acc + cp * (2.0 * y[c] / dt + yd[c])) / (kp + 2.0 * cp / dt)
+                        yd[c] = 2.0 * (ynew - y[c]) / dt - yd[c]
+                        y[c] = ynew
+                    out[t, c, k] = y[c]
 
 
 def _carriage_matrices(theta: np.ndarray, Lb: float, Lv: float):
@@ -424,14 +562,18 @@ def _carriage_matrices(theta: np.ndarray, Lb: float, Lv: float):
 
 
 def carriage_aps_sensitivities(theta: np.ndarray, Lb: float, Lv: float, z: np.ndarray, lengths: np.ndarray,
-                               dts: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """APs and their derivatives in the log parameters: (R, 9, N, 4), [r, 0] the AP of run r's
-    channels ``z[r]`` (the first ``lengths[r]`` samples at step ``dts[r]``) under ``theta[r]``
-    (R, 8; :data:`INVERSE_NAMES` order) exactly as :func:`carriage_aps_runs` gives it, [r, 1 + j]
-    its derivative in log θ_j — forward mode through the same Newmark-β recursion (exact to
-    rounding, no finite-difference step) in one pass per run (:func:`_tangent_kernel`), at ~the
-    cost of 3 of the 9 inverses a one-sided finite-difference Jacobian takes. ``out``: a (≥ R, N, 9,
-    4) C-contiguous work array (past a run's length left as it was)."""
+                               dts: np.ndarray, out: np.ndarray | None = None,
+                               body0: np.ndarray | None = None, body_derivatives: bool = True) -> np.ndarray:
+    """APs and their derivatives: (R, 13, N, 4), [r, 0] the AP of run r's channels ``z[r]`` (the
+    first ``lengths[r]`` samples at step ``dts[r]``) under ``theta[r]`` (R, 8; :data:`INVERSE_NAMES`
+    order) from the body's initial state ``body0[r]`` (:data:`BODY0_NAMES`; default at rest) exactly
+    as :func:`carriage_aps_runs` gives it, [r, 1 + j] its derivative in log θ_j, [r, 9 + j] in
+    body0_j (per m, rad, m/s, rad/s: the free responses, the AP being affine in the initial state) —
+    forward mode through the same Newmark-β recursion (exact to rounding, no finite-difference step)
+    in one pass per run (:func:`_tangent_kernel`), at ~the cost of 4 of the 13 inverses a one-sided
+    finite-difference Jacobian takes. ``out``: a (≥ R, N, 13, 4) C-contiguous work array (past a
+    run's length left as it was). ``body_derivatives=False``: rows 9–12 are not computed (left as
+    they were)."""
     from shared.dynamics.newmark import newmark_constants
 
     theta = np.asarray(theta, dtype=float)
@@ -444,19 +586,19 @@ def carriage_aps_sensitivities(theta: np.ndarray, Lb: float, Lv: float, z: np.nd
                         np.broadcast_to(-G, (R, 6, 4))], axis=2)
     Sinv = np.linalg.inv(S)
     if out is None:
-        out = np.zeros((R, N, 9, 4))  # time-major: a step's 36 values in one piece
+        out = np.zeros((R, N, N_SENS, 4))  # time-major: a step's 52 values in one piece
     else:
         out = out[:R]
-        if out.shape[1:] != (N, 9, 4) or not out.flags.c_contiguous:
-            raise ValueError(f"carriage_aps_sensitivities: out must be a C-contiguous (>= {R}, {N}, 9, 4) array")
+        if out.shape[1:] != (N, N_SENS, 4) or not out.flags.c_contiguous:
+            raise ValueError(f"carriage_aps_sensitivities: out must be a C-contiguous (>= {R}, {N}, {N_SENS}, 4) array")
     _tangent_kernel(Sinv, M, C, K, Sinv @ C[:, :, :2], Sinv @ K[:, :, :2], Sinv @ prim, Sinv @ sec, theta,
-                    np.ascontiguousarray(z, dtype=np.float64), np.asarray(lengths, dtype=np.int64), dts, c.gamma,
-                    c.beta, out)
+                    _body0(body0, R), 12 if body_derivatives else 8, np.ascontiguousarray(z, dtype=np.float64),
+                    np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta, out)
     return out.transpose(0, 2, 1, 3)
 
 
 @njit(cache=True)
-def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, z, lengths, dts, gamma, beta, out):
+def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, nd, z, lengths, dts, gamma, beta, out):
     """The carriage's inverse step (:func:`cloud.batched_inverse.inverse_runs` with the carriage's
     structure: DOFs 2–5 measured, accelerations and pitch rates alternately; 0–1 the body, free;
     four contacts, the primary suspensions kp, cp), one parameter set per run, with the
@@ -466,9 +608,11 @@ def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, z, lengths, dts, gamma
     b_j = θ_j (∂_j M a + ∂_j C v + ∂_j K u) at the step's state — a few entries per parameter
     (mv, Iv, mb, Ib a diagonal entry each; kp, cp the primary pattern ``prim``; ks, cs the
     secondary ``sec``), pre-multiplied by S⁻¹: ``PC``/``PK`` = S⁻¹C/K on the free columns,
-    ``SP``/``SS`` = S⁻¹ prim / S⁻¹ sec."""
+    ``SP``/``SS`` = S⁻¹ prim / S⁻¹ sec. The body starts from ``body0[r]`` (u, θ, u̇, θ̇; its
+    acceleration 0 as the at-rest inverse has it: a wrong start acceleration only moves the state
+    after the first step, within the same free responses); directions 8–11 are the derivatives in
+    it: no right-hand side, unit initial tangents (``nd`` 12; 8 leaves them out, their rows untouched)."""
     R = Sinv.shape[0]
-    nd = 8
     u = np.zeros(6)
     v = np.zeros(6)
     a = np.zeros(6)
@@ -478,15 +622,15 @@ def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, z, lengths, dts, gamma
     known = np.zeros(6)
     y = np.zeros(4)
     yd = np.zeros(4)
-    du = np.zeros((2, nd))
-    dv = np.zeros((2, nd))
-    da = np.zeros((2, nd))
-    dup = np.zeros((2, nd))
-    dvp = np.zeros((2, nd))
-    ds = np.zeros((6, nd))
-    dy = np.zeros((4, nd))
-    dyd = np.zeros((4, nd))
-    dyn = np.zeros(nd)
+    du = np.zeros((2, 12))
+    dv = np.zeros((2, 12))
+    da = np.zeros((2, 12))
+    dup = np.zeros((2, 12))
+    dvp = np.zeros((2, 12))
+    ds = np.zeros((6, 12))
+    dy = np.zeros((4, 12))
+    dyd = np.zeros((4, 12))
+    dyn = np.zeros(12)
     for r in range(R):
         dt = dts[r]
         bdt2 = beta * dt * dt
@@ -505,7 +649,16 @@ def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, z, lengths, dts, gamma
         da[:] = 0.0
         dy[:] = 0.0
         dyd[:] = 0.0
-        for q in range(9):
+        u[0] = body0[r, 0]
+        u[1] = body0[r, 1]
+        v[0] = body0[r, 2]
+        v[1] = body0[r, 3]
+        if nd > 8:
+            du[0, 8] = 1.0
+            du[1, 9] = 1.0
+            dv[0, 10] = 1.0
+            dv[1, 11] = 1.0
+        for q in range(1 + nd):
             for c in range(4):
                 out[r, 0, q, c] = 0.0
         a[2] = z[r, 0, 0]
@@ -565,6 +718,8 @@ def _tangent_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, z, lengths, dts, gamma
                 ds[q, 5] = -cp * sp_v
                 ds[q, 6] = -ks * ss_u
                 ds[q, 7] = -cs * ss_v
+                for j in range(8, nd):
+                    ds[q, j] = 0.0
                 p0 = PC[r, q, 0]
                 p1 = PC[r, q, 1]
                 k0 = PK[r, q, 0]
@@ -634,7 +789,8 @@ def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, 
     return steps[np.argmin(cost, axis=1)]
 
 
-def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1, final_jacobian=True):
+def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1, final_jacobian=True,
+                  max_step=0.2, Q=None):
     """Levenberg-damped Gauss–Newton on ‖e(x)‖²/(2σ²) + ½‖x − μ‖²_P, σ² re-estimated each step;
     converged when the damped step is below ``tol`` (log) in every coordinate (not taken), or
     after ``max_iter`` iterations.
@@ -645,8 +801,11 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_
     intervals use, was taken within :data:`LAPLACE_REUSE_LOG` of the optimum in every coordinate
     — if the J at convergence is older, it is refreshed and the iteration goes on (a chord step's
     gradient is its J's, so its fixed point moves a little with J). Otherwise D is whichever was
-    computed last.
+    computed last. ``max_step``: a step's cap per coordinate (scalar or array); ``Q``: a dense prior
+    precision added to ``diag(P)`` (the chainage gauge of :func:`calibrate_batch`).
     """
+    if Q is None:
+        Q = np.zeros((len(x), len(x)))
     e, D, A = evaluate(x, True)
     x_jac = x
     lam = 1e-3
@@ -657,15 +816,16 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_
     for it in range(1, max_iter + 1):
 
         def neglogpost(e, x):
-            return 0.5 * float((e**2).sum()) / sigma2 + 0.5 * float((((x - mu) ** 2) * P).sum())
+            return 0.5 * float((e**2).sum()) / sigma2 + 0.5 * float((((x - mu) ** 2) * P).sum()) \
+                + 0.5 * float((x - mu) @ Q @ (x - mu))
 
         JtJ, Jte = normal_equations(e, D, JtJ)
-        H = JtJ / sigma2 + np.diag(P)
-        grad = Jte / sigma2 + (x - mu) * P
+        H = JtJ / sigma2 + np.diag(P) + Q
+        grad = Jte / sigma2 + (x - mu) * P + Q @ (x - mu)
         f0 = neglogpost(e, x)
         e_new = A_new = None
         while True:
-            step = np.clip(np.linalg.solve(H + lam * np.diag(np.diag(H)), -grad), -0.2, 0.2)
+            step = np.clip(np.linalg.solve(H + lam * np.diag(np.diag(H)), -grad), -max_step, max_step)
             if np.abs(step).max() < tol:  # converged: a step this small is not worth an evaluation
                 step = None
                 break
@@ -727,6 +887,7 @@ def calibrate_batch(
     final_decimation: int = 1,
     stages_m: Sequence[float] = STAGES_M,
     held_globals_cov: np.ndarray | None = None,
+    position_sd_m: float = 1.0,
 ) -> BatchFit:
     """Run properties of every run of a batch, and the carriage's global properties (module docstring).
 
@@ -767,75 +928,110 @@ def calibrate_batch(
                                               / (r.speed_mps * (1 - slack)) / r.dt)) + 2) for r in runs]
     mapper = stage = None
     n_g = len(GLOBAL_FIT)
-    mu_loc = np.array([[math.log(prior_mean["mv"]), math.log(prior_mean["Iv"]), math.log(r.speed_mps)] for r in runs])
-    s_loc = np.array([prior_sd["mv"] / prior_mean["mv"], prior_sd["Iv"] / prior_mean["Iv"], speed_rel_sd])
+    L = N_LOCAL
+    # per run (N_LOCAL): log mv, log Iv, log v, the record's chainage shift and the body's initial
+    # state (nuisances: the first sample's chainage is the log's, the state a weak prior's)
+    mu_loc = np.zeros((n, L))
+    mu_loc[:, :3] = [[math.log(prior_mean["mv"]), math.log(prior_mean["Iv"]), math.log(r.speed_mps)] for r in runs]
+    s_loc = np.concatenate([[prior_sd["mv"] / prior_mean["mv"], prior_sd["Iv"] / prior_mean["Iv"], speed_rel_sd,
+                             position_sd_m], BODY0_PRIOR_SD / BODY0_UNIT])
     mu_g = np.log([prior_mean[k] for k in GLOBAL_FIT])
     s_g = np.array([max(prior_sd[k] / prior_mean[k], 1e-4) for k in GLOBAL_FIT])
     mu = np.concatenate([mu_loc.ravel(), mu_g])
     P = np.concatenate([np.tile(1.0 / s_loc**2, n), 1.0 / s_g**2])
-    n_par = 3 * n + n_g
+    # a step's cap: the log coordinates' (the misfit is far from quadratic beyond); the initial
+    # state enters linearly
+    max_step = np.concatenate([np.tile(np.r_[np.full(3, 0.2), 1.0, np.full(len(BODY0_NAMES), np.inf)], n),
+                               np.full(n_g, 0.2)])
+    n_par = L * n + n_g
     N = 4 * n
+    # The records' common shift is the chainage's gauge: the consensus follows it, so the data hardly
+    # see it, but drifting it moves the window over the track (on the blind test's healthy profile-2
+    # batch the common mass error went +1.62 → +1.74 %). The logs' mean chainage defines it.
+    gauge = np.zeros(n_par)
+    gauge[_I_SHIFT: L * n: L] = 1.0 / n
+    Q = np.outer(gauge, gauge) / CHAINAGE_GAUGE_SD_M**2
 
     def unpack(x):
-        return x[: 3 * n].reshape(n, 3), x[3 * n:]
+        return x[: L * n].reshape(n, L), x[L * n:]
 
     x0s = np.array([r.x0_m for r in runs])
     h = math.exp(FD_LOG_STEP)
 
     def evaluate(x, with_jac):
-        """Residual e (n, 4, K), Jacobian blocks D (n, 3 + n_g, 4, K) and the mapped APs A."""
+        """Residual e (n, 4, K), Jacobian blocks D (n, L + n_g, 4, K) and the mapped APs A."""
         loc, glob = unpack(x)
-        p = np.exp(loc)  # (n, 3): mv, Iv, v
+        p = np.exp(loc[:, :3])  # (n, 3): mv, Iv, v
+        body0 = loc[:, _I_BODY:] * BODY0_UNIT
+        x0 = x0s + loc[:, _I_SHIFT]
         theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob), (n, n_g))])  # INVERSE_NAMES order
         z, lengths, dts, N_t = stage["z"], stage["lengths"], stage["dts"], stage["z"].shape[1]
         if not with_jac:
             aps = carriage_aps_runs(theta, np.arange(n), fixed["Lb"], fixed["Lv"], z, lengths, dts,
-                                    stage["work"][: n * 4 * N_t].reshape(n, 4, N_t))
-            A = mapper.map_runs(aps[:, None], dts, x0s, p[:, 2:3], lengths, offsets)[:, 0, 0]
+                                    stage["work"][: n * 4 * N_t].reshape(n, 4, N_t), body0=body0)
+            A = mapper.map_runs(aps[:, None], dts, x0, p[:, 2:3], lengths, offsets)[:, 0, 0]
             return A - A.mean(axis=(0, 1)), None, A
         A = np.empty((n, 4, len(mapper.grid)))
-        D = np.empty((n, 3 + n_g) + A.shape[1:])  # ~20 MB at 50 runs, written in place
-        # The AP and its derivatives in mv, Iv and the globals, exact (carriage_aps_sensitivities),
-        # a chunk of runs at a time (a few MB of work array instead of ~40); the speed's column by
-        # a finite difference of the mapping (no inverse).
+        D = np.empty((n, L + n_g) + A.shape[1:])  # ~30 MB at 50 runs, written in place
+        # The AP and its derivatives in mv, Iv, the initial state and the globals, exact
+        # (carriage_aps_sensitivities), a chunk of runs at a time (a few MB of work array instead of
+        # ~60); the speed's and the shift's columns by finite differences of the mapping (no
+        # inverse). Columns of held coordinates (not in ``active``) are not computed.
+        nb = len(BODY0_NAMES)
+        with_body = _I_BODY in active
+        rows = N_SENS if with_body else N_SENS - nb
         for r0 in range(0, n, JACOBIAN_CHUNK_RUNS):
             rs = slice(r0, min(n, r0 + JACOBIAN_CHUNK_RUNS))
             c = rs.stop - r0
             sens = carriage_aps_sensitivities(theta[rs], fixed["Lb"], fixed["Lv"], z[rs], lengths[rs], dts[rs],
-                                              stage["work"][: c * N_t * 36].reshape(c, N_t, 9, 4))
-            args = (dts[rs], x0s[rs])
-            mapped = mapper.map_runs(sens, *args, p[rs, 2:3], lengths[rs], offsets)[:, :, 0]  # (c, 9, 4, K)
+                                              stage["work"][: c * N_t * 4 * N_SENS].reshape(c, N_t, N_SENS, 4),
+                                              body0=body0[rs], body_derivatives=with_body)[:, :rows]
+            args = (dts[rs], x0[rs])
+            mapped = mapper.map_runs(sens, *args, p[rs, 2:3], lengths[rs], offsets)[:, :, 0]  # (c, rows, 4, K)
             A[rs] = mapped[:, 0]
             faster = mapper.map_runs(sens[:, :1], *args, p[rs, 2:3] * h, lengths[rs], offsets)[:, 0, 0]
             D[rs, :2] = mapped[:, 1:3]
             np.subtract(faster, A[rs], out=D[rs, 2])
             D[rs, 2] /= FD_LOG_STEP
-            D[rs, 3:] = mapped[:, 3:]
+            if _I_SHIFT in active:
+                ahead, behind = (mapper.map_runs(sens[:, :1], dts[rs], x0[rs] + d, p[rs, 2:3], lengths[rs],
+                                                 offsets)[:, 0, 0] for d in (SHIFT_FD_M, -SHIFT_FD_M))
+                np.subtract(ahead, behind, out=D[rs, _I_SHIFT])
+                D[rs, _I_SHIFT] /= 2 * SHIFT_FD_M
+            if with_body:
+                np.multiply(mapped[:, 9:9 + nb], BODY0_UNIT[:, None, None], out=D[rs, _I_BODY:_I_BODY + nb])
+            D[rs, L:] = mapped[:, 3:9]
         return A - A.mean(axis=(0, 1)), D, A
 
     def normal_equations(e, D, JtJ=None):
         """JᵀJ and Jᵀe of the profiled consensus residual (J = ∂e/∂x), from the per-run blocks
-        (``JtJ``: the one already formed from this D)."""
+        (``JtJ``: the one already formed from this D), over the ``active`` local coordinates (the
+        held ones' rows and columns zero: their prior holds them)."""
         # Products over (wheel, grid point) as batched matrix products (BLAS), not einsum loops.
-        Dl, Dg = D[:, :3], D[:, 3:]
-        Fl = Dl.reshape(n, 3, -1)
+        k = len(active)
+        Dl, Dg = (D[:, :L] if k == L else D[:, active]), D[:, L:]
+        Fl = Dl.reshape(n, k, -1)
         ev = e.reshape(n, -1, 1)
-        Jte = np.concatenate([(Fl @ ev).ravel(), (Dg.reshape(n, n_g, -1) @ ev).sum(axis=0).ravel()])
+        loc_idx = (np.arange(n)[:, None] * L + active[None]).ravel()
+        Jte = np.zeros(n_par)
+        Jte[loc_idx] = (Fl @ ev).ravel()
+        Jte[L * n:] = (Dg.reshape(n, n_g, -1) @ ev).sum(axis=0).ravel()
         if JtJ is not None:
             return JtJ, Jte
-        g = Dl.sum(axis=2)  # (n, 3, K)
+        g = Dl.sum(axis=2)  # (n, k, K)
         Dgc = Dg - Dg.mean(axis=(0, 2), keepdims=True)  # global columns, consensus removed
         Fg = Dgc.reshape(n, n_g, -1)
-        JtJ = np.zeros((n_par, n_par))
+        g2 = g.reshape(k * n, -1)
+        Jll = (g2 @ g2.T) / -N
         Hl = Fl @ Fl.transpose(0, 2, 1)
         for r in range(n):
-            JtJ[3 * r:3 * r + 3, 3 * r:3 * r + 3] = Hl[r]
-        g2 = g.reshape(3 * n, -1)
-        JtJ[: 3 * n, : 3 * n] -= (g2 @ g2.T) / N
-        cross = (Fl @ Fg.transpose(0, 2, 1)).reshape(3 * n, n_g)
-        JtJ[: 3 * n, 3 * n:] = cross
-        JtJ[3 * n:, : 3 * n] = cross.T
-        JtJ[3 * n:, 3 * n:] = (Fg @ Fg.transpose(0, 2, 1)).sum(axis=0)
+            Jll[k * r:k * r + k, k * r:k * r + k] += Hl[r]
+        JtJ = np.zeros((n_par, n_par))
+        JtJ[np.ix_(loc_idx, loc_idx)] = Jll
+        cross = (Fl @ Fg.transpose(0, 2, 1)).reshape(k * n, n_g)
+        JtJ[loc_idx, L * n:] = cross
+        JtJ[L * n:, loc_idx] = cross.T
+        JtJ[L * n:, L * n:] = (Fg @ Fg.transpose(0, 2, 1)).sum(axis=0)
         return JtJ, Jte
 
     staged = {}
@@ -860,36 +1056,71 @@ def calibrate_batch(
         for r, c in enumerate(chans):
             z[r, : lengths[r]] = c[0]
         return {"z": z, "lengths": lengths, "dts": np.array([c[1] for c in chans]),
-                "work": np.empty(max(4 * n, 36 * JACOBIAN_CHUNK_RUNS) * z.shape[1])}  # chord / Jacobian
+                "work": np.empty(max(4 * n, 4 * N_SENS * JACOBIAN_CHUNK_RUNS) * z.shape[1])}  # chord / Jacobian
 
     def mapper_for(min_wavelength):
         return _Mapper(grid[:: max(1, int(round(min_wavelength / POINTS_PER_WAVELENGTH / GRID_M)))], min_wavelength)
 
     x = mu.copy()
+    at_rest = None
+    body = np.arange(n)[:, None] * L + _I_BODY + np.arange(len(BODY0_NAMES))[None]  # the runs' initial states
     theta0 = np.array([prior_mean[k] for k in INVERSE_NAMES])
-    x[2: 3 * n: 3] += _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
+    x[2: L * n: L] += _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
                                          mapper_for(SPEED_SEARCH_M), slack)
     it = 0
     for i_stage, min_wavelength in enumerate(stages_m):
         last = i_stage == len(stages_m) - 1
         mapper = mapper_for(min_wavelength)
         stage = stage_channels(min_wavelength, final_decimation if last else None)
+        # The records' chainage shifts are fitted in the middle stages only. The first holds them
+        # where the logs put them: with the run properties still at the class means its shifts took
+        # up misfit (~0.5 m steps on exact chainages) and cost iterations, and its waves are long
+        # against a chainage error anyway. The last holds them where the middle one left them
+        # (sd ~3 cm there): at 2 m the linear interpolation's kinks make the misfit rough in a
+        # shift below ~1 cm, and Gauss–Newton's shift steps were rejected over and over.
+        hold_shift = len(stages_m) > 1 and (i_stage == 0 or (last and len(stages_m) > 2))
+        P[_I_SHIFT: L * n: L] = 1.0 / (REST_SD if hold_shift else position_sd_m) ** 2
+        mu[_I_SHIFT: L * n: L] = x[_I_SHIFT: L * n: L] if hold_shift else 0.0
+        active = np.array([j for j in range(L) if not (hold_shift and j == _I_SHIFT)
+                           and not (j >= _I_BODY and at_rest is not None and at_rest.all())])
         x, e, D, A, sigma2, kappa, n_it = _gauss_newton(evaluate, normal_equations, x, mu, P,
                                                          max_iter if last else 8,
-                                                         tol if last else max(tol, STAGE_TOL_LOG), jacobian_every, last)
+                                                         tol if last else max(tol, STAGE_TOL_LOG), jacobian_every, last,
+                                                         max_step, Q)
         it += n_it
+        if i_stage == max(0, len(stages_m) - 2):
+            # Did each run start at rest? Its body's fitted initial state against its marginal
+            # covariance (a Wald statistic, χ² with 4 dof if it did), decided before the last stage
+            # (which then runs once): a record consistent with rest is held at rest — the data then
+            # carry the information a free start spends on the state (module docstring).
+            JtJ, _ = normal_equations(e, D)
+            cov = np.linalg.inv(JtJ / sigma2 + np.diag(P) + Q)
+            wald = np.array([x[b] @ np.linalg.solve(cov[np.ix_(b, b)], x[b]) for b in body])
+            at_rest = wald < REST_CHI2
+            held = body[at_rest].ravel()
+            # the posterior mean given the held states at rest (Gaussian conditioning at this
+            # linearisation): the next stage starts where holding them moves the runs, not at a jump
+            x = x - cov[:, held] @ np.linalg.solve(cov[np.ix_(held, held)], x[held])
+            x[held] = 0.0
+            P[held] = np.tile(1.0 / (REST_SD / BODY0_UNIT) ** 2, int(at_rest.sum()))
+            if last and at_rest.any():  # a one-stage fit: go on from here
+                if at_rest.all():
+                    active = active[active < _I_BODY]
+                x, e, D, A, sigma2, kappa, n_it = _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol,
+                                                                 jacobian_every, True, max_step, Q)
+                it += n_it
     JtJ, _ = normal_equations(e, D)
-    H = JtJ / sigma2 + np.diag(P)
+    H = JtJ / sigma2 + np.diag(P) + Q
     cov = np.linalg.inv(H)
     if held_globals_cov is not None:
         # The runs' estimates given the held globals, plus the held values' error propagated through
         # their sensitivity to them: Σ_loc = H_ll⁻¹ + S Σ_g Sᵀ with S = −H_ll⁻¹ H_lg.
-        c_ll = np.linalg.inv(H[: 3 * n, : 3 * n])
-        S = -c_ll @ H[: 3 * n, 3 * n:]
-        cov[: 3 * n, : 3 * n] = c_ll + S @ np.asarray(held_globals_cov, dtype=float) @ S.T
+        c_ll = np.linalg.inv(H[: L * n, : L * n])
+        S = -c_ll @ H[: L * n, L * n:]
+        cov[: L * n, : L * n] = c_ll + S @ np.asarray(held_globals_cov, dtype=float) @ S.T
     sd = np.sqrt(np.diag(cov))
     loc, glob = unpack(x)
-    sd_loc = sd[: 3 * n].reshape(n, 3)
+    sd_loc = sd[: L * n].reshape(n, L)[:, :3].copy()
     # The speed is measured against the bogie spacing 2·Lv (module docstring): its relative error
     # moves every run's speed alike, outside the data's reach.
     sd_loc[:, 2] = np.hypot(sd_loc[:, 2], prior_sd["Lv"] / prior_mean["Lv"])
@@ -898,10 +1129,10 @@ def calibrate_batch(
         mean = {k: float(math.exp(loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         lo = {k: float(math.exp(loc[r, j] - Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         hi = {k: float(math.exp(loc[r, j] + Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
-        estimates.append(RunEstimate(run.pass_id, mean, lo, hi))
+        estimates.append(RunEstimate(run.pass_id, mean, lo, hi, bool(at_rest[r]), float(wald[r])))
     globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT)}
     return BatchFit(estimates, globals_fit, mapper.grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
-                    time.perf_counter() - t_start, cov[3 * n:, 3 * n:].copy())
+                    time.perf_counter() - t_start, cov[L * n:, L * n:].copy())
 
 
 # ---------------------------------------------------------------------------------------------
