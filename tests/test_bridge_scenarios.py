@@ -94,6 +94,21 @@ def test_estimate_rows_follow_the_export_contract(name):
     json.dumps(e.summary_row())
 
 
+def test_the_per_pass_deflections_the_estimate_read_are_exposed():
+    """``BridgeEstimate.pass_deflections``: one drift-controlled deflection per pass on the span
+    points (what a reference method is to be given), and the per-pass MR-IL is their mean over the
+    passes' wheel loads."""
+    e, _ = estimate("bridge-healthy")
+    d = e.pass_deflections
+    assert len(d.keys) == len(set(d.keys)) == e.n_passes == len(d.deflection_m) == len(d.loads_n)
+    assert all(v.shape == d.x_m.shape for v in d.deflection_m)
+    assert d.x_m[0] >= 0.0 and d.x_m[-1] <= e.bridge.span_m
+    J = np.mean([v / w for v, w in zip(d.deflection_m, d.loads_n)], axis=0)
+    np.testing.assert_allclose(e.mril_passes.J, J, rtol=1e-12)
+    mid = np.argmin(np.abs(d.x_m - 0.5 * e.bridge.span_m))  # down positive, about the design's 0.18 mm
+    assert 0.1e-3 < np.median([v[mid] for v in d.deflection_m]) < 0.3e-3
+
+
 def test_stiff_bearings_are_read_from_the_effective_stiffness_and_the_as_built_tolerance():
     """Issue: log10 Krot within ±0.3 and mean stiffness within ±2 points; stiff bearings told apart
     from pinned ones. The passes fix the effective stiffness (truth: 2.16× the pinned span's), and

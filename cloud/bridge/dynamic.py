@@ -35,7 +35,7 @@ from shared.fe.beam import Beam, BeamSystem, assemble, influence_line, moving_lo
 
 from .passdata import PassData, Window
 from .static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, WhitenedPass, design_beam,
-                     fit_elements, marginal_loglik_batch, vehicle_stats)
+                     fit_elements, fit_elements_per_scale, marginal_loglik_batch, mix_scales, vehicle_stats)
 
 SUBSTEPS = 2  # beam time steps per grid point
 #: The dynamic excess is computed at global levels on this grid (log ratio): a live estimator's
@@ -253,11 +253,15 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
         level = profile_global_level(passes, setup, weight_prior, model, start=g, cache=cache, post=post)
         lin = _uniform_linearisation(model, round(level.log_ratio / LEVEL_GRID) * LEVEL_GRID, post)
         deltas = dynamic_deltas(passes, setup, lin, cache)
-        new = fit_elements(vehicle_stats(passes, deltas), model, weight_prior, theta0=lin)
+        fits = fit_elements_per_scale(vehicle_stats(passes, deltas), model, weight_prior, theta0=lin)
+        new = mix_scales(fits, model.prior)
         done = post is None or abs(level.log_ratio - g) < tol
         g, post = level.log_ratio, new
         if done:
             break
     history.append(post)
-    final = recentre(post, model, level) if model.n == model.n_elements else post
+    # Each departure scale's fit is recentred on the level before they are mixed: the mixture's
+    # covariance carries the spread between the fits, which is not the level's uncertainty.
+    final = (mix_scales([recentre(f, model, level) for f in fits], model.prior)
+             if model.n == model.n_elements else post)
     return DynamicFit(final, tuple(history), deltas, level.ratio, lin, level)

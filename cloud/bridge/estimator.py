@@ -97,6 +97,21 @@ def class_weight_prior(site: Site, model: str) -> WeightPrior:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class PassDeflections:
+    """Each pass's drift-controlled deflection under its wheel as the estimate read it: on the span
+    points ``x_m`` (m from the first support), down positive (m), with the bridge's own dynamics (the
+    moving-force excess at the posterior's wheel load) taken out; ``loads_n`` the pass's posterior
+    static wheel load (N); ``keys`` (vehicle, pass). What the per-pass MR-IL averages
+    (:attr:`BridgeEstimate.mril_passes`: deflection over load), and what a reference method given
+    "the passes' deflections" should be given."""
+
+    x_m: np.ndarray
+    keys: tuple[tuple[str, str], ...]
+    deflection_m: tuple[np.ndarray, ...]
+    loads_n: tuple[float, ...]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class BridgeEstimate:
     """Everything the cloud reports about one bridge (interfaces.md §3 rows via the methods)."""
 
@@ -109,6 +124,7 @@ class BridgeEstimate:
     n_passes: int
     level: GlobalLevel | None = None  # the dynamic model's profile-likelihood global level
     mril_passes: MrIl | None = None  # the thesis's per-pass MR-IL (quasi-static reading), for comparison
+    pass_deflections: PassDeflections | None = None  # what ``mril_passes`` was read from
 
     def element_rows(self) -> list[dict]:
         return self.posterior.rows(self.bridge.id)
@@ -228,10 +244,12 @@ class BridgeEstimator:
         # ``mril_passes``: at 2 % noise its per-pass drift control leaves errors of tens of per cent
         # in its area (measured: D2 = −14 % on the healthy bridge, −68 % at a 10 % loss, 30 passes).
         mril = MrIl(self.setup.basis.x, self.model.influence(post.params), len(entries))
-        mril_passes = self._mril(entries, wps, ref, post, deltas)
+        pass_deflections = self._pass_deflections(entries, wps, ref, post, deltas)
+        mril_passes = mril_single_axle(pass_deflections.x_m, pass_deflections.deflection_m, pass_deflections.loads_n)
         self.baseline.offer(mril)
         indicators = damage_indicators(self.baseline.mril, mril) if self.baseline.ready else None
-        return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes)
+        return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes,
+                              pass_deflections)
 
     def _common(self, entries: list[_PassEntry]) -> tuple[tuple[str, float], ...] | None:
         """(name, prior log-sd) of the fleet-common calibration error's coordinates, or None."""
@@ -324,10 +342,12 @@ class BridgeEstimator:
     def _excess(self, e: "_PassEntry") -> np.ndarray | None:
         return self._cache.get((e.data.vehicle_id, e.data.pass_id, getattr(self, "_current", None)))
 
-    def _mril(self, entries: list[_PassEntry], wps, ref: Reference, post: ElementPosterior, dyn) -> MrIl:
-        """The fleet's fundamental MR-IL: each pass's drift-controlled deflection over its estimated
-        wheel load (single-axle vehicles), less the bridge's own dynamics (the moving-force excess
-        W·ε_p of the dynamic model, where the thesis low-passes the mean MR-IL instead)."""
+    def _pass_deflections(self, entries: list[_PassEntry], wps, ref: Reference, post: ElementPosterior,
+                          dyn) -> PassDeflections:
+        """Each pass's drift-controlled deflection and estimated wheel load (single-axle vehicles),
+        less the bridge's own dynamics (the moving-force excess W·ε_p of the dynamic model, where
+        the thesis low-passes the mean MR-IL instead): the fleet's fundamental MR-IL is their ratio,
+        averaged (:func:`~cloud.bridge.mril.mril_single_axle`)."""
         deltas, loads = [], []
         x = None
         window, deck = self.setup.window, self.settings.deck
@@ -344,5 +364,6 @@ class BridgeEstimator:
             x = sp.x_m
             dyn_part = 0.0 if excess is None else weight * excess[window.on_span]
             deltas.append(-sp.y_m - dyn_part)
-            loads.append(weight)
-        return mril_single_axle(x, deltas, loads)
+            loads.append(float(weight))
+        keys = tuple((e.data.vehicle_id, e.data.pass_id) for e in entries)
+        return PassDeflections(np.asarray(x, dtype=float), keys, tuple(deltas), tuple(loads))
