@@ -16,7 +16,7 @@ import pickle
 from pathlib import Path
 
 from shared.registry import Site
-from shared.schema import Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
+from shared.schema import LEGACY_SAMPLE_INTERVAL_S, Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
 
 from .estimators.base import Estimator
 from .segment_store import SegmentStore
@@ -60,6 +60,7 @@ class PassState:
     slots: set = dataclasses.field(default_factory=set)  # the pass's keys in Aggregator.segments
     refused: set = dataclasses.field(default_factory=set)  # seqs rejected as implausible (still counted)
     params: dict | None = None  # the vehicle parameters the edge computed the pass with (its pass-done says)
+    sample_interval_s: float = LEGACY_SAMPLE_INTERVAL_S  # s: the step the edge inverted the pass at (ditto)
     done_payload: bytes | None = None  # the accepted pass-done, as received (the journal's compaction keeps it)
     times_acked: int = 0  # acknowledgements so far (1: its first; more: recomputed under new calibrations)
 
@@ -233,6 +234,7 @@ class Aggregator:
         self.models.add(ps.model)
         ps.done_payload = bytes(payload)
         ps.params = dict(done.params) if done.params is not None else None
+        ps.sample_interval_s = done.sample_interval_s
         return self._maybe_ack(done.vehicle_id, done.pass_id)
 
     def repeat_ack(self, payload: bytes) -> Ack | None:

@@ -62,7 +62,10 @@ REFERENCE = {
     "bogie_half_car": ("ms", ("D1", "D2")),
 }
 
-REMAP_DT = 0.002  # s: the time grid of the remap (the logger rate; the filter barely depends on it)
+#: s: the time grid of the remap where it is a free choice (continuous-time APs; the filter barely
+#: depends on it), and the edge's sample interval where a pass does not say (a 500 Hz logger's).
+#: Where the remap re-runs or undoes the edge's inverse it uses the pass's own (:attr:`PassAp.dt_s`).
+REMAP_DT = 0.002
 #: Newmark γ of the remap's inverse under candidate parameters. The channels are reconstructed
 #: with the edge's γ = 0.8 (exactly what the edge inverted), but γ = 0.8's numerical damping
 #: at a half-car's wheel hop (~10 Hz) biases what the fleet agrees on by ~10 % in the axle
@@ -163,6 +166,9 @@ class PassAp:
     spacing_m: float
     values: np.ndarray  # (n_points, n_contacts)
     speed_mps: float
+    #: s: the sample interval the edge inverted the pass at (its pass-done says; the Newmark transfer
+    #: of the edge's inverse depends on it: undone at 2 ms, a 1 ms pass's AP came out worse than sent)
+    dt_s: float = REMAP_DT
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,7 +216,7 @@ def _lowpass_grid(values: np.ndarray, spacing_m: float, cutoff_cpm: float) -> np
 
 
 def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, scale: np.ndarray,
-                         gamma: float | None = None) -> np.ndarray:
+                         gamma: float | None = None, dt: float = REMAP_DT) -> np.ndarray:
     """Orthonormal basis (n_samples − skip) · n_channels × 2 n_dof of the channels' free responses of
     the ``params0`` vehicle from a unit displacement or velocity of each degree of freedom, at Newmark
     ``gamma`` (default the edge's), in the units of :meth:`PassRemap.residual`: what a wrong start
@@ -223,7 +229,7 @@ def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, s
         e = np.zeros(n_dof)
         e[d] = 1.0
         for u0, v0 in ((e, None), (np.zeros(n_dof), e)):
-            free = _forward_channels(system, zero, REMAP_DT, edge_gamma(model) if gamma is None else gamma,
+            free = _forward_channels(system, zero, dt, edge_gamma(model) if gamma is None else gamma,
                                      u0=u0, v0=v0)
             cols.append((free[skip:] / scale).ravel())
     A = np.stack(cols, axis=1)
@@ -247,7 +253,9 @@ class PassChannels:
     so a coefficient of 1 is a typical start), which the solver adds with unknown coefficients.
     """
 
-    def __init__(self, model: str, params0: dict, ap: PassAp, dt: float = REMAP_DT):
+    def __init__(self, model: str, params0: dict, ap: PassAp, dt: float | None = None):
+        # the edge's step by default: the channels are reconstructed exactly as the edge inverted
+        dt = ap.dt_s if dt is None else dt
         self.model, self.dt = model, dt
         self.start_index, self.spacing_m = ap.start_index, ap.spacing_m
         values = np.asarray(ap.values, float)
@@ -428,13 +436,15 @@ def fit_fleet(model: str, vehicles: list[tuple[dict, list[PassAp]]],
 
     cache: dict = {}
 
-    def inverse_of(v, theta_v):
-        key = (v, theta_v.tobytes())
+    n_dt = len({pc.dt for pc in passes})
+
+    def inverse_of(v, theta_v, dt):
+        key = (v, theta_v.tobytes(), dt)
         if key not in cache:
-            if len(cache) > 4 * V * (P + 1):
+            if len(cache) > 4 * V * (P + 1) * n_dt:
                 cache.clear()
             params = from_calibration(model, dict(zip(names, np.exp(theta_v))), vehicles[v][0][ref_name])
-            cache[key] = build_inverse(vehicle_from_params(model, params).system(), passes[0].dt, gamma=REMAP_GAMMA)
+            cache[key] = build_inverse(vehicle_from_params(model, params).system(), dt, gamma=REMAP_GAMMA)
         return cache[key]
 
     def evaluate(x, with_jac):
@@ -443,10 +453,10 @@ def fit_fleet(model: str, vehicles: list[tuple[dict, list[PassAp]]],
         jac: list = []
         for v in range(V):
             tv = x[v * P : (v + 1) * P]
-            inv = inverse_of(v, tv)
-            pert = [inverse_of(v, tv + FD_STEP * np.eye(P)[j]) for j in range(P)] if with_jac else []
             for p in (p for p in range(len(passes)) if owner[p] == v):
                 pc = passes[p]
+                inv = inverse_of(v, tv, pc.dt)  # (at the pass's own step: its logger's rate)
+                pert = [inverse_of(v, tv + FD_STEP * np.eye(P)[j], pc.dt) for j in range(P)] if with_jac else []
                 s = x[free_at[p] : free_at[p + 1]]
                 z = pc.z + sum(sj * f for sj, f in zip(s, pc.free))
                 a = pc.start_index - g0
@@ -553,10 +563,11 @@ def _autocorrelation_time(r: np.ndarray, max_lag: int = 200) -> float:
     return float(max(1.0, 1.0 + 2.0 * acf[1:k].sum()))
 
 
-def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray, gamma: float | None = None) -> np.ndarray:
+def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray, gamma: float | None = None,
+                         dt: float = REMAP_DT) -> np.ndarray:
     system = vehicle_from_params(model, params).system()
-    # default the edge's γ: the round trip is exact
-    c = newmark_constants(REMAP_DT, edge_gamma(model) if gamma is None else gamma)
+    # default the edge's γ: the round trip is exact (at the edge's step ``dt``)
+    c = newmark_constants(dt, edge_gamma(model) if gamma is None else gamma)
     force = (ap_t * system.kc) @ system.G.T
     u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
     return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
@@ -641,7 +652,7 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
     f = v * kappa
     fade = np.clip((1.5 * cutoff_hz - f) / (0.5 * cutoff_hz), 0.0, 1.0)
     use = np.flatnonzero((f > 0) & (fade > 0))
-    H = newmark_transfer(system, f[use], REMAP_DT, edge_gamma(model))
+    H = newmark_transfer(system, f[use], ap.dt_s, edge_gamma(model))  # the edge's step, not the grid's
     T = continuous_transfer(system, f[use])
     if n_contacts == 1:  # (a sprung mass, a quarter-car: scalars, no shifts)
         spec[use, 0] *= 1.0 + fade[use] * (H[:, 0, 0] / T[:, 0, 0] - 1.0)
@@ -705,7 +716,7 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
     use = (f > 0) & (fade > 0)
     eye = np.eye(n_contacts)
     corr = np.broadcast_to(eye, (f.size, n_contacts, n_contacts)).astype(complex)
-    H = newmark_transfer(system, f[use], REMAP_DT, edge_gamma(model))
+    H = newmark_transfer(system, f[use], ap.dt_s, edge_gamma(model))  # the edge's step, not the grid's
     T = continuous_transfer(system, f[use])
     corr[use] = eye + fade[use, None, None] * (np.linalg.solve(T, H) - eye)
     fixed = np.fft.irfft(np.einsum("fij,fj->fi", corr, spec), n_fft, axis=0)[: t.size] + trend
@@ -725,6 +736,14 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
 #: measured with zero-padded rather than mirrored pass ends) and seed 1's Cs1/ms reached 16.7 %,
 #: though every seed's worst ratio otherwise improved (0: 7.1 → 5.2 %, 2: 7.3 → 6.5 %). They keep the
 #: corrected consensus in their vehicle step only (cloud.fleet_calibration.CONTINUOUS_CONSENSUS).
+#: Why worse (seed 0, true parameters): not the correction — each pass's corrected AP is closer to the
+#: road in every band (axle 1, 1–2 m 31 → 26 %, 2–5 m 5.6 → 2.7 %). The fusion over-shrinks half-car
+#: passes at 1–5 m (posterior gain 0.61 at 1–2 m, 0.89 at 2–5 m, where 6 passes × 2 axles of that
+#: accuracy warrant ~1.0): their edge error model is 10–600× too large in sd at 1–8 m (edge.error_model's
+#: unit spectra are gridded by plain interpolation, whose aliasing of the pitch-rate noise leaves a flat
+#: floor there that the alias-free AP does not have). The uncorrected AP's gain error, +2–7 % at 1–5 m,
+#: had been offsetting part of that shrinkage. Learnt τ (+8 % on corrected data) adds 0.3 points,
+#: cross-axle mixing of the correction 0.2. Fix the error model first.
 CONTINUOUS_MODELS = frozenset({"quarter_car"})
 #: Points weighted down this much or more (the edge's σ × 100: invalid points, zeroed, and the
 #: inverse's warm-up) are holes for the correction (bridged, and kept as sent): a filter would spread them.
@@ -750,9 +769,11 @@ def pass_speed(segs: list[ApSegment]) -> float:
     return dx / dt if dt > 0 and dx > 0 else segs[0].speed_mps
 
 
-def continuous_segments(model: str, params: dict, segs: list[ApSegment]) -> list[ApSegment]:
+def continuous_segments(model: str, params: dict, segs: list[ApSegment],
+                        dt_s: float = REMAP_DT) -> list[ApSegment]:
     """One pass's segments (all axles) as continuous-time APs (:func:`continuous_ap` under the
-    vehicle's ``params``), same identities, sigma and error model, in the order given.
+    vehicle's ``params``, the edge having inverted at ``dt_s``), same identities, sigma and error
+    model, in the order given.
 
     Why: the edge's inverse runs Newmark at γ > ½ for stability, and its AP carries that scheme's
     gain and phase error against the road (a quarter-car at γ 0.6: +2.5–3 % at 0.5–2 m, 20 m/s; a
@@ -768,7 +789,7 @@ def continuous_segments(model: str, params: dict, segs: list[ApSegment]) -> list
         sigma = np.asarray(s.sigma)
         hole = sigma >= _HOLE_WEIGHT * floor
         vals[s.start_index - lo : s.end_index - lo, s.axle - 1][hole] = np.nan
-    fixed = continuous_ap(model, params, PassAp(lo, segs[0].spacing_m, vals, pass_speed(segs)))
+    fixed = continuous_ap(model, params, PassAp(lo, segs[0].spacing_m, vals, pass_speed(segs), dt_s))
     out = []
     for s in segs:
         v = fixed[s.start_index - lo : s.end_index - lo, s.axle - 1]
@@ -803,7 +824,10 @@ class PassRemap:
         # every contact is on the valid data (a half-car's rear axle reaches a bump a wheelbase later).
         off = np.zeros(n_contacts) if offsets_m is None else np.asarray(offsets_m, dtype=float)
         x0, x1 = x[valid][0] - off.min(), x[valid][-1] - off.max()
-        xt = np.arange(x0, x1, ap.speed_mps * REMAP_DT)
+        # The step: the edge's where the channels are reconstructed as the edge inverted them; for a
+        # continuous-time AP a free choice (reconstruction and prediction share it), kept at REMAP_DT.
+        self.dt = REMAP_DT if ap_gamma is not None else ap.dt_s
+        xt = np.arange(x0, x1, ap.speed_mps * self.dt)
         vals = np.where(np.isfinite(ap.values), ap.values, 0.0)
         cons = np.where(np.isfinite(consensus), consensus, 0.0)
         self.settings = REMAP_SETTINGS.get(model, RemapSettings())
@@ -817,16 +841,16 @@ class PassRemap:
             vals, cons = (_lowpass_grid(a, ap.spacing_m, self.settings.lowpass_cpm) for a in (ap.values, consensus))
         ap_t = np.stack([np.interp(xt + off[i], x, vals[:, i]) for i in range(n_contacts)], axis=1)
         self.profile_t = np.stack([np.interp(xt + off[i], x, cons[:, i]) for i in range(n_contacts)], axis=1)
-        self.z = _forward_channels_at(model, params0, ap_t, self.ap_gamma)
-        self.skip = int(self.WARMUP_S / REMAP_DT)
+        self.z = _forward_channels_at(model, params0, ap_t, self.ap_gamma, self.dt)
+        self.skip = int(self.WARMUP_S / self.dt)
         self.n = max(self.z.shape[0] - self.skip, 0)
         self.scale = np.std(self.z[self.skip:], axis=0) + 1e-12  # channels in comparable units
         self.start_basis = (_free_response_basis(model, params0, self.z.shape[0], self.skip, self.scale,
-                                                 self.ap_gamma)
+                                                 self.ap_gamma, self.dt)
                             if self.settings.free_start else None)
 
     def residual(self, params: dict) -> np.ndarray:
-        pred = _forward_channels_at(self.model, params, self.profile_t, self.predict_gamma)
+        pred = _forward_channels_at(self.model, params, self.profile_t, self.predict_gamma, self.dt)
         r = ((pred - self.z)[self.skip:] / self.scale).ravel()
         if self.start_basis is not None:  # the unknown start state, profiled out
             r = r - self.start_basis @ (self.start_basis.T @ r)

@@ -51,7 +51,7 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from .calibration import (CONTINUOUS_MODELS, REFERENCE, PassAp, VehicleFit, calibration_names, class_prior,
+from .calibration import (CONTINUOUS_MODELS, REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior,
                           continuous_ap_resampled, fit_fleet, fit_vehicle, from_calibration, pass_speed, pass_values,
                           to_calibration)
 
@@ -129,6 +129,9 @@ class FleetCalibrator:
         #: (the cloud corrected them, cloud.node): the vehicle step then reconstructs and predicts
         #: at γ ½ (:class:`cloud.calibration.PassRemap`) and needs no corrected copy of the consensus.
         self.continuous_aps = False
+        #: (vehicle, pass) → the sample interval (s) the edge inverted the pass at (its pass-done; the
+        #: daemon sets this before a round, as it sets ``estimator``); a pass not here was a 500 Hz log's.
+        self.sample_intervals: dict[tuple[str, str], float] = {}
 
     # -- durable state (cloud/durable.py journals it after every round) ---------------------------
     def state(self) -> dict:
@@ -217,7 +220,7 @@ class FleetCalibrator:
             st = self.vehicles.get(vid)
             if st is None or st.model not in REFERENCE:
                 continue
-            items = self._passes(segs)
+            items = self._passes(segs, self.sample_intervals)
             if items:
                 by_model.setdefault(st.model, []).append((vid, items))
         self.rounds += 1
@@ -388,8 +391,12 @@ class FleetCalibrator:
             relax[j] = 0.0 if g <= MIN_CONTRACTION else self.relax
         return relax
 
+    def _dt(self, seg: ApSegment) -> float:
+        """The sample interval (s) of ``seg``'s pass at the edge."""
+        return self.sample_intervals.get((seg.vehicle_id, seg.pass_id), REMAP_DT)
+
     @staticmethod
-    def _passes(segs: list[ApSegment]) -> list[PassAp]:
+    def _passes(segs: list[ApSegment], sample_intervals: dict | None = None) -> list[PassAp]:
         """A vehicle's held segments as one :class:`PassAp` per pass (all axles, its grid slice)."""
         passes: dict[str, list[ApSegment]] = {}
         for s in segs:
@@ -400,7 +407,8 @@ class FleetCalibrator:
             lo, vals = pass_values(ss, n_axles)
             if (np.isfinite(vals).sum(axis=0) < 200).any():
                 continue
-            items.append(PassAp(lo, ss[0].spacing_m, vals, pass_speed(ss)))
+            dt = (sample_intervals or {}).get((ss[0].vehicle_id, ss[0].pass_id), REMAP_DT)
+            items.append(PassAp(lo, ss[0].spacing_m, vals, pass_speed(ss), dt))
         return items
 
     def _continuous(self, model: str) -> bool:
@@ -424,7 +432,7 @@ class FleetCalibrator:
                 lo, vals = pass_values(ss, n_axles)
                 try:  # (the first, resampled correction: what the half-car's settings were tuned on)
                     fixed = continuous_ap_resampled(model, st.params, PassAp(lo, ss[0].spacing_m, vals,
-                                                                             ss[0].speed_mps))
+                                                                             ss[0].speed_mps, self._dt(ss[0])))
                 except (ValueError, np.linalg.LinAlgError) as e:
                     log.warning("continuous AP failed for %s: %s", vid, e)
                     fixed = vals
@@ -475,7 +483,8 @@ class FleetCalibrator:
             if np.isfinite(cons).sum() < 200 or np.isfinite(vals).all(axis=1).sum() < 200:
                 continue
             # The consensus under each axle: the same route profile, seen at each axle's position.
-            items.append((PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps), np.repeat(cons[:, None], n_axles, 1)))
+            items.append((PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps, self._dt(ss[0])),
+                          np.repeat(cons[:, None], n_axles, 1)))
         if not items:
             return None
         cls = self.site.vehicle_class(st.model)

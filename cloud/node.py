@@ -252,7 +252,7 @@ class Cloud:
         if not slots or params is None:
             return None
         try:
-            fixed = continuous_segments(ps.model, params, [agg.held[sl] for sl in slots])
+            fixed = continuous_segments(ps.model, params, [agg.held[sl] for sl in slots], ps.sample_interval_s)
         except (ValueError, np.linalg.LinAlgError) as e:
             log.warning("continuous-time AP of %s/%s failed: %s", key[0], key[1], e)
             return None
@@ -593,6 +593,9 @@ class Cloud:
         if self.shard is not None:  # the others' vehicles inform the consensus; their owners calibrate them
             segs = {sl: seg for sl, seg in segs.items() if self.owns(seg.vehicle_id)}
         c.estimator = consensus
+        # each round pass's sample interval at the edge (its pass-done's), for the models of the passes
+        c.sample_intervals = {key: ps.sample_interval_s for key in {(s.vehicle_id, s.pass_id) for s in segs.values()}
+                              if (ps := self.aggregator.passes.get(key)) is not None}
         try:
             cals = c.round(segs)
         finally:

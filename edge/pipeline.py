@@ -426,7 +426,7 @@ class PassProcessor:
         self.finished = True
         done = PassDone(vehicle_id=self.vehicle_id, pass_id=self.pass_id, route_id=self.route_id,
                         calib_version=self.calib_version, n_segments=self.seq,
-                        vehicle_model=self.model_name)
+                        vehicle_model=self.model_name, sample_interval_s=self.model.constants.dt)
         return segments, done
 
     def _add_differences(self, z: np.ndarray, t: np.ndarray) -> None:

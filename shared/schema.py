@@ -1146,6 +1146,10 @@ def decode_ap(payload: bytes) -> list[ApSegment]:
     raise DecodeError("wrong_kind", f"expected {ApSegment.KIND} or {ApBatch.KIND}, got {kind}")
 
 
+#: s: the sample interval of a pass-done that does not say (the logger's original 500 Hz).
+LEGACY_SAMPLE_INTERVAL_S = 0.002
+
+
 @dataclass(frozen=True, eq=False)
 class PassDone(_Message):
     """The edge's end-of-pass marker: segments ``0 .. n_segments-1`` of the pass were
@@ -1162,6 +1166,10 @@ class PassDone(_Message):
     # Optional (v1.2): the vehicle parameters the edge computed the pass with (e.g. a log's nominal
     # ones under ``--calibration nominal``), so the cloud's models of the pass use the same vehicle.
     params: Mapping[str, float] | None = None
+    # Optional (v1.3): the sample interval (s) the edge inverted the pass at (1 / the log's
+    # sample_rate_hz); the cloud's models of the pass undo or re-run that inverse at this step.
+    # A message without it was made at the logger's original 500 Hz.
+    sample_interval_s: float = LEGACY_SAMPLE_INTERVAL_S
 
     def __post_init__(self) -> None:
         _id("vehicle_id", self.vehicle_id)
@@ -1171,6 +1179,8 @@ class PassDone(_Message):
         _id("route_id", self.route_id)
         object.__setattr__(self, "calib_version", _int("calib_version", self.calib_version, 0, MAX_INT32))
         object.__setattr__(self, "n_segments", _int("n_segments", self.n_segments, 0, MAX_INT32))
+        object.__setattr__(self, "sample_interval_s",
+                           _float("sample_interval_s", self.sample_interval_s, 0.0, 1.0, lo_open=True))
         if self.vehicle_model and _text("vehicle_model", self.vehicle_model) not in VEHICLE_MODELS:
             _fail("bad_value", f"vehicle_model {self.vehicle_model!r} not in {sorted(VEHICLE_MODELS)}")
         if self.params is not None:
@@ -1188,6 +1198,7 @@ class PassDone(_Message):
                 "n_segments": _scalar(self.n_segments, pa.int64()),
                 "vehicle_model": _scalar(self.vehicle_model, pa.string()),
                 "params": _params_column(self.params),
+                "sample_interval_s": _scalar(self.sample_interval_s, pa.float64()),
             },
         )
 
@@ -1201,6 +1212,7 @@ def _build_pass_done(r: _Row) -> PassDone:
         n_segments=r.integer("n_segments"),
         vehicle_model=r.text("vehicle_model") if "vehicle_model" in r.names else "",
         params=r.params("params", optional=True) if "params" in r.names else None,
+        sample_interval_s=r.real("sample_interval_s") if "sample_interval_s" in r.names else LEGACY_SAMPLE_INTERVAL_S,
     )
 
 
