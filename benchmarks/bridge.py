@@ -64,26 +64,6 @@ def _case(work: Path):
     return simulate_case(SCENARIO, work, passes=PASSES, seed=0)
 
 
-def _drift_controlled_deflections(est) -> tuple[list[np.ndarray], np.ndarray]:
-    """Each pass's deflection (m, down positive) on the span grid as the estimator's per-pass MR-IL
-    reads it (``BridgeEstimate.mril_passes``), captured at its one call of ``mril_single_axle``."""
-    import cloud.bridge.estimator as estimator_module
-
-    seen = {}
-    original = estimator_module.mril_single_axle
-
-    def capture(x_m, deltas, loads):
-        seen["x"], seen["deltas"] = np.asarray(x_m, float), [np.asarray(d, float) for d in deltas]
-        return original(x_m, deltas, loads)
-
-    estimator_module.mril_single_axle = capture
-    try:
-        est.estimate()
-    finally:
-        estimator_module.mril_single_axle = original
-    return seen["deltas"], seen["x"]
-
-
 def run(work: Path | None = None):
     from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
     from cloud.bridge.passdata import group_segments
@@ -129,10 +109,11 @@ def run(work: Path | None = None):
     # what is not deflection modelled out as our estimator does for its per-pass MR-IL (the fleet-common
     # consensus trend μ, the pass's support steps, the bridge's dynamic excess). Raw AP − consensus
     # carries a mm step at the supports that the thesis's model can only read as 5× the class weight.
-    defl, x = _drift_controlled_deflections(fresh)
+    pd = e.pass_deflections  # what the estimator's per-pass MR-IL reads (BridgeEstimate.pass_deflections)
+    defl, x = list(pd.deflection_m), pd.x_m
     entries = list(fresh.passes.values())
-    ids = sorted({en.data.vehicle_id for en in entries})
-    vehicles = [ids.index(en.data.vehicle_id) for en in entries]
+    ids = sorted({vid for vid, _ in pd.keys})
+    vehicles = [ids.index(vid) for vid, _ in pd.keys]
     beam = fresh.setup.beam
     G = compliance_kernel(beam, np.clip(x, 0.0, beam.span_m))
     g_int = np.trapezoid(G, x, axis=0)
