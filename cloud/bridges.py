@@ -127,7 +127,8 @@ class BridgeMonitor:
                 sd = None if uncertainty_of is None else \
                     uncertainty_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
                 try:
-                    crosses = st.estimator.add_segments(segs, ps.model or self.model, params, params_log_sd=sd)
+                    crosses = st.estimator.add_segments(segs, ps.model or self.model, params, params_log_sd=sd,
+                                                        sample_interval_s=ps.sample_interval_s)
                 except (ValueError, KeyError, FloatingPointError, ArithmeticError) as e:
                     log.warning("bridge %s: pass %s/%s not usable: %s", st.bridge.id, *key, e)
                     self.skipped["unusable"] += 1

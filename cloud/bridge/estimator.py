@@ -173,8 +173,12 @@ class BridgeEstimator:
 
     # -- data ------------------------------------------------------------------------------
     def add_segments(self, segments: Sequence[ApSegment], model: str, params: dict,
-                     params_log_sd: dict | None = None) -> bool:
+                     params_log_sd: dict | None = None, sample_interval_s: float | None = None) -> bool:
         """Add one pass from its segments (all tiles, all axles); False if it does not cross the bridge.
+
+        ``sample_interval_s``: the step the edge inverted the pass at (its pass-done says; the edge
+        inverse's discretisation, which the pass's model undoes, depends on it); default
+        ``settings.edge``'s.
 
         ``params_log_sd``: the calibration's uncertainty, log-sd per calibration quantity
         (:func:`~cloud.bridge.vehicle_error.fit_log_sd` of a calibrator's fit, or
@@ -185,8 +189,10 @@ class BridgeEstimator:
             from cloud.calibration import calibration_names
 
             params_log_sd = {n: self.settings.calibration_log_sd for n in calibration_names(model)}
-        pd = extract_pass(segments, self.setup.window, model, params, edge=self.settings.edge,
-                          params_log_sd=params_log_sd)
+        edge = self.settings.edge
+        if sample_interval_s is not None and abs(sample_interval_s * edge.sample_rate_hz - 1.0) > 1e-9:
+            edge = dataclasses.replace(edge, sample_rate_hz=1.0 / sample_interval_s)
+        pd = extract_pass(segments, self.setup.window, model, params, edge=edge, params_log_sd=params_log_sd)
         if pd is None:
             return False
         self.add(pd)
