@@ -73,6 +73,59 @@ def test_cross_entropy_recovers_the_mass_stiffness_ratios_of_a_sprung_mass_fleet
     assert history[-1]["evaluations"] == 1 + 100 * len(history)
 
 
+def test_cross_entropy_on_a_half_car_fleet_is_not_thrown_by_1pct_noise(road):
+    """The reference must survive the noise the reports use: four half-cars of Table 2.4, simulated 4×
+    finer with another Newmark γ (not the inverse's own discretisation), then 1 % noise (of each
+    channel's sd); the search's answer with noise must be close to its answer without.
+
+    Point by point on raw APs (eq. 2.32 literally) the objective measures the inverse's noise, which
+    grows as f² above the wheel hop, and is lowest for stiff tyres and light wheels whatever the road
+    says: run that way, this search ends 13–22 % off on Kt/ms and 79–97 % on m_u/ms (median; noise-free
+    4–8 %), as the half-car CE did at 1 % noise in `driveby reproduce road` (85.6 % averaged median).
+    The wheels and tyres are where that bias acts, so they are the free parameters here, from 25 %
+    off. (Noise-free, the search itself ends up to 11 % low on both on this road: K_t and m_u moved
+    together keep the wheel hop; with noise, now alike: medians 3–10 %.)"""
+    from simfleet.scenarios import TABLE_2_4
+
+    from cloud.reference import fleet_objective
+    from shared.sensors import add_noise
+
+    rng = np.random.default_rng(0)
+    fleet = [{k: float(v) for k, v in row.items()} for row in TABLE_2_4[:4]]
+    speeds, x0, dt = [15.0, 17.0, 20.0, 22.0], [5.0] * 4, 0.002
+    clean = [simulate_on_profile(HalfCar(**p).system(), road.at, road.slope, x0[0], v, 70.0 / v, dt / 4,
+                                 gamma=0.5).channels[::4] for p, v in zip(fleet, speeds)]
+    noisy = [add_noise(z, 1.0, rng) for z in clean]
+    # the data are noisy enough to matter: on raw APs the noise-minimising fleet beats the truth
+    stiff = [dict(p, Kt1=3 * p["Kt1"], Kt2=3 * p["Kt2"], mu1=0.1 * p["mu1"], mu2=0.1 * p["mu2"]) for p in fleet]
+    raw = [fleet_objective("half_car", ps, noisy, dt, speeds=speeds, x0=x0, spacing_m=0.05, margin_m=3.6,
+                           lowpass_m=None) for ps in (fleet, stiff)]
+    assert raw[1] < 0.1 * raw[0]
+
+    start = [dict(p, Kt1=0.75 * p["Kt1"], Kt2=0.75 * p["Kt2"], mu1=1.25 * p["mu1"], mu2=1.25 * p["mu2"]) for p in fleet]
+    sd = [{n: 0.3 * p[n] for n in ("Kt1", "Kt2", "mu1", "mu2")} for p in start]
+    names = ("Kt1/ms", "Kt2/ms", "mu1/ms", "mu2/ms")
+
+    def errors(channels):
+        params, _ = cross_entropy_fleet("half_car", channels, dt, start, sd, np.random.default_rng(1), speeds=speeds,
+                                        x0=x0, spacing_m=0.05, population=50, max_generations=60)
+        return np.array([[to_calibration("half_car", p)[n] / to_calibration("half_car", t)[n] - 1 for n in names]
+                         for p, t in zip(params, fleet)])
+
+    # over three noise draws at most 3.9 points apart (literal eq. 2.32 here: up to 91 points)
+    assert np.max(np.abs(errors(noisy) - errors(clean))) < 0.06
+
+
+def test_cross_entropy_low_pass_needs_speeds_and_a_cutoff_below_nyquist():
+    z = [np.zeros((500, 1)), np.zeros((500, 1))]
+    with pytest.raises(ValueError, match="speeds"):
+        cross_entropy_fleet("sprung_mass", z, 0.002, {"m": 1e4, "k": 3e5}, {"m": 1e3, "k": 0.0},
+                            np.random.default_rng(0))
+    with pytest.raises(ValueError, match="Nyquist"):
+        cross_entropy_fleet("sprung_mass", z, 0.002, {"m": 1e4, "k": 3e5}, {"m": 1e3, "k": 0.0},
+                            np.random.default_rng(0), speeds=[20.0, 20.0], lowpass_m=0.05)
+
+
 # -- MCMC and the exact posterior ---------------------------------------------------------------
 
 
