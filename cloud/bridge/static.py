@@ -1112,6 +1112,13 @@ class Setup:
             # nine (measured, bearing-1e9 at 30 passes, loaded machine: 98 s → 362 s per estimate)
             # for the same Krot (8.96) and mean stiffness (98.9 → 98.8 %).
             return BearingElementModel(self.basis, self.bridge, dataclasses.replace(prior, scales=()), (k0, 2.5))
+        if self.deck == "rough":
+            # Nor on a rough deck: what of the deck profile the weights' spread leaves unseparated is
+            # smooth along the span, reads as departures, and the evidence then loosens the prior
+            # (measured, `reproduce bridge --large` seed 0: largest element error at 100 / 300 passes,
+            # healthy 2.3 / 1.8 → 5.1 / 4.8 points, global10 2.1 / 1.7 → 5.6 / 4.0, the same bump at
+            # elements 12–16 in both).
+            prior = dataclasses.replace(prior, scales=())
         return ElementModel.of(self.basis, self.beam, prior)
 
 
