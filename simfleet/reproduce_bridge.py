@@ -294,6 +294,7 @@ def _f(x, nd=1) -> str:
 
 #: ``--large``: scenario → the pass counts it is estimated from (first N of the largest, one simulation)
 LARGE = {
+    "bridge-healthy": (30, 100, 300),
     "bridge-crack10-10m": (30, 100, 300),
     "bridge-crack10-14m": (30, 100, 300),
     "fleet-large": (30, 100, 300),
