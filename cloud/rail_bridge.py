@@ -31,10 +31,17 @@ wheels' time-synchronous difference beside the span (:func:`_difference_shift`).
 test (largest error over 12 states × D1/D2) this took the carriage's reading from 2.0 to 1.1 points
 and the half-car's J⁰ reading from 7.1 to 2.3 (seed 0; with the true shift, 0.9 and 2.2), and on a
 second set of journeys, tracks and spans (seed 1) from 2.3 to 2.4 and 26.9 to 3.7 (the true shift:
-2.2 and 2.9). What remains is mostly the scale from the healthy batch's load regression: even on
-the true AP with the true loads it reads D 1–2 points off (dynamic wheel loads and speeds that
-follow the load within 50 runs), and with the scale from the design drawings instead
-(:func:`design_scale`) the carriage's reading is within 0.9/0.8 points on seeds 0/1.
+2.2 and 2.9). Two fixes since (session 7): the healthy regression line is taken relative to the
+supports after its low-pass, as the batch-mean lines it is combined with are (it had been chorded
+only before, so its ends carried the track's deflection beside the span; that was about half of
+the "17 % too large" scale on seed 1's profile 2: carriage 2.4 → 1.4 there), and the registration
+iterates on the two lines' mean slope (rms error against the true speeds' shift 2.0 → 1.5 mm;
+half-car on seed 1 profile 2: 4.3 → 3.1). Pooling the healthy line over every batch of the track
+(:func:`pooled_healthy`) shows what is left of the scale is a bias common to the batches (5–10 %
+on seed 1, not noise: true loads in place of the calibrated ones, or the speed as a second
+regressor, change it by < 1 %), so it is reported, not used. With the scale from the design
+drawings instead (:func:`design_scale`) the carriage's reading was within 0.9/0.8 points on
+seeds 0/1 (before these fixes).
 
 The AP comes from the carriage inverse (all four channels) or from the 2-DOF bogie half-car of
 App. A.3 (the leading bogie's two channels). The half-car ignores the body's force through the
@@ -88,6 +95,13 @@ REGISTER_BEFORE_M = 40.0
 REGISTER_AFTER_M = 20.0
 REGISTER_EDGE_M = 2.0
 REGISTER_MAX_WAVELENGTH_M = 20.0
+#: The wheels' difference is taken relative to the line through its means over this much track
+#: beyond each end (both wheels off the span), m, not through its two end samples: the end samples'
+#: noise tilts the line, which the matrix method turns into an error of J⁰'s area (blind test, bogie
+#: half-car, largest error on seeds 0/1/2 profile 1: 2.1/2.7/4.9 points from the end samples, 1.7/2.5/3.4
+#: with 2.5 m; 1 m: 1.9/2.3/3.8).
+DIFFERENCE_CHORD_WINDOW_M = 2.5
+REGISTER_ITERATIONS = 3
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -230,10 +244,12 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
             M_span = int(np.floor(span_m / h + 1e-9)) + 1
             xd = a + h * np.arange(M_span + c)
         # Both wheels at one instant, wheel 1 at xd (wheel 2 a wheelbase behind); the line through
-        # the ends (both wheels off the span, before and after) removes the run's drift.
-        dd = np.interp((xd - run.x0_m - off[0]) / v, t, ap[:, 0] - ap[:, 1])
-        DIFF.append(dd - (dd[0] + (dd[-1] - dd[0]) * (xd - a) / (xd[-1] - a)))
-        DX.append(np.interp((xr - run.x0_m - off[0]) / v, t, ap[:, 0] - ap[:, 1]))
+        # its means beyond the ends (both wheels off the span, before and after) removes the drift.
+        wheels = ap[:, 0] - ap[:, 1]
+        dd = np.interp((xd - run.x0_m - off[0]) / v, t, wheels)
+        e0, e1 = (np.interp((xe - run.x0_m - off[0]) / v, t, wheels).mean() for xe in _chord_windows(xd))
+        DIFF.append(dd - (e0 + (e1 - e0) * (xd - a) / (xd[-1] - a)))
+        DX.append(np.interp((xr - run.x0_m - off[0]) / v, t, wheels))
         ys = []
         for i in (0, 1):
             ti = (x - run.x0_m - off[i]) / v
@@ -311,9 +327,51 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
                         for line, shift in ((current.difference_line, delta), (healthy.difference_line, 0.0)))
     elif healthy.approach_line is not None and current.approach_line is not None:
         c_J, h_J = _on_span(current.approach_line, ref.x_m, delta), _on_span(healthy.approach_line, ref.x_m, 0.0)
+        # The scale line as the batch-mean lines are: relative to the supports after the low-pass
+        # (chorded only before it, its ends are off zero by the track's deflection beside the span
+        # smeared in; mixing the two conventions read D 1-2 points low on the blind test's seed 1).
+        ref = _on_span(ref, ref.x_m, 0.0, as_line=True)
     else:
         c_J, h_J = current.mean_line.J, healthy.mean_line.J
     return damage_indicators(ref, MrIl(ref.x_m, (c_J - h_J) / w_c + ref.J * w_h / w_c, current.mril.n_passes))
+
+
+def pooled_healthy(healthy: BogieInfluence, batches: Sequence[BogieInfluence]) -> BogieInfluence:
+    """``healthy`` with its deflection per unit load (:attr:`BogieInfluence.mril`) and its J⁰
+    (:attr:`BogieInfluence.difference`) estimated from every batch over the same track, not from
+    its own load regression alone. Each batch b's regression J_b and the change of its batch mean
+    give the healthy line whatever the damage (only the unloaded profile p is assumed common):
+
+        Ȳ_b = p + W̄_b·J_b,  Ȳ_H = p + W̄_H·J_H  ⇒  J_H = (W̄_b·J_b − (Ȳ_b − Ȳ_H)) / W̄_H,
+
+    and these are averaged with weights Σ(W − W̄_b)²/W̄_b² (the regression's precision; its noise
+    dominates the batch means'). Each batch is registered to ``healthy`` first, as in
+    :func:`damage_from_batch_means`; ``batches`` may include ``healthy`` (its own regression).
+    Measured on the blind test (7 batches of 50 per track, carriage): the per-batch estimates scatter
+    by 7–8 % in area, so pooling cuts the regression's noise ~2.6×, but on seed 1 every batch's
+    regression reads 5–10 % high together (the bias pooling cannot remove; true loads in place of the
+    calibrated ones change it by < 1 %); on the wheels' difference (J⁰) the per-batch scatter is
+    20–30 % and the common bias larger. The lines are relative to the supports after the low-pass,
+    as :func:`damage_from_batch_means` reads them."""
+    if not batches:
+        raise ValueError("pooled_healthy: needs at least one batch")
+    span, wb = float(healthy.mril.x_m[-1]), healthy.wheelbase_m
+    if healthy.difference_line is None or healthy.approach_line is None or wb is None:
+        raise ValueError("pooled_healthy: needs the batches' approach and difference lines")
+    x, xd = healthy.mril.x_m, healthy.difference.x_m
+    w_h = float(np.mean(healthy.wheel_load_n))
+    h_J, h_0 = _on_span(healthy.approach_line, x, 0.0), _registered_fundamental(healthy.difference_line, 0.0, span, wb)
+    J, J0, total = np.zeros_like(x), np.zeros_like(xd), 0.0
+    for b in batches:
+        w_b = float(np.mean(b.wheel_load_n))
+        weight = float(np.sum((b.wheel_load_n - w_b) ** 2)) / w_b**2
+        delta = 0.0 if b is healthy else _difference_shift(healthy.difference_line, b.difference_line, span, wb)
+        J += weight * (w_b * _on_span(b.mril, x, delta) - (_on_span(b.approach_line, x, delta) - h_J)) / w_h
+        d0 = np.interp(xd - delta, b.difference.x_m, b.difference.J)
+        J0 += weight * (w_b * d0 - (_registered_fundamental(b.difference_line, delta, span, wb) - h_0)) / w_h
+        total += weight
+    return dataclasses.replace(healthy, mril=MrIl(x, J / total, healthy.mril.n_passes),
+                               difference=MrIl(xd, J0 / total, healthy.difference.n_passes))
 
 
 def design_scale(bridge, healthy: BogieInfluence) -> BogieInfluence:
@@ -358,7 +416,11 @@ def _difference_shift(healthy: MrIl, current: MrIl, span_m: float, wheelbase_m: 
     the track's, so the two batches differ by the shift times its slope, plus drift and noise. The
     shift grows along the track (it is a speed error: δ(x) = δ + ε·(x − x_mid)), so a stretch ε is
     fitted with it; waves beyond :data:`REGISTER_MAX_WAVELENGTH_M` (drift) and below
-    :data:`MIN_WAVELENGTH_M` are filtered out of both lines first."""
+    :data:`MIN_WAVELENGTH_M` are filtered out of both lines first. Gauss–Newton
+    (:data:`REGISTER_ITERATIONS` steps, ``current`` resampled at the shifted chainage each time) on
+    the two lines' mean slope: the healthy line's slope alone is a noisy regressor, which pulls a
+    single step's δ towards zero (blind test, against the shift the true speeds give: rms error 2.0 mm
+    over seeds 0/1's 24 batches, 5.9 mm at worst; now 1.5 and 3.8 mm)."""
     def band(y: np.ndarray, h: float) -> np.ndarray:
         y = sosfiltfilt(butter(4, h / (0.5 * MIN_WAVELENGTH_M), output="sos"), y)
         return y - sosfiltfilt(butter(2, h / (0.5 * REGISTER_MAX_WAVELENGTH_M), output="sos"), y)
@@ -367,31 +429,47 @@ def _difference_shift(healthy: MrIl, current: MrIl, span_m: float, wheelbase_m: 
     x = healthy.x_m
     x = x[(x >= current.x_m[0] - 1e-9) & (x <= current.x_m[-1] + 1e-9)]
     step = float(x[1] - x[0])
-    h, c = band(np.interp(x, healthy.x_m, healthy.J), step), band(np.interp(x, current.x_m, current.J), step)
+    h = band(np.interp(x, healthy.x_m, healthy.J), step)
     off = ((x < -1.0) | (x > span_m + wheelbase_m + 1.0)) & (x > x[0] + REGISTER_EDGE_M) & (x < x[-1] - REGISTER_EDGE_M)
-    slope = np.gradient(h, x)
-    X = np.stack([slope, (x - 0.5 * span_m) * slope], axis=1)[off]
-    return float(np.linalg.lstsq(X, (c - h)[off], rcond=None)[0][0])
+    shift, stretch = 0.0, 0.0
+    for _ in range(REGISTER_ITERATIONS):
+        c = band(np.interp(x - shift - stretch * (x - 0.5 * span_m), current.x_m, current.J), step)
+        slope = np.gradient(0.5 * (h + c), x)
+        X = np.stack([slope, (x - 0.5 * span_m) * slope], axis=1)[off]
+        d_shift, d_stretch = np.linalg.lstsq(X, (c - h)[off], rcond=None)[0]
+        shift, stretch = shift + float(d_shift), stretch + float(d_stretch)
+    return shift
 
 
 def _registered_fundamental(line: MrIl, shift: float, span_m: float, wheelbase_m: float) -> np.ndarray:
     """J⁰ on the span (the grid of :func:`bogie_influence`'s ``difference``) from a batch-mean
-    wheel difference line read at x − ``shift``: chorded between the ends (both wheels off the
-    span), then the matrix method (:func:`_difference_mril`)."""
+    wheel difference line read at x − ``shift``: relative to the line through its means beyond the
+    ends (both wheels off the span; :func:`_chord_windows`), then the matrix method
+    (:func:`_difference_mril`)."""
     c = max(1, int(round(wheelbase_m / GRID_M)))
     h = wheelbase_m / c
     M = int(np.floor(span_m / h + 1e-9)) + 1
     xd = h * np.arange(M + c)
     g = np.interp(xd - shift, line.x_m, line.J)
-    g = g - (g[0] + (g[-1] - g[0]) * xd / xd[-1])
+    e0, e1 = (np.interp(xe - shift, line.x_m, line.J).mean() for xe in _chord_windows(xd))
+    g = g - (e0 + (e1 - e0) * xd / xd[-1])
     return _difference_mril(xd, g, M, c, line.n_passes).J
 
 
-def _on_span(line: MrIl, x_span: np.ndarray, shift: float) -> np.ndarray:
+def _chord_windows(xd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The grid points over which the wheels' difference is anchored: :data:`DIFFERENCE_CHORD_WINDOW_M`
+    of track before the grid ``xd``'s first point and after its last (both wheels off the span)."""
+    h = float(xd[1] - xd[0])
+    steps = h * np.arange(int(round(DIFFERENCE_CHORD_WINDOW_M / h)) + 1)
+    return xd[0] - steps, xd[-1] + steps
+
+
+def _on_span(line: MrIl, x_span: np.ndarray, shift: float, as_line: bool = False):
     """``line`` on the span read at x − ``shift`` (Ȳ_D(x) ≈ Ȳ_H(x + δ)), relative to its values at the
-    supports again."""
+    supports again (as an :class:`MrIl` with ``as_line``)."""
     y = np.interp(x_span - shift, line.x_m, line.J)
-    return y - (y[0] + (y[-1] - y[0]) * x_span / x_span[-1])
+    y = y - (y[0] + (y[-1] - y[0]) * x_span / x_span[-1])
+    return MrIl(x_span, y, line.n_passes) if as_line else y
 
 
 def _difference_mril(x_m: np.ndarray, g: np.ndarray, M: int, c: int, n_runs: int) -> MrIl:
