@@ -124,9 +124,10 @@ def rebuild_pass(pass_id: str, segments: list[ApSegment], model: str, params: di
                        {i: sorted(v, key=lambda s: s.start_index) for i, v in by_axle.items()})
 
 
-def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float) -> list[ApSegment]:
+def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float,
+               shift_m: float = 0.0) -> list[ApSegment]:
     """The run's AP under ``params`` (its calibrated properties), keyed in chainage with its
-    calibrated speed, as replacements of its raw segments (same identities; each keeps the grid
+    calibrated speed and chainage shift (:attr:`~cloud.rail_calibration.RunEstimate.shift_m`), as replacements of its raw segments (same identities; each keeps the grid
     points from where it now starts to where the next one starts, as :func:`cloud.alignment.realign`)."""
     from .reference.cross_entropy import population_aps
 
@@ -135,17 +136,18 @@ def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float)
     ap, offsets = aps[0], offs[0]
     n = len(ap)
     tk = np.arange(n) * run.dt  # since the first rebuilt sample
+    x0 = run.x0_m + shift_m
     out = []
     for i, segs in sorted(rebuilt.slots.items()):
         h = segs[0].spacing_m
-        x = run.x0_m + speed_mps * tk + offsets[i - 1]
+        x = x0 + speed_mps * tk + offsets[i - 1]
         spline = make_interp_spline(x, ap[:, i - 1], k=3)
         t_raw, _, _, sigma_raw = _axle_series(segs)
         # Where each raw segment now starts: its first point's time, on the calibrated chainage.
         starts = []
         for s in segs:
             tf = max(s.t_first - rebuilt.t0_s, 0.0)
-            starts.append(int(math.ceil((run.x0_m + speed_mps * tf + offsets[i - 1]) / h - 1e-9)))
+            starts.append(int(math.ceil((x0 + speed_mps * tf + offsets[i - 1]) / h - 1e-9)))
         starts[0] = int(math.ceil(x[0] / h - 1e-9))
         last = int(math.floor(x[-1] / h + 1e-9))
         for k, s in enumerate(segs):
@@ -154,7 +156,7 @@ def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float)
             if i1 - i0 < 1:
                 continue
             xg = np.arange(i0, i1 + 1) * h
-            tg = (xg - run.x0_m - offsets[i - 1]) / speed_mps + rebuilt.t0_s
+            tg = (xg - x0 - offsets[i - 1]) / speed_mps + rebuilt.t0_s
             sigma = np.interp(tg, t_raw, sigma_raw)
             out.append(ApSegment.make(spline(xg), sigma, vehicle_id=s.vehicle_id, pass_id=s.pass_id,
                                       route_id=s.route_id, tile=s.tile, axle=s.axle, start_index=i0, spacing_m=h,
@@ -289,7 +291,7 @@ class RailBatches:
         for rb, est in zip(rebuilt, st.fit.runs):
             params = {**fixed, **st.fit.globals_, **est.mean}
             new = {(s.vehicle_id, s.pass_id, s.route_id, s.tile, s.axle): s
-                   for s in rekey_pass(rb, model, params, est.mean["v"])}
+                   for s in rekey_pass(rb, model, params, est.mean["v"], est.shift_m)}
             for slot in sorted(agg.passes[(vid, rb.run.pass_id)].slots):
                 seg = new.get(slot)
                 if seg is not None and seg.start_index * seg.spacing_m <= length:

@@ -151,6 +151,10 @@ class RunEstimate:
     #: state then held at rest), and the Wald statistic of its fitted initial state (χ², 4 dof).
     started_at_rest: bool | None = None
     rest_wald: float | None = None
+    #: :func:`calibrate_batch`: the record's fitted chainage shift (m): its first sample was at
+    #: ``x0_m + shift_m``. Fitted jointly with the speed, so whoever keys the run in chainage with
+    #: the calibrated speed must add it (without it, a batch's runs sat 4–5 cm apart at the span).
+    shift_m: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1129,7 +1133,8 @@ def calibrate_batch(
         mean = {k: float(math.exp(loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         lo = {k: float(math.exp(loc[r, j] - Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         hi = {k: float(math.exp(loc[r, j] + Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
-        estimates.append(RunEstimate(run.pass_id, mean, lo, hi, bool(at_rest[r]), float(wald[r])))
+        estimates.append(RunEstimate(run.pass_id, mean, lo, hi, bool(at_rest[r]), float(wald[r]),
+                                     float(loc[r, _I_SHIFT])))
     globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT)}
     return BatchFit(estimates, globals_fit, mapper.grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
                     time.perf_counter() - t_start, cov[L * n:, L * n:].copy())
