@@ -52,34 +52,44 @@ def test_the_vehicle_step_on_continuous_aps_has_no_shared_bias():
     assert max(abs(e) for e in after.values()) < 0.005, after
 
 
+def fused_profile_gains(sim, out) -> dict[tuple[float, float], float]:
+    """A simulation's logs through the edge and cloud code in process (nominal calibration, into
+    ``out``): the fused profile's gain against the road's in the 0.5–1 and 1–2 m bands (10 m trimmed
+    at each end)."""
+    from shared.drivelog import list_drive_logs, read_drive_log
+    from shared.registry import load_site
+    from simfleet.evaluate import band_pass
+    from simfleet.reproduce import run_in_process
+
+    logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
+    run_in_process(logs, load_site(sim / "site.toml"), out, calibration="nominal")
+    truth = json.loads((sim / "truth.json").read_text())
+    t = pq.read_table(out / "profile.parquet").to_pydict()
+    x, est = np.asarray(t["chainage_m"]), np.asarray(t["elevation_m"])
+    p = truth["profile"]
+    h = p["spacing_m"]
+    true = np.interp(x, p["start_m"] + h * np.arange(len(p["elevation_m"])), p["elevation_m"])
+    k = int(10.0 / h)
+    gains = {}
+    for lo, hi in ((0.5, 1.0), (1.0, 2.0)):
+        e, r = band_pass(est, h, lo, hi)[k:-k], band_pass(true, h, lo, hi)[k:-k]
+        gains[lo, hi] = float(e @ r / (r @ r))
+    return gains
+
+
 @pytest.mark.parametrize("corrected", [True, False])
 def test_the_fused_profile_has_the_roads_gain_at_short_wavelengths(tmp_path, monkeypatch, corrected):
     """Six quarter-cars of road-qc, 0.2 % noise (so that the posterior hardly shrinks), each log with
     the vehicle's true parameters, through the edge and cloud code (nominal calibration): the fused
     profile's gain against the road at 0.5–2 m. Fused as the edge sends them, the APs make it
     +2.1–2.5 % (measured); as continuous-time APs within 0.1 %."""
-    from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.registry import load_site
-    from simfleet.evaluate import band_pass
-    from simfleet.reproduce import run_in_process
     from simfleet.sim import generate
 
     sim = tmp_path / "sim"
     generate(SCENARIOS["road-qc"], sim, seed=5, passes=6, vehicles=6, noise_pct=0.2, nominal="true", workers=1,
              progress=False)
     monkeypatch.setattr(cloud.node, "CONTINUOUS_APS", corrected)
-    logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
-    run_in_process(logs, load_site(sim / "site.toml"), tmp_path / "out", calibration="nominal")
-    truth = json.loads((sim / "truth.json").read_text())
-    t = pq.read_table(tmp_path / "out" / "profile.parquet").to_pydict()
-    x, est = np.asarray(t["chainage_m"]), np.asarray(t["elevation_m"])
-    p = truth["profile"]
-    h = p["spacing_m"]
-    true = np.interp(x, p["start_m"] + h * np.arange(len(p["elevation_m"])), p["elevation_m"])
-    k = int(10.0 / h)
-    for lo, hi in ((0.5, 1.0), (1.0, 2.0)):
-        e, r = band_pass(est, h, lo, hi)[k:-k], band_pass(true, h, lo, hi)[k:-k]
-        gain = float(e @ r / (r @ r))
+    for (lo, hi), gain in fused_profile_gains(sim, tmp_path / "out").items():
         if corrected:
             assert abs(gain - 1.0) < 0.006, (lo, hi, gain)
         else:  # the test sees the edge's discretisation when it is there

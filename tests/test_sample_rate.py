@@ -118,31 +118,15 @@ def test_the_fused_profile_of_200_hz_logs_has_the_roads_gain(tmp_path):
     profile's gain against the road at 0.5–1 and 1–2 m. The cloud must take the 5 ms step from the
     pass-done: undone at 2 ms the gain at 0.5–1 m was 1.085 (measured), at 5 ms 0.993 (1–2 m: 0.999)."""
     import dataclasses
-    import json
-
-    import pyarrow.parquet as pq
 
     from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.registry import load_site
-    from simfleet.evaluate import band_pass
-    from simfleet.reproduce import run_in_process
     from simfleet.scenarios import SCENARIOS
     from simfleet.sim import generate
+    from tests.test_discretisation import fused_profile_gains
 
     sim = tmp_path / "sim"
     generate(dataclasses.replace(SCENARIOS["road-qc"], sample_rate_hz=200.0), sim, seed=5, passes=6, vehicles=6,
              noise_pct=0.2, nominal="true", workers=1, progress=False)
-    logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
-    assert {log.meta.sample_rate_hz for log in logs} == {200.0}
-    run_in_process(logs, load_site(sim / "site.toml"), tmp_path / "out", calibration="nominal")
-    truth = json.loads((sim / "truth.json").read_text())
-    t = pq.read_table(tmp_path / "out" / "profile.parquet").to_pydict()
-    x, est = np.asarray(t["chainage_m"]), np.asarray(t["elevation_m"])
-    p = truth["profile"]
-    h = p["spacing_m"]
-    true = np.interp(x, p["start_m"] + h * np.arange(len(p["elevation_m"])), p["elevation_m"])
-    k = int(10.0 / h)
-    for lo, hi in ((0.5, 1.0), (1.0, 2.0)):
-        e, r = band_pass(est, h, lo, hi)[k:-k], band_pass(true, h, lo, hi)[k:-k]
-        gain = float(e @ r / (r @ r))
+    assert {read_drive_log(p).meta.sample_rate_hz for p in list_drive_logs(sim / "logs")} == {200.0}
+    for (lo, hi), gain in fused_profile_gains(sim, tmp_path / "out").items():
         assert abs(gain - 1.0) < 0.01, (lo, hi, gain)
