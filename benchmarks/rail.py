@@ -19,7 +19,7 @@ fairer figure; BLAS pinned to one thread for both, as ``benchmarks.profile`` doe
   is not, it is no time-to-CE's-accuracy and the ratio is not claimed (``ratio_is``).
 
 The production line's context also gives ours on the same batch as records that start mid-motion
-(``records_started_mid_motion``: every run's first 0.3–1.0 s dropped, its first chainage the log's),
+(``recordsstarted_mid_motion``: every run's first 0.3–1.0 s dropped, its first chainage the log's),
 which the calibration's initial-state nuisance and chainage shift are for, and how many runs it
 found to start at rest there and on the clean batch.
 
@@ -72,7 +72,7 @@ def _batch(work: Path, passes: int):
     return runs, cls, json.loads((d / "truth.json").read_text())
 
 
-def _started_mid_motion(runs, seed: int = 0, lo_s: float = 0.3, hi_s: float = 1.0):
+def started_mid_motion(runs, seed: int = 0, lo_s: float = 0.3, hi_s: float = 1.0):
     """The runs without their first ``lo_s``–``hi_s`` s (uniform per run): records that start
     mid-motion, their first chainage the log's (reported speed × time, as the simulator's logs have it)."""
     import dataclasses
@@ -117,7 +117,7 @@ def run(work: Path | None = None, passes: int = PASSES):
         if not kw:
             # The same batch as records that start mid-motion (the first 0.3–1.0 s of every run
             # dropped, its first chainage the log's): what the initial-state nuisance must keep.
-            late, late_s, late_cpu = _timed(lambda: calibrate_batch(_started_mid_motion(runs), cls.mean, cls.std))
+            late, late_s, late_cpu = _timed(lambda: calibrate_batch(started_mid_motion(runs), cls.mean, cls.std))
             late_err = calibration_errors(late, truth)
             mid_motion = {"seconds": late_s, "cpu_s": late_cpu, "iterations": late.iterations,
                           "runs_found_at_rest": sum(bool(r.started_at_rest) for r in late.runs),
@@ -134,6 +134,6 @@ def run(work: Path | None = None, passes: int = PASSES):
                            "ours_iterations": fit.iterations, "accuracy": acc,
                            "ours_coverage95": {k: ours[f"{k}_coverage95"] for k in PROPS},
                            "ours_at_least_as_accurate": not worse, "blas_one_thread": pinned,
-                           **({"records_started_mid_motion": mid_motion} if mid_motion else {}),
+                           **({"recordsstarted_mid_motion": mid_motion} if mid_motion else {}),
                            "ratio_is": "a lower bound of time-to-CE's-accuracy" if not worse
                            else f"not at equal accuracy: ours is less accurate on {', '.join(worse)}"}}

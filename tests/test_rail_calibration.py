@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from benchmarks.rail import started_mid_motion
 from cloud.rail_calibration import RailRun, calibrate_batch, cross_entropy_batch
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
 from shared.registry import load_site
@@ -83,17 +84,6 @@ def test_batch_calibration(batch, fit):
     assert all(r["lo95"] < r["mean"] < r["hi95"] and r["pass_id"].startswith("run") for r in rows)
 
 
-def _started_mid_motion(runs, seed=0, lo_s=0.3, hi_s=1.0):
-    """The runs with their first 0.3–1.0 s (random per run) dropped: records that start mid-motion,
-    their first chainage the log's (GNSS speed × time, a few dm off), not the truth's."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for r in runs:
-        k = int(round(rng.uniform(lo_s, hi_s) / r.dt))
-        out.append(dataclasses.replace(r, channels=np.asarray(r.channels)[k:], x0_m=r.x0_m + r.speed_mps * k * r.dt))
-    return out
-
-
 def test_batch_calibration_of_records_that_start_mid_motion(batch, monkeypatch):
     """Records need not start at rest: each run's body initial state is a nuisance (and its chainage
     a shift), so dropping the first 0.3–1.0 s of every run keeps the Show's accuracy. Measured
@@ -105,7 +95,7 @@ def test_batch_calibration_of_records_that_start_mid_motion(batch, monkeypatch):
     _, truth, site, runs = batch
     cls = site.vehicle_class("carriage")
     true = {p["pass_id"]: p for p in truth["passes"]}
-    late = _started_mid_motion(runs)
+    late = started_mid_motion(runs)
 
     def errors(f):
         return {k: float(np.median([abs(r.mean[k] / true[r.pass_id][k] - 1) for r in f.runs]))
