@@ -3,6 +3,7 @@ filter, and the whitened likelihood's building blocks (against exact answers and
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -64,14 +65,16 @@ def test_vehicle_filter_kills_offsets_and_slopes_and_gives_unit_load_on_a_flat_r
 
 
 @functools.lru_cache(maxsize=None)
-def _pass(speed: float, seed: int = 1, gamma: float = edge_gamma("quarter_car")):
+def _pass(speed: float, seed: int = 1, gamma: float = edge_gamma("quarter_car"), ei_factor: tuple | None = None):
     """One noise-free pass of the bridge-healthy world through the real edge pipeline (its inverse at
-    Newmark ``gamma``), with truth."""
+    Newmark ``gamma``), with truth; ``ei_factor``: the span's per-element EI factors instead."""
     from edge.pipeline import EdgeConfig, PassProcessor
 
     sc = SCENARIOS["bridge-healthy"]
     surface = sim._surfaces(sc, seed)[0][0]
     beam = sim.bridge_beam(sc)
+    if ei_factor is not None:
+        beam = dataclasses.replace(beam, ei_factor=np.asarray(ei_factor, dtype=float))
     system = QuarterCar(**QC).system()
 
     def elev(x):

@@ -7,7 +7,9 @@ its band-limited model columns, its dynamic correction while the stiffness estim
 what depends on the whole fleet (the consensus, hence each pass's residual and noise level) is
 recomputed at every estimate, at O(passes) small cost. The dynamic excess of every pass is cached
 per global level (on :data:`~cloud.bridge.dynamic.LEVEL_GRID`), so an update recomputes it for the
-new pass and for levels not visited before.
+new pass and for levels not visited before; its derivatives in each element's stiffness at the
+linearisation level, which is kept while the level stays within
+:data:`~cloud.bridge.dynamic.LINEARISATION_TOL` of it (so an update computes them for the new pass only).
 
 The MR-IL and the indicators D1/D2 come from the posterior influence line (the fleet's deflection
 per unit static wheel load with the dynamics modelled out); the thesis's per-pass reading is kept
@@ -52,6 +54,11 @@ class BridgeSettings:
     stiffness_prior: StiffnessPrior = StiffnessPrior()
     hypotheses: HypothesisSettings = HypothesisSettings()
     dynamic: bool = True
+    #: the per-element fit linearises each pass's dynamic excess in every element's stiffness
+    #: (:func:`~cloud.bridge.dynamic.fit_elements_dynamic`); False: the excess at the profile-likelihood
+    #: level only, the fit recentred on it (see the module docstring of :mod:`cloud.bridge.dynamic`
+    #: for what each costs)
+    dynamic_sensitivities: bool = False
     min_passes: int = 3
     baseline_passes: int | None = None
     assess: bool = True
@@ -168,7 +175,8 @@ class BridgeEstimator:
                          else Baseline.learnt(settings.baseline_passes))
         self._scale = 1.0  # uniform stiffness ratio of the dynamic correction
         self._linearise_at: np.ndarray | None = None  # bearing models: the last estimate's parameters
-        self._cache: dict = {}  # (vehicle, pass, parameters) → dynamic excess on the window
+        self._cache: dict = {}  # (vehicle, pass, parameters[, "dtheta"]) → dynamic excess on the window (or ∂ε/∂θ)
+        self._linearised_level: float | None = None  # where the last fit linearised the dynamics (log ratio)
         self._common_at: tuple | None = None  # (passes, names, consensus distortion) of the common columns
 
     # -- data ------------------------------------------------------------------------------
@@ -230,10 +238,13 @@ class BridgeEstimator:
         level_loglik = level = None
         if self.settings.dynamic:
             fit = fit_elements_dynamic(wps, self.setup, self.weight_prior, model=self.model, start=self._scale,
-                                       cache=self._cache)
+                                       cache=self._cache, linearise_at=self._linearised_level,
+                                       sensitivities=self.settings.dynamic_sensitivities)
             qs, post, deltas, self._scale, level = fit.history[0], fit.posterior, fit.deltas, fit.scale, fit.level
             if post.krot is not None:
                 self._linearise_at = np.r_[post.theta, [k[0] for k in post.krot]][: self.model.n]
+            else:
+                self._linearised_level = float(fit.linearisation[0])
             self._prune_cache(fit.linearisation, () if level is None else tuple(level.evaluations))
             if level is not None and self.kernels is not None:
                 level_loglik = self._level_loglik(wps, deltas, level)

@@ -206,12 +206,26 @@ class Whitener:
 
     def stage1(self, cols: np.ndarray) -> np.ndarray:
         """Steps 1–2: forward model, band limit, decimation; (n_window, k) → (n_dec, k)."""
-        white = self.data.vehicle_filter().whiten(cols)
+        cols = np.asarray(cols, dtype=float)
+        nz = np.flatnonzero(np.any(cols != 0.0, axis=tuple(range(1, cols.ndim))))
+        first = max(int(nz[0]) - 1, 0) if nz.size else 0
+        # The forward model starts from rest: on leading zero rows (a column on the span only) its
+        # output is exactly zero, so it is run from the last of them.
+        white = np.zeros(cols.shape)
+        white[first:] = self.data.vehicle_filter().whiten(cols[first:])
         if self.sos is not None:
             from scipy.signal import sosfiltfilt
 
             white = sosfiltfilt(self.sos, white, axis=0)
         return white[:: self.step]
+
+    def from_stage1(self, white: np.ndarray) -> np.ndarray:
+        """Steps 3–4 and the projection, for columns already through :meth:`stage1` (n_dec, k): what
+        does not depend on the consensus can be cached in that form (it does not move with the fleet)."""
+        out = _fir(self.ar, np.asarray(white, dtype=float))[self.rows] / self.sigma
+        if self.marginal is not None:
+            out = self.marginal(out)
+        return self.project(out)
 
     def __call__(self, cols: np.ndarray) -> np.ndarray:
         """Whitened (projected) likelihood values of window column(s) (n_window,) or (n_window, k)."""
@@ -748,6 +762,33 @@ class ElementModel:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class LinearisedDynamicModel(ElementModel):
+    """:class:`ElementModel` with each pass's dynamic excess linear in θ about ``theta0``:
+    ``h_p = Ψ_p·a(θ) + δ_p(θ₀) + D_p·(θ − θ₀)`` (D_p: the pass's whitened ∂ε_p/∂θ,
+    :func:`~cloud.bridge.dynamic.dynamic_sensitivities`). The load term stays linear in an extended
+    coefficient vector ``[a(θ), θ − θ₀]`` over the columns ``[Ψ_p, D_p]``
+    (:func:`~cloud.bridge.dynamic.extended_passes`), so the weights are integrated out and the data
+    reduce to per-vehicle statistics exactly as before — only the per-pass columns differ, since the
+    dynamics depend on the pass's speed. :meth:`a` gives the extended vector; :meth:`influence`
+    the influence line."""
+
+    theta0: np.ndarray | None = None
+
+    def a(self, params: np.ndarray) -> np.ndarray:
+        par = np.asarray(params, dtype=float)[: self.n_elements]
+        return np.r_[self.kernel @ self.compliance(par), par - self.theta0]
+
+    def a_jac(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        a, Ja, d2 = ElementModel.a_jac(self, params)
+        eye = np.eye(self.n_elements)
+        par = np.asarray(params, dtype=float)[: self.n_elements]
+        return np.r_[a, par - self.theta0], np.vstack([Ja, eye]), np.vstack([d2, np.zeros_like(eye)])
+
+    def influence(self, params: np.ndarray) -> np.ndarray:
+        return self.basis.design @ ElementModel.a(self, params)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class BearingElementModel:
     """Per-element EI and rotational-spring bearings (thesis §4.4): parameters θ (n_e) and
     κ = log10 Krot (one shared value, or one per support). J comes from the FE beam with
@@ -972,16 +1013,18 @@ def fit_elements_per_scale(stats: Sequence[VehicleStats], model: "ElementModel |
     return [_fit_elements(S, dataclasses.replace(model, prior=model.prior.scaled(t)), theta0) for t in scales]
 
 
-def mix_scales(fits: Sequence[ElementPosterior], prior: StiffnessPrior) -> ElementPosterior:
+def mix_scales(fits: Sequence[ElementPosterior], prior: StiffnessPrior,
+               log_evidence: Sequence[float] | None = None) -> ElementPosterior:
     """The posterior with the departure scale τ integrated out: the fits at each τ of
     ``prior.scales`` weighted by evidence × hyperprior (log τ ~ N(0, ``scale_sd``²) on the grid),
     moment-matched in θ — the mean, and a covariance that includes the spread between the fits
     (the bands widen when the data cannot tell the scales apart). The other fields are the most
-    probable τ's; ``log_evidence`` is the mixture's."""
+    probable τ's; the result's ``log_evidence`` is the mixture's. The argument ``log_evidence``: each
+    τ's log evidence from another model of the same data, to weigh by instead of the fits' own."""
     if len(fits) == 1:
         return fits[0]
     scales = np.asarray(prior.scales, dtype=float)
-    log_z = np.array([f.log_evidence for f in fits])
+    log_z = np.array([f.log_evidence for f in fits] if log_evidence is None else log_evidence, dtype=float)
     log_h = -0.5 * (np.log(scales) / prior.scale_sd) ** 2 if prior.scale_sd else np.zeros(scales.size)
     log_h -= np.log(np.sum(np.exp(log_h)))
     lp = log_z + log_h
@@ -1048,9 +1091,10 @@ def _fit_elements(S: "Stacked", model, theta0: np.ndarray | None) -> ElementPost
     # Effective stiffness: area under the design influence line over the area under J (D2-like).
     wint = model.basis.integrals
     a_design = model.basis.coefficients(design_influence(model))
-    area = float(wint @ a)
+    nb = wint.size  # the load term's coefficients lead a (a linearised dynamic model appends its own)
+    area = float(wint @ a[:nb])
     eff = float(wint @ a_design) / area
-    geff = -eff / area * (wint @ Ja)
+    geff = -eff / area * (wint @ Ja[:nb])
     eff_sd = float(math.sqrt(max(geff @ cov_full[:npar, :npar] @ geff, 0.0)))
     krot = None
     if npar > ne:
