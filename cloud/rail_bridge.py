@@ -57,6 +57,14 @@ leading bogie and by a trailing bogie simulated over the AP the leading wheels f
 inverse here runs at the batch calibration's Newmark γ (:data:`cloud.rail_calibration.
 INVERSE_GAMMA`), the one its properties were fitted under.
 
+Each run's calibrated speed is off by ~0.01 % (~15 mm of chainage at a span 130 m into the record),
+and the load regression turns the profile's slope times that into the line's scale by chance
+correlation with the loads — sub-per-mille changes of a batch's calibration moved the half-car's
+blind-test reading by points. :func:`registered_runs` reads each run's speed error off its wheels'
+difference beside the span first (to ~2 mm); :func:`run_aps` / :func:`influence_of_aps` split
+:func:`bogie_influence` so that the reading can be redone on resampled or re-drawn runs
+(:func:`resampled_runs`, :func:`calibration_draw`) for its own sd without re-running the inverses.
+
 (The thesis's matrix method, eq. 3.16–3.23, applied to b·W̄ of the two wheels, is available as
 :func:`cloud.bridge.mril.mril_two_axle`; on our simulated blind-test batches its indicators were
 further from the truth than those of J itself — see the report of issue #6.)
@@ -68,6 +76,8 @@ functions on arrays.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import math
 from typing import Sequence
 
 import numpy as np
@@ -226,12 +236,41 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
     # on the wheels' difference beside the span below, and adding the per-run shifts read no better —
     # blind test seeds 0/1/2, carriage worst 0.9/1.3/2.1 with them against 0.9/1.2/1.5 without, half-car
     # 4.5/2.7/4.0 against 4.0/3.0/3.6.)
+    return influence_of_aps(run_aps(runs, fit, class_mean, model), start_m, span_m)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class RunAp:
+    """One run's AP under the leading bogie's two wheels and what keys it to the track."""
+
+    pass_id: str
+    ap_m: np.ndarray  # (n, 2) at step dt_s from the run's first sample
+    dt_s: float
+    x0_m: float  # chainage of the body's centre of gravity at the first sample (the log's)
+    offsets_m: np.ndarray  # (2,) the two wheels ahead of the body's centre of gravity
+    speed_mps: float  # calibrated
+    wheel_load_n: float  # calibrated static wheel load
+
+
+def run_aps(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str, float], model: str) -> list[RunAp]:
+    """Each run's AP under its calibrated properties (:func:`_leading_bogie_ap`): the expensive half of
+    :func:`bogie_influence`; :func:`influence_of_aps` is the rest."""
+    out = []
+    for run, est in zip(runs, fit.runs):
+        ap, off, v, load = _leading_bogie_ap(run, est, fit.globals_, class_mean, model)
+        out.append(RunAp(run.pass_id, ap, run.dt, run.x0_m, np.asarray(off, dtype=float), v, load))
+    return out
+
+
+def influence_of_aps(aps: Sequence[RunAp], start_m: float, span_m: float) -> BogieInfluence:
+    """:func:`bogie_influence` from the runs' APs (:func:`run_aps`)."""
+    if len(aps) < 3:
+        raise ValueError("bogie_influence: needs at least three runs (a slope over wheel loads)")
     a, b = start_m, start_m + span_m
     x = np.arange(a - APPROACH_M, b + APPROACH_M + 1e-9, GRID_M)
     # The registration window: as much of REGISTER_BEFORE_M/AFTER_M as every run covers (whole grid steps).
-    lead = class_mean["Lv"] + class_mean["Lb"]  # wheel 1 ahead of the body's centre of gravity, m
-    front = [run.x0_m + lead for run in runs]
-    end = [run.x0_m + (len(run.channels) - 1) * run.dt * e.mean["v"] + lead for run, e in zip(runs, fit.runs)]
+    front = [r.x0_m + r.offsets_m[0] for r in aps]
+    end = [r.x0_m + (len(r.ap_m) - 1) * r.dt_s * r.speed_mps + r.offsets_m[0] for r in aps]
     before = GRID_M * np.floor(min(REGISTER_BEFORE_M, a - max(front) - 0.5) / GRID_M)
     after = GRID_M * np.floor(min(REGISTER_AFTER_M, min(end) - b - 0.5) / GRID_M)
     if before < APPROACH_M or after < APPROACH_M:
@@ -239,9 +278,9 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
     xr = a + np.arange(-round(before / GRID_M), round((b - a + after) / GRID_M) + 1) * GRID_M
     Y, W, DIFF, DX = [], [], [], []
     M_span = c = None
-    for run, est in zip(runs, fit.runs):
-        ap, off, v, load = _leading_bogie_ap(run, est, fit.globals_, class_mean, model)
-        t = np.arange(len(ap)) * run.dt
+    for r in aps:
+        ap, off, v, load = r.ap_m, r.offsets_m, r.speed_mps, r.wheel_load_n
+        t = np.arange(len(ap)) * r.dt_s
         if c is None:  # the difference's grid: a whole number c of steps per wheelbase
             c = max(1, int(round((off[0] - off[1]) / GRID_M)))
             h = (off[0] - off[1]) / c
@@ -250,15 +289,15 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
         # Both wheels at one instant, wheel 1 at xd (wheel 2 a wheelbase behind); the line through
         # its means beyond the ends (both wheels off the span, before and after) removes the drift.
         wheels = ap[:, 0] - ap[:, 1]
-        dd = np.interp((xd - run.x0_m - off[0]) / v, t, wheels)
-        e0, e1 = (np.interp((xe - run.x0_m - off[0]) / v, t, wheels).mean() for xe in _chord_windows(xd))
+        dd = np.interp((xd - r.x0_m - off[0]) / v, t, wheels)
+        e0, e1 = (np.interp((xe - r.x0_m - off[0]) / v, t, wheels).mean() for xe in _chord_windows(xd))
         DIFF.append(dd - (e0 + (e1 - e0) * (xd - a) / (xd[-1] - a)))
-        DX.append(np.interp((xr - run.x0_m - off[0]) / v, t, wheels))
+        DX.append(np.interp((xr - r.x0_m - off[0]) / v, t, wheels))
         ys = []
         for i in (0, 1):
-            ti = (x - run.x0_m - off[i]) / v
+            ti = (x - r.x0_m - off[i]) / v
             if ti[0] < 0 or ti[-1] > t[-1]:
-                raise ValueError(f"bogie_influence: run {run.pass_id} does not cover the span with both wheels")
+                raise ValueError(f"bogie_influence: run {r.pass_id} does not cover the span with both wheels")
             y = np.interp(ti, t, ap[:, i])
             ya, yb = np.interp(a, x, y), np.interp(b, x, y)
             ys.append(y - (ya + (yb - ya) * (x - a) / (b - a)))
@@ -278,12 +317,95 @@ def bogie_influence(runs: Sequence[RailRun], fit: BatchFit, class_mean: dict[str
     g = -np.einsum("r,rk->k", Wc, DIFF - DIFF.mean(axis=0)) / np.sum(Wc**2)
     g_unseparated = -(DIFF / W[:, None]).mean(axis=0)
     J_mean = sosfiltfilt(sos, -0.5 * Y.mean(axis=0).sum(axis=0))
-    return BogieInfluence(MrIl(x[on] - a, J[on], len(runs)), W, intercept[:, on],
-                          MrIl(x[on] - a, J_unseparated[on], len(runs)), _difference_mril(xd - a, g, M_span, c, len(runs)),
-                          _difference_mril(xd - a, g_unseparated, M_span, c, len(runs)),
-                          MrIl(x[on] - a, J_mean[on], len(runs)),
-                          _difference_mril(xd - a, -DIFF.mean(axis=0), M_span, c, len(runs)),
-                          MrIl(x - a, J_mean, len(runs)), MrIl(xr - a, -np.mean(DX, axis=0), len(runs)), h * c)
+    return BogieInfluence(MrIl(x[on] - a, J[on], len(aps)), W, intercept[:, on],
+                          MrIl(x[on] - a, J_unseparated[on], len(aps)), _difference_mril(xd - a, g, M_span, c, len(aps)),
+                          _difference_mril(xd - a, g_unseparated, M_span, c, len(aps)),
+                          MrIl(x[on] - a, J_mean[on], len(aps)),
+                          _difference_mril(xd - a, -DIFF.mean(axis=0), M_span, c, len(aps)),
+                          MrIl(x - a, J_mean, len(aps)), MrIl(xr - a, -np.mean(DX, axis=0), len(aps)), h * c)
+
+
+def registered_runs(aps: Sequence[RunAp], start_m: float, span_m: float,
+                    iterations: int = REGISTER_ITERATIONS, reference: MrIl | None = None) -> list[RunAp]:
+    """``aps`` with each run's speed corrected so that its wheels' time-synchronous difference beside
+    the span lines up with the batch's mean (the runs' mean shift at mid-span unchanged: registering
+    the batch as a whole is :func:`_difference_shift`'s).
+
+    Why: a run's calibrated speed is off by ε_r (blind test: 0.003–0.02 % per run, ~0.03 % between
+    two calibrations of the same batch), which puts its AP ε_r·(x − x_r) off in chainage at x (x_r:
+    where its record starts): 1–4 cm at a span 130 m on. The unloaded profile's slope times that is a
+    few per cent of the deflection per run, and the load regression over the batch's ~7 % load spread
+    turns its chance correlation with the loads into the line's scale — the healthy line's estimate
+    from one batch moved by 13 % (AP) and 30–40 % (the wheels' difference, J⁰) under per-run speed
+    changes of 0.03 %. The profile is the same for every run, so each run's ε_r is read off the
+    wheels' difference over the registration window (:data:`REGISTER_BEFORE_M`/``AFTER_M``, the span
+    and the wheelbase after it left out), where the body's force cannot move it: Gauss–Newton on
+    c_r(x − ε_r·(x − x_r)) against the batch mean, the mean re-formed from the registered runs each
+    step (band as in :func:`_difference_shift`). ``reference``: another batch's
+    :attr:`BogieInfluence.difference_line` (the healthy batch's, registered) to register every run to
+    instead, its mean shift included (so that the batch-to-batch registration has ~nothing left).
+    Measured on the blind test's batches against the true speeds: chainage error at mid-span 11–16 mm
+    rms per batch as calibrated, 1.6–2.3 mm registered (no correlation with the load)."""
+    a, b = start_m, start_m + span_m
+    x1 = np.array([r.x0_m + r.offsets_m[0] for r in aps])  # wheel 1 at each record's first sample
+    end = [r.x0_m + (len(r.ap_m) - 1) * r.dt_s * r.speed_mps + r.offsets_m[0] for r in aps]
+    before = GRID_M * np.floor(min(REGISTER_BEFORE_M, a - x1.max() - 0.5) / GRID_M)
+    after = GRID_M * np.floor(min(REGISTER_AFTER_M, min(end) - b - 0.5) / GRID_M)
+    if before < APPROACH_M or after < APPROACH_M:
+        raise ValueError(f"registered_runs: the runs cover less than {APPROACH_M:g} m either side of the span")
+    x = a + np.arange(-round(before / GRID_M), round((b - a + after) / GRID_M) + 1) * GRID_M
+    wb = float(aps[0].offsets_m[0] - aps[0].offsets_m[1])
+    sos_lo = butter(4, GRID_M / (0.5 * MIN_WAVELENGTH_M), output="sos")
+    sos_hi = butter(2, GRID_M / (0.5 * REGISTER_MAX_WAVELENGTH_M), output="sos")
+    lines = []
+    for r in aps:
+        t = np.arange(len(r.ap_m)) * r.dt_s
+        y = sosfiltfilt(sos_lo, np.interp((x - r.x0_m - r.offsets_m[0]) / r.speed_mps, t, r.ap_m[:, 0] - r.ap_m[:, 1]))
+        lines.append(y - sosfiltfilt(sos_hi, y))
+    lines = np.asarray(lines)
+    off = ((x < a - 1.0) | (x > b + wb + 1.0)) & (x > x[0] + REGISTER_EDGE_M) & (x < x[-1] - REGISTER_EDGE_M)
+    mid = 0.5 * (a + b)
+    if reference is not None:  # another batch's difference_line: −(y_1 − y_2), x from the first support
+        y = sosfiltfilt(sos_lo, np.interp(x - a, reference.x_m, -reference.J))
+        ref_line = y - sosfiltfilt(sos_hi, y)
+    eps = np.zeros(len(aps))
+    for _ in range(iterations):
+        shifted = np.array([np.interp(x - e * (x - xr), x, line) for e, xr, line in zip(eps, x1, lines)])
+        ref = shifted.mean(axis=0) if reference is None else ref_line
+        for i in range(len(aps)):
+            slope = np.gradient(0.5 * (ref + shifted[i]), x)[off] * (x[off] - x1[i])
+            eps[i] += float(slope @ (shifted[i] - ref)[off]) / float(slope @ slope)
+        if reference is None:  # the batch's mean shift at mid-span is the batch registration's
+            eps -= np.mean(eps * (mid - x1)) / (mid - x1)
+    return [dataclasses.replace(r, speed_mps=r.speed_mps * (1.0 + e)) for r, e in zip(aps, eps)]
+
+
+def calibration_sds(fit: BatchFit, class_mean: dict[str, float], class_std: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Each run's calibration uncertainty as the reading feels it, from the fit's 95 % intervals: the
+    sd of its log speed with the bogie spacing's share taken out (that one moves every run alike:
+    the registrations absorb it; :func:`cloud.rail_calibration.calibrate_batch` adds it to every
+    run's interval) and the sd of its static wheel load (N, from mv's). The mass's interval carries
+    the held globals' error too, common to every run and batch, so the load's is an upper bound."""
+    lv = class_std["Lv"] / class_mean["Lv"]
+    z = 2.0 * 1.959963984540054
+    speed = np.array([math.sqrt(max(math.log(e.hi95["v"] / e.lo95["v"]) ** 2 / z**2 - lv**2, 0.0)) for e in fit.runs])
+    load = np.array([GRAVITY * e.mean["mv"] / 4 * math.log(e.hi95["mv"] / e.lo95["mv"]) / z for e in fit.runs])
+    return speed, load
+
+
+def resampled_runs(aps: Sequence[RunAp], rng: np.random.Generator) -> list[RunAp]:
+    """A bootstrap batch: as many runs drawn from ``aps`` with replacement (the batch's own noise)."""
+    return [aps[i] for i in rng.integers(0, len(aps), len(aps))]
+
+
+def calibration_draw(aps: Sequence[RunAp], rng: np.random.Generator, speed_log_sd: np.ndarray,
+                     load_sd_n: np.ndarray) -> list[RunAp]:
+    """``aps`` with each run's speed and wheel load drawn from its calibration's uncertainty
+    (:func:`calibration_sds`), independently per run. (The carriage inverse's AP depends on the
+    run's mv and Iv too; that is left out: on the blind test the per-run draws of mv and Iv moved
+    the carriage's readings by 0.2–0.5 points through AP and load together, at their marginal sd.)"""
+    return [dataclasses.replace(r, speed_mps=r.speed_mps * math.exp(rng.normal() * sv), wheel_load_n=r.wheel_load_n + rng.normal() * sw)
+            for r, sv, sw in zip(aps, speed_log_sd, load_sd_n)]
 
 
 def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fundamental: bool = False,
@@ -340,7 +462,7 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
     return damage_indicators(ref, MrIl(ref.x_m, (c_J - h_J) / w_c + ref.J * w_h / w_c, current.mril.n_passes))
 
 
-def pooled_healthy(healthy: BogieInfluence, batches: Sequence[BogieInfluence]) -> BogieInfluence:
+def pooled_healthy(healthy: BogieInfluence, batches: Sequence[BogieInfluence], weights=None) -> BogieInfluence:
     """``healthy`` with its deflection per unit load (:attr:`BogieInfluence.mril`) and its J⁰
     (:attr:`BogieInfluence.difference`) estimated from every batch over the same track, not from
     its own load regression alone. Each batch b's regression J_b and the change of its batch mean
@@ -348,8 +470,10 @@ def pooled_healthy(healthy: BogieInfluence, batches: Sequence[BogieInfluence]) -
 
         Ȳ_b = p + W̄_b·J_b,  Ȳ_H = p + W̄_H·J_H  ⇒  J_H = (W̄_b·J_b − (Ȳ_b − Ȳ_H)) / W̄_H,
 
-    and these are averaged with weights Σ(W − W̄_b)²/W̄_b² (the regression's precision; its noise
-    dominates the batch means'). Each batch is registered to ``healthy`` first, as in
+    and these (:func:`healthy_estimates`) are averaged with ``weights`` (per batch, or per batch and
+    line: (J, J⁰)), by default Σ(W − W̄_b)²/W̄_b² (the regression's precision; its noise dominates the
+    batch means'; weights from each estimate's own bootstrap and calibration-draw variance read within
+    5 % of the same sd on the blind test, session 8). Each batch is registered to ``healthy`` first, as in
     :func:`damage_from_batch_means`; ``batches`` may include ``healthy`` (its own regression).
     Measured on the blind test (7 batches of 50 per track, carriage): the per-batch estimates scatter
     by 7–8 % in area, so pooling cuts the regression's noise ~2.6×, but on seed 1 every batch's
@@ -359,23 +483,39 @@ def pooled_healthy(healthy: BogieInfluence, batches: Sequence[BogieInfluence]) -
     as :func:`damage_from_batch_means` reads them."""
     if not batches:
         raise ValueError("pooled_healthy: needs at least one batch")
+    estimates = healthy_estimates(healthy, batches)
+    if weights is None:
+        weights = [float(np.sum((b.wheel_load_n - np.mean(b.wheel_load_n)) ** 2)) / float(np.mean(b.wheel_load_n)) ** 2
+                   for b in batches]
+    w = np.asarray(weights, dtype=float)
+    w = np.repeat(w[:, None], 2, axis=1) if w.ndim == 1 else w
+    if w.shape != (len(batches), 2) or not np.all(w >= 0) or not np.all(w.sum(axis=0) > 0):
+        raise ValueError("pooled_healthy: weights must be (n_batches,) or (n_batches, 2), non-negative, not all zero")
+    J = sum(wb * e[0] for wb, e in zip(w[:, 0], estimates)) / w[:, 0].sum()
+    J0 = sum(wb * e[1] for wb, e in zip(w[:, 1], estimates)) / w[:, 1].sum()
+    return dataclasses.replace(healthy, mril=MrIl(healthy.mril.x_m, J, healthy.mril.n_passes),
+                               difference=MrIl(healthy.difference.x_m, J0, healthy.difference.n_passes))
+
+
+def healthy_estimates(healthy: BogieInfluence, batches: Sequence[BogieInfluence]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each batch's estimate of ``healthy``'s line, (J on ``healthy.mril.x_m``, J⁰ on
+    ``healthy.difference.x_m``): (W̄_b·J_b − (Ȳ_b − Ȳ_H))/W̄_H, the batch registered to ``healthy``
+    first (:func:`pooled_healthy`)."""
     span, wb = float(healthy.mril.x_m[-1]), healthy.wheelbase_m
     if healthy.difference_line is None or healthy.approach_line is None or wb is None:
         raise ValueError("pooled_healthy: needs the batches' approach and difference lines")
     x, xd = healthy.mril.x_m, healthy.difference.x_m
     w_h = float(np.mean(healthy.wheel_load_n))
     h_J, h_0 = _on_span(healthy.approach_line, x, 0.0), _registered_fundamental(healthy.difference_line, 0.0, span, wb)
-    J, J0, total = np.zeros_like(x), np.zeros_like(xd), 0.0
+    out = []
     for b in batches:
         w_b = float(np.mean(b.wheel_load_n))
-        weight = float(np.sum((b.wheel_load_n - w_b) ** 2)) / w_b**2
         delta = 0.0 if b is healthy else _difference_shift(healthy.difference_line, b.difference_line, span, wb)
-        J += weight * (w_b * _on_span(b.mril, x, delta) - (_on_span(b.approach_line, x, delta) - h_J)) / w_h
+        J = (w_b * _on_span(b.mril, x, delta) - (_on_span(b.approach_line, x, delta) - h_J)) / w_h
         d0 = np.interp(xd - delta, b.difference.x_m, b.difference.J)
-        J0 += weight * (w_b * d0 - (_registered_fundamental(b.difference_line, delta, span, wb) - h_0)) / w_h
-        total += weight
-    return dataclasses.replace(healthy, mril=MrIl(x, J / total, healthy.mril.n_passes),
-                               difference=MrIl(xd, J0 / total, healthy.difference.n_passes))
+        J0 = (w_b * d0 - (_registered_fundamental(b.difference_line, delta, span, wb) - h_0)) / w_h
+        out.append((J, J0))
+    return out
 
 
 def design_scale(bridge, healthy: BogieInfluence) -> BogieInfluence:
@@ -476,6 +616,20 @@ def _on_span(line: MrIl, x_span: np.ndarray, shift: float, as_line: bool = False
     return MrIl(x_span, y, line.n_passes) if as_line else y
 
 
+@functools.lru_cache(maxsize=16)
+def _difference_pinv(M: int, c: int) -> np.ndarray:
+    """The least-squares solution operator of the matrix method (g_k = J⁰_k − J⁰_(k−c), J⁰ = 0 off the
+    span), (M, M + c): the same for every batch on a span, so formed once (the reading's draws call it
+    hundreds of times)."""
+    K = M + c
+    A = np.zeros((K, M))
+    A[np.arange(M), np.arange(M)] = 1.0
+    A[np.arange(c, K), np.arange(K - c)] = -1.0
+    P = np.linalg.pinv(A)
+    P.flags.writeable = False
+    return P
+
+
 def _difference_mril(x_m: np.ndarray, g: np.ndarray, M: int, c: int, n_runs: int) -> MrIl:
     """J⁰ on the span from g_k = J⁰_k − J⁰_(k−c), the slope over wheel loads of the two wheels'
     time-synchronous AP difference (eq. 3.16 with equal axle loads W: W·(δ_A − δ_B) = W²·(J⁰_k −
@@ -486,11 +640,7 @@ def _difference_mril(x_m: np.ndarray, g: np.ndarray, M: int, c: int, n_runs: int
     suspension acts at the bogie's centre and moves both wheels' AP alike at each instant — the
     error of the bogie half-car (module docstring) cancels; a uniform track compliance cancels too.
     """
-    K = M + c
-    A = np.zeros((K, M))
-    A[np.arange(M), np.arange(M)] = 1.0
-    A[np.arange(c, K), np.arange(K - c)] = -1.0
-    J = np.linalg.lstsq(A, g, rcond=None)[0]
+    J = _difference_pinv(M, c) @ g
     J -= J[0] + (J[-1] - J[0]) * np.arange(M) / (M - 1)  # relative to the supports, as the AP chords
     h = x_m[1] - x_m[0]
     J = sosfiltfilt(butter(4, h / (0.5 * MIN_WAVELENGTH_M), output="sos"), J)
