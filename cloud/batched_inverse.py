@@ -2,11 +2,12 @@
 one compiled call.
 
 Calibration scores trial parameter sets by the apparent profiles (APs) they give: the Cross-Entropy
-reference (:mod:`cloud.reference.cross_entropy`) a population on one vehicle's record, the rail
-batch calibration (:mod:`cloud.rail_calibration`) finite-difference trials on every run of a batch,
-each run with its own length and (decimated) time step. Both run this one kernel: trial ``t`` on run
-``run_of[t]``, without compiling a state-space model per trial. Same equations and initial state
-convention as :class:`~shared.dynamics.inverse.InverseStream` without an initial state.
+reference (:mod:`cloud.reference.cross_entropy`) a population on one vehicle's record, each run
+with its own length and time step: trial ``t`` on run ``run_of[t]``, without compiling a state-space
+model per trial. Same equations and initial state convention as :class:`~shared.dynamics.inverse.
+InverseStream` without an initial state. (The rail batch calibration runs the carriage's own kernel,
+with forward-mode derivatives and a body initial state, :func:`cloud.rail_calibration._inverse_kernel`;
+its test checks it against this one.)
 
 The kernel is compiled once per vehicle structure (number of DOFs, which are measured and how,
 number of contacts), those being compile-time constants: numba then unrolls the small loops over

@@ -219,8 +219,9 @@ def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str,
     # The calibration is the slow part, cached; the influences are recomputed.
     # (v2: the calibration's inverse at γ = 0.5 and the held globals' covariance; v3: its low-pass in
     # space, after the inverse; v4: each run's initial state and chainage shift; v5: the shift reported;
-    # v6: a shift consistent with the log's chainage held there; older caches are not reused)
-    cached = d / ("fit-v6.pkl" if carriage_globals is None else "fit-healthy-globals-v6.pkl")
+    # v6: a shift consistent with the log's chainage held there; v7: sandwich intervals (the residual's own
+    # noise covariance), which the damaged batches' held globals carry; older caches are not reused)
+    cached = d / ("fit-v7.pkl" if carriage_globals is None else "fit-healthy-globals-v7.pkl")
     runs, cls, bridge = load_runs(d)
     if cached.exists():
         with open(cached, "rb") as f:

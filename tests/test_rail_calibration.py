@@ -412,3 +412,36 @@ def test_lowpass_is_scipys_zero_phase_filter():
         x = np.cumsum(rng.standard_normal((rows, 500)), axis=1)
         want = sosfiltfilt(sos, x, axis=1)
         assert np.abs(_sosfiltfilt_rows(sos, x) - want).max() <= 1e-12 * np.abs(want).max(), rows
+
+
+def test_noise_information_is_the_profiled_jacobians_quadratic_form():
+    """The sandwich's meat (cloud.rail_calibration._noise_information, from per-run spectra) is
+    Jᵀ Σ J of the dense profiled-consensus Jacobian (each run's rows, less the mean of all rows) with
+    Σ block-diagonal over runs, each block the four wheels' block-Toeplitz cross-covariances that the
+    residual shows (biased estimates, pooled over runs): a residual correlated along the track and
+    between wheels, inactive local coordinates left out."""
+    from cloud.rail_calibration import _noise_information
+
+    rng = np.random.default_rng(0)
+    n, L, n_g, K = 3, 5, 2, 17
+    active = np.array([0, 1, 3, 4])
+    D = rng.standard_normal((n, L + n_g, 4, K))
+    e = np.cumsum(rng.standard_normal((n, 4, K)), axis=-1) + 0.5 * rng.standard_normal((n, 1, K))
+    n_par = n * L + n_g
+    J = np.zeros((n, 4, K, n_par))
+    for r in range(n):
+        for j in active:
+            J[r, :, :, r * L + j] = D[r, j]
+        J[r, :, :, n * L:] = np.moveaxis(D[r, L:], 0, -1)
+    J = (J - J.mean(axis=(0, 1), keepdims=True)).reshape(n, 4 * K, n_par)
+    lag = np.arange(K)[:, None] - np.arange(K)[None, :]
+    C = np.zeros((4 * K, 4 * K))  # c_wv(a − b) = Σ_r Σ_k e_rw(k + a − b) e_rv(k) / (n·K)
+    for w in range(4):
+        for v in range(4):
+            c = sum(np.correlate(e[r, w], e[r, v], mode="full") for r in range(n)) / (n * K)  # lags −(K−1)…K−1
+            C[w * K:(w + 1) * K, v * K:(v + 1) * K] = c[lag + K - 1]
+    want = sum(J[r].T @ C @ J[r] for r in range(n))
+    got = _noise_information(e, D, L, active)
+    assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+    inactive = [r * L + j for r in range(n) for j in range(L) if j not in active]
+    assert not got[inactive].any() and not got[:, inactive].any()
