@@ -362,17 +362,11 @@ def _read_our_batch(payload) -> tuple[str, int, pa.RecordBatch] | None:
         schema, kind, version, max_rows = plan
         start = schema_end + 8
         meta = view[start : start + _fb(_U32, view, schema_end + 4)]
-        root = _fb(_U32, meta, 0)
-        header_type = _fb_field(meta, root, 1)
-        header = _fb_field(meta, root, 2)
-        body = _fb_field(meta, root, 3)
-        if header_type is None or _fb(_U8, meta, header_type) != _RECORD_BATCH or header is None or body is None:
+        body_length = _batch_body_length(meta.tobytes()) if len(meta) <= _MAX_CACHED_BATCH_META_BYTES else None
+        if body_length is None:
             return None
-        if _fb_field(meta, header + _fb(_U32, meta, header), 3) is not None:
-            return None  # compressed: refused by the general path before anything inflates
-        body_length = _fb(_I64, meta, body)
         end = start + len(meta) + body_length
-        if body_length < 0 or end + len(_END_OF_STREAM) != n or view[end:] != _END_OF_STREAM:
+        if end + len(_END_OF_STREAM) != n or view[end:] != _END_OF_STREAM:
             return None
         batch = pa.ipc.read_record_batch(pa.ipc.read_message(pa.py_buffer(view[schema_end:end])), schema)
         batch.validate(full=True)  # before anything else touches it, as in the general path
@@ -402,6 +396,31 @@ def _schema_plan(message: bytes) -> tuple[pa.Schema, str, int, int] | None:
     if len(set(names)) != len(names):
         return None
     return schema, kind, version, _MAX_ROWS.get(kind, 1)
+
+
+_MAX_CACHED_BATCH_META_BYTES = 4096  # a sensor chunk's is ~600 B; bounds the cache below (256 entries)
+
+
+@functools.lru_cache(maxsize=256)
+def _batch_body_length(meta: bytes) -> int | None:
+    """The body length of an uncompressed record-batch message with this metadata, else None (cached).
+
+    The metadata repeats byte for byte across chunks of the same length (and the same text lengths),
+    so its flatbuffer walk is done once per layout, not once per chunk.
+    """
+    try:
+        root = _fb(_U32, meta, 0)
+        header_type = _fb_field(meta, root, 1)
+        header = _fb_field(meta, root, 2)
+        body = _fb_field(meta, root, 3)
+        if header_type is None or _fb(_U8, meta, header_type) != _RECORD_BATCH or header is None or body is None:
+            return None
+        if _fb_field(meta, header + _fb(_U32, meta, header), 3) is not None:
+            return None  # compressed: refused by the general path before anything inflates
+        body_length = _fb(_I64, meta, body)
+    except ValueError:  # an offset out of range: the general path reports it
+        return None
+    return body_length if body_length >= 0 else None
 
 
 def _fb(fmt: struct.Struct, buf, pos: int) -> int:
