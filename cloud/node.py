@@ -151,6 +151,10 @@ class Cloud:
         self.epoch_round0 = 0
         self.epochs_tail = 0  # epochs closed by EPOCH_TAIL_S rather than a boundary (timing-dependent)
         self._new_pass_at = time.monotonic()
+        #: monotonic s of the last acknowledgement of a recomputed pass: while they keep coming the edge is
+        #: working through its recomputations, and a pass not yet back is queued, not lost. (Not new
+        #: passes' acks: under steady traffic those never stop, and an evicted pass would stall the rounds.)
+        self._recomputed_at = time.monotonic()
         self._refreshed: dict[str, tuple[int, float]] = {}  # vehicle → (version re-issued, monotonic s)
         self._issued_at: dict[str, float] = {}  # vehicle → monotonic s its current calibration was published
         self._excluded: set[tuple[str, str]] = set()  # epoch passes that never came back (REFRESH_WAIT_S)
@@ -216,6 +220,9 @@ class Cloud:
                 self._unfused[(ack.vehicle_id, ack.pass_id)] = None
             ps = self.aggregator.passes.get((ack.vehicle_id, ack.pass_id))
             first = ps is not None and ps.times_acked == 1
+            if ps is not None and ps.times_acked > 1:
+                self._recomputed_at = time.monotonic()
+                self._rejoin((ack.vehicle_id, ack.pass_id), ps)
             if self.calibrator is not None and ps is not None and ps.model:
                 try:
                     self.calibrator.initial(ack.vehicle_id, ps.model)  # rounds: see maybe_calibrate
@@ -527,12 +534,15 @@ class Cloud:
                 if not self.owns(key[0]):  # its owner's calibration is on its way: not waited for here
                     continue
                 waiting = True
+                # (Waits count from the edge's last answer too: a slow edge returns a round's passes
+                # one by one, seconds apart; timed from the calibration alone, road-qc under a heavier
+                # error model left 23-30 of 30 passes out, their vehicles at their first round's values.)
                 if refresh and ps.acked and ps.calib_version < st.version and \
-                        now - self._issued_at.get(key[0], -math.inf) >= REISSUE_AFTER_S:
+                        now - max(self._issued_at.get(key[0], -math.inf), self._recomputed_at) >= REISSUE_AFTER_S:
                     version, at = self._refreshed.get(key[0], (-1, now))
                     if version != st.version:
                         self._reissue(key[0])
-                    elif now - at >= REFRESH_WAIT_S:
+                    elif now - max(at, self._recomputed_at) >= REFRESH_WAIT_S:
                         log.warning("pass %s/%s not recomputed at calibration v%d: left out of the rounds",
                                     key[0], key[1], st.version)
                         self._excluded.add(key)
@@ -542,6 +552,20 @@ class Cloud:
                 if seg is not None:
                     out[sl] = seg
         return None if waiting else out
+
+    def _rejoin(self, key: tuple[str, str], ps) -> None:
+        """A pass left out of the rounds (REFRESH_WAIT_S) came back at its vehicle's current calibration:
+        in the rounds again, with a fresh budget for the epoch (new data for it, as a new pass) — else
+        its vehicle would keep the calibration of the round before it was left out."""
+        c = self.calibrator
+        st = c.vehicles.get(key[0]) if c is not None else None
+        if key not in self._excluded or st is None or ps.calib_version != st.version:
+            return
+        self._excluded.discard(key)
+        if key in self.completion_order[: self.epoch_size]:
+            self.start_epoch(self.epoch_size, c.rounds)
+            if self.record is not None:
+                self.record("epoch", json.dumps(self.epoch_state()).encode())
 
     def _reissue(self, vehicle_id: str) -> None:
         """The vehicle's calibration again under a new version (same parameters): its edge recomputes
