@@ -459,7 +459,28 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
         ref = _on_span(ref, ref.x_m, 0.0, as_line=True)
     else:
         c_J, h_J = current.mean_line.J, healthy.mean_line.J
-    return damage_indicators(ref, MrIl(ref.x_m, (c_J - h_J) / w_c + ref.J * w_h / w_c, current.mril.n_passes))
+    readable_line(ref, "damage_from_batch_means: the healthy line (the scale)")
+    line = readable_line(MrIl(ref.x_m, (c_J - h_J) / w_c + ref.J * w_h / w_c, current.mril.n_passes),
+                         "damage_from_batch_means: the current batch's line")
+    return damage_indicators(ref, line)
+
+
+def readable_line(line: MrIl, what: str) -> MrIl:
+    """``line`` (a deflection per unit load on the span, positive down) if D can be read from it, else
+    a ValueError naming ``what``: its area and its mid-span ordinate must both be positive. D = 100·(1 −
+    IL_H/IL_D) divides by them, so a line near zero or of the wrong sign reads any D at all. That is what
+    an AP whose errors follow the wheel load more than the deflection does gives: blind seed 4, profile 1,
+    ``leading_bogie``: its fixed point converges in 2–3 passes, but its on-span error against the
+    four-channel inverse (0.08–0.13 mm rms) varies between runs ~6× as much as the deflection does over
+    their loads (area sd 0.86 against 0.15 mm·m) and correlates with the load (ρ ≈ 0.27); every batch's
+    regression area −32…+12 µm·m/kN (the carriage's +24…+32), pooled −7.4, and D1 read −4310…+2784
+    before this check. Not a test of accuracy: a wrong but positive line passes."""
+    area, mid = line.area, line.midspan()
+    if not (area > 0.0 and mid > 0.0):
+        raise ValueError(f"{what} is not a deflection (area {area * 1e9:.3g} µm·m/kN, mid-span "
+                         f"{mid * 1e9:.3g} µm/kN; both must be positive; likely an AP whose errors follow the "
+                         f"wheel load more than the deflection does): D not read")
+    return line
 
 
 def pooled_healthy(healthy: BogieInfluence, batches: Sequence[BogieInfluence], weights=None) -> BogieInfluence:

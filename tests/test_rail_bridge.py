@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from cloud.bridge.mril import damage_indicators
-from cloud.rail_bridge import MODELS, _difference_shift, bogie_influence, damage_from_batch_means, pooled_healthy
+from cloud.rail_bridge import (MODELS, _difference_shift, bogie_influence, damage_from_batch_means, influence_of_aps,
+                                pooled_healthy, run_aps)
 from cloud.rail_calibration import calibrate_batch
 from simfleet.rail import RailBridgeSpec
 from simfleet.reproduce_rail import load_runs, true_effective_levels
@@ -127,6 +128,28 @@ def test_batches_are_registered_on_the_wheels_difference(healthy_batch):
             worst[m, register] = max(abs(d.D1_pct), abs(d.D2_pct))
     assert worst["carriage", True] < 0.5 and worst["carriage", False] > 3 * worst["carriage", True], worst
     assert worst["bogie_half_car", True] < 0.7 * worst["bogie_half_car", False], worst
+
+
+def test_a_scale_line_that_is_not_a_deflection_is_not_read(healthy_batch):
+    """An AP whose errors follow the wheel load more than the deflection does (blind seed 4 profile 1,
+    ``leading_bogie``: every batch's regression area −32…+12 µm·m/kN, the carriage's +24…+32) gives a
+    healthy line near zero or of the wrong sign, and D = 100·(1 − IL_H/IL_D) then reads anything
+    (D1 −4310 there). Made here from the healthy batch's own APs with each run's calibrated wheel load
+    mirrored about the batch mean (same mean and spread, the slope's sign reversed): a clear error, not
+    a number; the same APs with their own loads read D ≈ 0 against themselves."""
+    (runs, fit, cls, bridge), _ = healthy_batch
+    span = (bridge.start_chainage_m, bridge.span_m)
+    aps = run_aps(runs, fit, cls.mean, "carriage")
+    w_mean = np.mean([r.wheel_load_n for r in aps])
+    mirrored = [dataclasses.replace(r, wheel_load_n=2 * w_mean - r.wheel_load_n) for r in aps]
+    own, wrong = influence_of_aps(aps, *span), influence_of_aps(mirrored, *span)
+    assert wrong.mril.area < 0 < own.mril.area
+    same = damage_from_batch_means(own, own)
+    assert abs(same.D1_pct) < 1e-6 and abs(same.D2_pct) < 1e-6
+    with pytest.raises(ValueError, match="healthy line .* is not a deflection"):
+        damage_from_batch_means(wrong, own)
+    with pytest.raises(ValueError, match="healthy line .* is not a deflection"):
+        damage_from_batch_means(wrong, own, fundamental=True)
 
 
 def test_true_effective_level_of_a_uniform_loss_is_the_loss():
