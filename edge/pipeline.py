@@ -150,7 +150,7 @@ def _grid_positions(x, number0, first, spacing, index, speed, dt):
 
 
 @njit(cache=True)
-def _antialias(sap, srel, s0, index, speed, linear, out, k0, dt, min_speed, final):
+def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_speed, final):
     """Low-pass and resample the AP at grid points ``k0, k0 + 1, …`` (their fractional sample
     numbers ``index``, chainage speeds ``speed``) from its samples ``sap`` (numbered ``s0, s0 + 1,
     …``, interval ``dt``); returns the first point not done (its window reaches past the samples so
@@ -161,8 +161,11 @@ def _antialias(sap, srel, s0, index, speed, linear, out, k0, dt, min_speed, fina
     ``_AA_CUTOFF_CPM × v`` Hz. A sum over the uniform samples is an exact band-limited
     resampling at the fractional sample (the kernel's band and the AP's, ≤ Nyquist, add to less
     than the sample rate), normalised so a constant passes exactly. Points whose window is not all
-    reliable samples of this pass (warm-up, a stop, the pass's ends) keep the linear value: a
-    garbage AP must not leak into its neighbours, and a truncated kernel is not the filter.
+    reliable samples of this pass (warm-up, a stop, the pass's start) keep the linear value: a
+    garbage AP must not leak into its neighbours. Points whose window the pass's end cuts become
+    invalid (``valid``): a truncated kernel is not the filter, and their linear value carries the
+    full-band noise (5× the anti-aliased points' second differences at 2 % noise), which the
+    cloud's bridge likelihood saw as χ² ≈ 100 in the last row of every pass ending near a bridge.
     """
     n = sap.size
     fc_max = _AA_MAX_CUTOFF_FRACTION / dt
@@ -180,8 +183,9 @@ def _antialias(sap, srel, s0, index, speed, linear, out, k0, dt, min_speed, fina
             if not final:
                 return k
             out[k] = linear[k]
+            valid[k] = False
             continue
-        if lo < 0:
+        if lo < 0:  # the pass's first samples: kept (the rail's trailing bogie needs them from the start)
             out[k] = linear[k]
             continue
         ok = True
@@ -275,7 +279,7 @@ class _AxleGrid:
             self.done = self.size
 
     def flush(self) -> None:
-        """The pass has ended: make every point final (those whose window is cut keep the linear value)."""
+        """The pass has ended: make every point final (those whose window the end cuts are invalid)."""
         if self.antialias:
             self._filter(final=True)
 
@@ -314,7 +318,7 @@ class _AxleGrid:
     def _filter(self, final: bool) -> None:
         n = self.size
         self.done = _antialias(self._sap, self._srel, self._s0, self._index[:n], self._speed[:n], self._values[:n],
-                               self._smooth[:n], self.done, self._dt, self._min_speed, final)
+                               self._smooth[:n], self._valid[:n], self.done, self._dt, self._min_speed, final)
         # Drop the samples no pending point can reach: its window is at most ± the kernel's
         # half-width at min_speed (slower points are not filtered).
         horizon = self._index[self.done] if self.done < n else float(self._n_seen)

@@ -158,3 +158,20 @@ def test_agrees_with_a_finer_profile_band_limited_by_fft():
         rel[aa] = float(np.std(in_band(g.values - truth)[inner]) / np.std(in_band(truth)[inner]))
     assert rel[True] < 1e-3, rel
     assert rel[False] > 3 * rel[True], rel
+
+
+def test_points_whose_window_the_pass_ends_cut_are_invalid():
+    """Every valid point is the filter's: gridding a longer drive over the same samples gives the
+    same value there. Near the pass's end the kernel is cut, and the linear value it would keep
+    carries the full-band noise (above the grid's Nyquist) that the filter removes elsewhere."""
+    rng = np.random.default_rng(3)
+    x = _trajectory(15.0, 4.0)
+    ap = rng.normal(0.0, 1e-3, x.size)  # white: the filter changes every point
+    m = x.size - 400
+    short, xs = _grid(x[:m], ap[:m], True)
+    long, _ = _grid(x, ap, True)
+    assert short.base == long.base
+    k = np.flatnonzero(short.valid)
+    assert np.allclose(short.values[k], long.values[k], rtol=0.0, atol=1e-15)
+    # only the kernel's reach (≤ 0.36 m, plus a grid step) is given up at the end
+    assert x[m - 1] - xs[k[-1]] < 0.4 + SPACING
