@@ -56,7 +56,7 @@ import numpy as np
 from shared.fe.beam import Beam, compliance_kernel
 from shared.registry import Bridge
 
-from .passdata import PassData, Reference, Window, consensus_used, residual
+from .passdata import PassData, Reference, Window, consensus_end, consensus_used, residual
 from .vehicle_error import FD_STEP, CalibrationMarginal, perturbed_params
 
 #: The likelihood window starts this far before the first support (m); the noise is estimated on
@@ -393,12 +393,15 @@ def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smoo
     x = w.x
     skeleton, model_white, sens = columns or model_columns(p, basis, deck, band_hz)
     rho = residual(p, ref, smooth_deck=(deck == "smooth"), leave_out=leave_out)
+    # Not where the consensus has lost the passes that ended first: rows stop there, and the
+    # residual is held (as after the pass's own end) so the band limit does not carry the jump back.
+    last = consensus_end(p, ref, leave_out)
+    rho[last + 1 :] = rho[last]
     white = np.column_stack([skeleton.stage1(rho[:, None]), model_white])
     step = skeleton.step
     xd = x[::step]
     idx = np.arange(w.n)[::step]
-    valid_idx = np.flatnonzero(p.valid)
-    first, last = valid_idx[0], valid_idx[-1]
+    first = np.flatnonzero(p.valid)[0]
     noise = np.flatnonzero((xd < -LEAD_M) & (idx >= first + int(BURN_IN_M / w.spacing_m)) & p.valid[::step])
     order = AR_ORDER if step == 1 else AR_ORDER_DECIMATED
     if noise.size < 6 * order:
