@@ -478,8 +478,7 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
                          prior: StiffnessPrior = StiffnessPrior(), iterations: int = 6,
                          start: float | None = None, model=None, tol: float = 1e-3,
                          cache: dict | None = None, sensitivities: bool = False,
-                         relinearisations: int = 0, linearise_at: float | None = None,
-                         scale_evidence: str = "linearised") -> DynamicFit:
+                         linearise_at: float | None = None) -> DynamicFit:
     """Per-element posterior with the moving-force dynamics.
 
     ε depends on the stiffness mainly through its global level (f1 ∝ √EI), and strongly: both
@@ -488,15 +487,14 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
     So the global level ĝ is found first by the profile likelihood with ε recomputed at every
     level (:func:`profile_global_level`, from ``start``, a ratio). With ``sensitivities``
     each pass's ε is then linearised in every element's θ about ĝ
-    (:class:`~cloud.bridge.static.LinearisedDynamicModel`; ``relinearisations`` more times about the
-    estimate, measured not to matter), so the per-element fit reads the dynamics itself; without,
+    (:class:`~cloud.bridge.static.LinearisedDynamicModel`; relinearised about the estimate it moved the
+    largest element error by < 0.1 point), so the per-element fit reads the dynamics itself; without,
     it is fitted with ε fixed at ĝ and recentred on ĝ (:func:`recentre`). ``model``: an
     :class:`~cloud.bridge.static.ElementModel` (default, simply supported) or a
     :class:`~cloud.bridge.static.BearingElementModel` (ε at the level only, :mod:`cloud.bridge.bearings`);
-    ``scale_evidence``: the departure scales are weighted by the linearised fits' own evidence
-    ("linearised") or by the fixed-ε fits' ("fixed": measured, it keeps the 30-pass ends calmer —
-    bridge-global10 seed 5 element mean 2.4 → 1.6 points — but 300-pass healthy seed 2 reads 3.3,
-    not 3.0). ``cache``: see :func:`dynamic_deltas`; ``linearise_at``: the uniform level (log ratio) of an
+    the departure scales are weighted by the linearised fits' own evidence (by the fixed-ε fits'
+    instead, measured: the 30-pass ends calmer — bridge-global10 seed 5 element mean 2.4 → 1.6 points —
+    but 300-pass healthy seed 2 read 3.3, not 3.0). ``cache``: see :func:`dynamic_deltas`; ``linearise_at``: the uniform level (log ratio) of an
     earlier fit's linearisation, kept while within :data:`LINEARISATION_TOL` of ĝ (a live estimator's
     cache then holds every earlier pass's ∂ε there). ``iterations``/``tol`` bound the bearings' alternation
     between level and Krot. ``deltas`` of the result are ε at ĝ (what the hypotheses use).
@@ -521,18 +519,9 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
         # covariance carries the spread between the fits, which is not the level's uncertainty.
         final = mix_scales([recentre(f, model, level) for f in fits], model.prior)
         return DynamicFit(final, (qs, mix_scales(fits, model.prior)), deltas, level.ratio, lin, level)
-    history = [qs]
-    at, d_at = lin, deltas
-    for it in range(relinearisations + 1):
-        sens = dynamic_sensitivities(passes, setup, at, cache)
-        if it > 0:
-            d_at = dynamic_deltas(passes, setup, at, cache)
-        lmodel = LinearisedDynamicModel(model.basis, model.ei_design, model.kernel, model.prior, np.array(at))
-        lfits = fit_elements_per_scale(vehicle_stats(extended_passes(passes, sens), d_at), lmodel, weight_prior,
-                                       theta0=at)
-        post = mix_scales(lfits, model.prior, None if scale_evidence == "linearised"
-                          else [f.log_evidence for f in fits])
-        history.append(post)
-        at = np.array(post.theta)
-    return DynamicFit(post, tuple(history), deltas, level.ratio, lin, level,
-                      sens if relinearisations == 0 else dynamic_sensitivities(passes, setup, lin, cache))
+    sens = dynamic_sensitivities(passes, setup, lin, cache)
+    lmodel = LinearisedDynamicModel(model.basis, model.ei_design, model.kernel, model.prior, np.array(lin))
+    lfits = fit_elements_per_scale(vehicle_stats(extended_passes(passes, sens), deltas), lmodel, weight_prior,
+                                   theta0=lin)
+    post = mix_scales(lfits, model.prior)
+    return DynamicFit(post, (qs, post), deltas, level.ratio, lin, level, sens)

@@ -1016,18 +1016,16 @@ def fit_elements_per_scale(stats: Sequence[VehicleStats], model: "ElementModel |
     return [_fit_elements(S, dataclasses.replace(model, prior=model.prior.scaled(t)), theta0) for t in scales]
 
 
-def mix_scales(fits: Sequence[ElementPosterior], prior: StiffnessPrior,
-               log_evidence: Sequence[float] | None = None) -> ElementPosterior:
+def mix_scales(fits: Sequence[ElementPosterior], prior: StiffnessPrior) -> ElementPosterior:
     """The posterior with the departure scale τ integrated out: the fits at each τ of
     ``prior.scales`` weighted by evidence × hyperprior (log τ ~ N(0, ``scale_sd``²) on the grid),
     moment-matched in θ — the mean, and a covariance that includes the spread between the fits
     (the bands widen when the data cannot tell the scales apart). The other fields are the most
-    probable τ's; the result's ``log_evidence`` is the mixture's. The argument ``log_evidence``: each
-    τ's log evidence from another model of the same data, to weigh by instead of the fits' own."""
+    probable τ's; the result's ``log_evidence`` is the mixture's."""
     if len(fits) == 1:
         return fits[0]
     scales = np.asarray(prior.scales, dtype=float)
-    log_z = np.array([f.log_evidence for f in fits] if log_evidence is None else log_evidence, dtype=float)
+    log_z = np.array([f.log_evidence for f in fits], dtype=float)
     log_h = -0.5 * (np.log(scales) / prior.scale_sd) ** 2 if prior.scale_sd else np.zeros(scales.size)
     log_h -= np.log(np.sum(np.exp(log_h)))
     lp = log_z + log_h
