@@ -2,8 +2,9 @@
 
 Transport-free: :meth:`BridgeEstimator.add_segments` takes one pass's AP segments (with the vehicle
 parameters the edge used), :meth:`BridgeEstimator.estimate` returns the current
-:class:`BridgeEstimate`. What can be cached per pass is (the pass's corrected AP, its load factor,
-its band-limited model columns, its dynamic correction while the stiffness estimate stays put);
+:class:`BridgeEstimate`. What can be cached per pass is (the pass's corrected AP, its band-limited
+model columns, its dynamic correction while the stiffness estimate stays put, its wheel-load factor
+from the consensus road — recomputed with its load columns when the fleet has grown by a quarter);
 what depends on the whole fleet (the consensus, hence each pass's residual and noise level) is
 recomputed at every estimate, at O(passes) small cost. The dynamic excess of every pass is cached
 per global level (on :data:`~cloud.bridge.dynamic.LEVEL_GRID`), so an update recomputes it for the
@@ -30,11 +31,16 @@ from shared.schema import ApSegment
 from .dynamic import GlobalLevel, fit_elements_dynamic
 from .hypotheses import Assessment, HypothesisSettings, Kernels, assess
 from .mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
-from .passdata import EdgeSettings, PassData, Reference, extract_pass, span_profile
+from .passdata import EdgeSettings, PassData, Reference, extract_pass, road_load_factor, span_profile
 from .static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, Whitener,
-                     common_calibration_columns, consensus_distortion, fit_elements, marginal_loglik_batch,
-                     model_columns, mu_basis, pass_distortion, road_sensitivity, step_basis, vehicle_stats,
-                     whiten_pass)
+                     common_calibration_columns, consensus_distortion, driven_road, fit_elements,
+                     marginal_loglik_batch, model_columns, mu_basis, pass_distortion, road_sensitivity, step_basis,
+                     vehicle_stats, whiten_pass)
+
+LOAD_FACTORS = ("road", "own")
+#: A pass's wheel-load factor from the consensus road is recomputed when the passes behind the
+#: consensus have grown by this factor since (its error from the consensus' noise falls as 1/√n).
+LOAD_FACTOR_REFRESH = 1.25
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,6 +82,13 @@ class BridgeSettings:
     #: at most the number calibrated, so this errs wide); "class" — σ_class (the fleet may differ
     #: from the class as a whole); None — not modelled.
     common_calibration: str | None = "mean"
+    #: where each pass's dynamic wheel-load factor ``1 + φ_p`` comes from: "road" — the vehicle's
+    #: forward model over the fleet's leave-one-out consensus road and its own deflection under the
+    #: class-mean load (:func:`~cloud.bridge.passdata.road_load_factor`), recomputed as the fleet grows
+    #: (:data:`LOAD_FACTOR_REFRESH`); "own" — over the pass's own AP (:func:`~cloud.bridge.passdata.extract_pass`),
+    #: which carries the pass's noise into the regressor the same noise is fitted with (errors in
+    #: variables; see :meth:`BridgeEstimator._load_factor` for what it measured).
+    load_factor: str = "road"
 
 
 def class_weight_prior(site: Site, model: str) -> WeightPrior:
@@ -154,7 +167,8 @@ class BridgeEstimate:
 @dataclasses.dataclass
 class _PassEntry:
     data: PassData
-    columns: tuple[Whitener, np.ndarray, tuple | None]
+    columns: tuple[Whitener, np.ndarray, tuple | None] | None  # None: not yet computed (model_columns)
+    load_at: int | None = None  # passes in the consensus its road load factor was computed with
     road: tuple[int, np.ndarray] | None = None  # (passes in the consensus, its road sensitivity)
     common: np.ndarray | None = None  # its fleet-common calibration columns, band-limited forward model
 
@@ -166,6 +180,8 @@ class BridgeEstimator:
         self.bridge = bridge
         self.weight_prior = weight_prior
         self.settings = settings
+        if settings.load_factor not in LOAD_FACTORS:
+            raise ValueError(f"load_factor: must be one of {LOAD_FACTORS}, got {settings.load_factor!r}")
         self.setup = Setup.of(bridge, deck=settings.deck)
         self.model = self.setup.model(settings.stiffness_prior)
         use = settings.assess and (settings.deck == "smooth" or settings.assess_rough)
@@ -207,9 +223,9 @@ class BridgeEstimator:
         return True
 
     def add(self, pd: PassData) -> None:
-        """Add (or replace, e.g. after recalibration) one pass."""
-        cols = model_columns(pd, self.setup.basis, self.settings.deck)
-        self.passes[(pd.vehicle_id, pd.pass_id)] = _PassEntry(pd, cols)
+        """Add (or replace, e.g. after recalibration) one pass. Its model columns are computed at the
+        next estimate, once its wheel-load factor is known (:attr:`BridgeSettings.load_factor`)."""
+        self.passes[(pd.vehicle_id, pd.pass_id)] = _PassEntry(pd, None)
         self._cache = {k: v for k, v in self._cache.items() if (k[0], k[1]) != (pd.vehicle_id, pd.pass_id)}
 
     def remove(self, vehicle_id: str, pass_id: str) -> None:
@@ -230,6 +246,8 @@ class BridgeEstimator:
         # for bearings at the last estimate: the bearings' prior mean (Krot 1e8, nearly pinned) is far
         # from a stiff bearing's line, and linearising there read bearing-1e10 as 1e11.3 (H4).
         load = self.model.a(self._linearise_at if self._linearise_at is not None else self.model.prior_mean())
+        for e in entries:
+            self._load_factor(e, ref, load)
         common = self._common(entries)
         cols = self._common_columns(entries, ref, common, load)
         wps = [whiten_pass(e.data, ref, self.setup.basis, self.settings.deck, columns=e.columns, load=load,
@@ -267,6 +285,58 @@ class BridgeEstimator:
         indicators = damage_indicators(self.baseline.mril, mril) if self.baseline.ready else None
         return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes,
                               pass_deflections)
+
+    def _load_factor(self, e: _PassEntry, ref: Reference, load: np.ndarray) -> None:
+        """Give the pass its wheel-load factor (:attr:`BridgeSettings.load_factor`) and its model columns.
+
+        "road": ``1 + φ_p`` of the vehicle driven over the leave-one-out consensus road
+        (:func:`~cloud.bridge.static.driven_road`) and, on a smooth deck's span (where that road is
+        taken flat), its own deflection under the class-mean wheel load ``W̄·J`` at the linearisation
+        load term ``load`` (a rough deck's consensus holds the fleet-mean deflection already). It
+        holds none of the pass's own noise. Measured against noise-free twins (same passes, healthy,
+        2 % noise, true vehicle parameters): φ̂ from the pass's own AP is off by 0.014 % of the wheel
+        load rms on the span (φ itself 0.95 %), almost all of it at 2–10 Hz where it is the pass's AP
+        noise; the road's φ by 0.021 % — less in that band (0.004 vs 0.009 % at 5–10 Hz) and more
+        below 2 Hz (the vehicle's own weight and the bridge's vibration are not in it), but none of it
+        correlated with the noise its pass is fitted against. Measured (healthy, 300 passes, main's
+        noise model): the fits read ~0.1 point stiffer throughout (φ̂'s noise read the bridge soft);
+        free gain from the truth / largest element error, seeds 0/1/2: 33.3/17.7/10.6 → 28.0/17.3/11.2
+        nats, 3.52/2.77/3.02 → 3.27/2.74/3.04 points (the noise-free twins' φ on seed 0's older data:
+        −4.0 nats); two re-noised draws of seed 0: +0.9 / −0.2 nats. bridge-global10 at 30 passes, 10
+        seeds: the mean moves +0.06…+0.15 point on eight (−0.65 / +0.70 on two), its sd over seeds
+        0.92 → 0.82 points (the effective ratio's 0.81 → 0.86: no change in efficiency).
+
+        Recomputed when the passes behind the consensus have grown by :data:`LOAD_FACTOR_REFRESH`
+        (then only the load columns of :func:`~cloud.bridge.static.model_columns` are redone: the μ
+        and step columns do not depend on φ, and the calibration sensitivities of the load columns
+        and the cached dynamic excess move by ~Δφ ≈ 10⁻⁴ of themselves, far below their own
+        uncertainty, so they are kept). Measured, global10 seed 0 passed in live one by one from 3 to
+        30: 117 φ computations took 0.9 s of the 38 s of estimates; the final estimate is the batch
+        one's within 0.05 point per element (φ within 4·10⁻⁶ of the wheel load rms); a refresh costs
+        14 ms per pass (φ and its load columns).
+        """
+        if self.settings.load_factor == "road":
+            n = int(ref.count.max())
+            if e.load_at is None or n > LOAD_FACTOR_REFRESH * e.load_at:
+                window, deck = self.setup.window, self.settings.deck
+                road = driven_road(e.data, ref, deck)
+                deflection = None
+                if deck == "smooth":
+                    deflection = np.zeros(window.n)
+                    deflection[window.on_span] = self.weight_prior.mean_n * (self.setup.basis.design @ load)
+                e.data = dataclasses.replace(e.data, load_factor=road_load_factor(e.data, road, deflection))
+                e.load_at = n
+                if e.columns is not None:
+                    skeleton, white, sens = e.columns
+                    skeleton = dataclasses.replace(skeleton, data=e.data)
+                    basis, on = self.setup.basis, window.on_span
+                    cols = np.zeros((window.n, basis.n))
+                    cols[on] = e.data.load_factor[on, None] * basis.design
+                    white = white.copy()
+                    white[:, : basis.n] = skeleton.stage1(cols)
+                    e.columns = (skeleton, white, sens)
+        if e.columns is None:
+            e.columns = model_columns(e.data, self.setup.basis, self.settings.deck)
 
     def _common(self, entries: list[_PassEntry]) -> tuple[tuple[str, float], ...] | None:
         """(name, prior log-sd) of the fleet-common calibration error's coordinates, or None."""
