@@ -7,9 +7,11 @@ import dataclasses
 import math
 
 import numpy as np
+from scipy.stats import norm
 
-from cloud.bridge.information import (FD_STEP, PassCase, PassSensitivity, crack_jacobian, fleet_information,
-                                      noise_sd_of, pass_sensitivity)
+from cloud.bridge.information import (FD_STEP, PassCase, PassSensitivity, crack_jacobian, efficient_error_covariance,
+                                      fleet_information, largest_error, noise_sd_of, pass_sensitivity)
+from cloud.bridge.static import StiffnessPrior
 from shared.fe.beam import Beam, crack_ei_factor
 from shared.vbi import simulate_vbi
 from shared.vehicles import QuarterCar
@@ -111,3 +113,55 @@ def test_calibration_errors_are_marginalised_as_in_the_joint_information():
     # scaling keeps the joint blocks (the common prior does not scale with passes)
     big = info.scaled(30)
     assert big.global_sd() < info.global_sd() and np.allclose(big.common_precision, info.common_precision)
+
+
+def _p_all_within(bound, sd):
+    """P(every |N(0, sd_i²)| ≤ bound), independent elements: Π(2Φ(b/σ_i) − 1)."""
+    return float(np.prod(2.0 * norm.cdf(bound / np.asarray(sd)) - 1.0))
+
+
+def test_largest_error_matches_the_closed_form_for_independent_elements():
+    # Diagonal information and prior: independent errors, sd_i = √F_i / (F_i + q_i) (A·F·A), not
+    # the posterior's 1/√(F_i + q_i) — a wrong covariance moves P by far more than the tolerance.
+    F = np.diag([4.0e3, 1.0e4, 2.5e4, 6.0e3, 1.5e4, 3.0e3])
+    Q = np.diag([2.0e3, 1.0e3, 5.0e3, 0.0, 4.0e3, 1.0e3])
+    f, q = np.diag(F), np.diag(Q)
+    sd = np.sqrt(f) / (f + q)
+    r = largest_error(F, Q, 2.0, draws=200_000, rng=np.random.default_rng(3))
+    assert np.allclose(r.element_sd_pts, 100 * sd, rtol=1e-12)
+    assert np.allclose(r.bayes_sd_pts, 100 / np.sqrt(f + q), rtol=1e-12)
+    exact = _p_all_within(0.02, sd)
+    assert 0.2 < exact < 0.8  # a bound where P is informative
+    assert abs(r.p_within - exact) < 0.006  # ±5 Monte Carlo sd
+    # the Monte Carlo median and 90 % point of the largest error sit at CDF 0.5 and 0.9 of the exact law
+    assert abs(_p_all_within(r.median_pts / 100, sd) - 0.5) < 0.006
+    assert abs(_p_all_within(r.p90_pts / 100, sd) - 0.9) < 0.004
+    assert r.median_pts < r.p90_pts
+
+
+def test_the_efficient_estimator_at_a_healthy_truth_has_error_covariance_AFA_below_the_posterior():
+    """The yardstick's claim checked on the estimator itself: the posterior mean of a linear-Gaussian
+    model with the GMRF prior, at the design truth (θ = μ = 0), over noise draws."""
+    rng = np.random.default_rng(5)
+    n_e = 20
+    X = rng.standard_normal((60, n_e)) * np.linspace(0.2, 1.0, n_e) ** 2 * 40.0  # ill-seen ends
+    X[:, :3] *= 0.05
+    F = X.T @ X
+    Q = StiffnessPrior().precision(n_e)
+    C, A = efficient_error_covariance(F, Q)
+    # A·F·A ≤ A (the difference is A·Q·A, positive semi-definite), and strictly below somewhere
+    assert np.linalg.eigvalsh(A - C).min() > -1e-12 * np.abs(A).max()
+    assert np.allclose(A - C, A @ Q @ A, atol=1e-12 * np.abs(A).max())
+    assert np.min(np.diag(C) / np.diag(A)) < 0.5  # the ill-seen ends: the prior, not the noise
+    draws = 40_000
+    est = A @ (X.T @ rng.standard_normal((X.shape[0], draws)))  # θ̂ − θ at θ = 0
+    assert np.allclose(np.cov(est), C, atol=0.05 * np.sqrt(np.outer(np.diag(C), np.diag(C))).max())
+    worst = 100 * np.abs(est).max(axis=0)
+    b = float(np.median(worst))
+    r = largest_error(F, Q, b, draws=draws, rng=np.random.default_rng(6))
+    assert abs(r.p_within - 0.5) < 0.02 and abs(r.median_pts / b - 1) < 0.02
+    # the posterior covariance A as the yardstick (information F + Q, no prior: A·(F+Q)·A = A) would
+    # have called the bound far harder to meet
+    post = largest_error(F + Q, np.zeros_like(Q), b, draws=draws, rng=np.random.default_rng(7))
+    assert np.allclose(post.element_sd_pts, 100 * np.sqrt(np.diag(A)))
+    assert post.p_within < r.p_within - 0.2

@@ -24,3 +24,30 @@ def test_the_first_passes_of_a_longer_simulation_are_the_shorter_simulation(tmp_
         assert np.array_equal(x.chainage, y.chainage) and np.array_equal(x.speed, y.speed)
         assert x.channels.keys() == y.channels.keys()
         assert all(np.array_equal(x.channels[k], y.channels[k]) for k in x.channels)
+
+
+def test_the_report_shows_the_efficient_estimators_largest_error_beside_ours():
+    """The CRB section's bridge-healthy table and the --large bound column are computed from the
+    information (scaled from 30 passes), not typed: P(all within) grows with the bound, and each
+    row shows its own entry."""
+    from cloud.bridge.information import Information
+    from cloud.bridge.static import StiffnessPrior
+    from simfleet.reproduce_bridge import _bound_cell, _largest_error_report, healthy_bound_pts, largest_error_entry
+
+    rng = np.random.default_rng(2)
+    X = rng.standard_normal((80, 20)) * np.sin(np.linspace(0.1, np.pi - 0.1, 20)) * 60.0  # ends barely seen
+    info = Information(X.T @ X, 30, 10)
+    Q = StiffnessPrior().precision(20)
+    le = {str(k): largest_error_entry(info.scaled(k), Q, healthy_bound_pts(k), 0) for k in (30, 300)}
+    assert le["30"]["bound_pts"] == 5.0 and le["300"]["bound_pts"] == 3.0
+    loose = largest_error_entry(info.scaled(300), Q, 5.0, 0)
+    assert loose["p_within"] > le["300"]["p_within"] and loose["median_pts"] == le["300"]["median_pts"]
+    r = {"crb": {"bridge-healthy": {"largest_error": le}}, "scenarios": {"bridge-healthy": {"element_err_max_pts": 2.5}},
+         "large": {"bridge-healthy": {"300": {"element_err_max_pts": 3.25}}}}
+    rows = [line for line in _largest_error_report(r) if line.startswith("| 30 ") or line.startswith("| 300 ")]
+    assert len(rows) == 2
+    for row, k, ours in zip(rows, ("30", "300"), ("2.50", "3.25")):
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[4].startswith(f"{le[k]['median_pts']:.2f}") and cells[5] == f"{le[k]['p_within']:.2f}"
+        assert cells[6] == ours
+    assert f"= {le['300']['p_within']:.2f}" in _bound_cell(le["300"]) and _bound_cell(None) == "–"
