@@ -15,9 +15,9 @@ all, in phase (f1 ∝ √EI) — and that is most of the information on the glob
 speeds (:mod:`cloud.bridge.information`: at 2 % noise one pass's quasi-static part carries ~5 % of
 its Fisher information on the level). It moves with each element's stiffness too, differently for
 every pass (speed). The global level ĝ comes from the profile likelihood with ε recomputed at every
-level (:func:`profile_global_level`: ε is far from linear over the level's prior range). By default
-the per-element posterior is fitted with ε at ĝ and recentred on it (:func:`recentre`): it then sees
-the dynamics through the level alone. Optionally (``sensitivities``,
+level (:func:`profile_global_level`: ε is far from linear over the level's prior range). Without
+``sensitivities`` the per-element posterior is fitted with ε at ĝ and recentred on it
+(:func:`recentre`): it then sees the dynamics through the level alone. By default (``sensitivities``,
 :attr:`~cloud.bridge.estimator.BridgeSettings.dynamic_sensitivities`) it linearises ε in every
 element's θ about ĝ, ``ε_p(θ) ≈ ε_p(θ₀) + ∂ε_p/∂θ·(θ − θ₀)``, the derivatives by forward mode
 through the same Newmark solve (:func:`excess_sensitivity`, n_e more right-hand sides of one
@@ -25,12 +25,17 @@ factorised matrix), kept on the level grid in the estimator's cache. Measured, 3
 healthy passes at 2 % noise: the fit's own Fisher information per element rises from 4–21 % of the
 ideal estimator's (the Cramér–Rao bound, :mod:`cloud.bridge.information`) to 26–67 % (mean of the
 four end elements, sd 11.8 / 12.0 % → 3.7 / 4.9 %, ideal 2.6 / 2.6; a tilt 2.9 → 2.4, ideal 0.8),
-but the largest element error does not improve as a whole: seeds 0/1/2 on older calibrations
-2.6/3.0/3.5 → 2.7/2.2/3.0 points, seed 0 calibrated afresh 3.2 → 4.9 (its entrance elements read
-4–5 soft); and at 30 passes the ends swing more with the learnt departure scale (bridge-global10
-seeds 4/5/6: element mean 1.3/1.4/−0.7 → 1.8/2.4/−1.6 points; the issue asks ±1.5). Relinearising
-once at the per-element estimate moved the largest error by < 0.1 point (300-pass seeds 0, 1), so
-it is not done; a whole update costs ~1.7× (300 passes, loaded machine). So it is off by default.
+but with the session-8 noise model the largest element error did not improve as a whole (seed 0
+calibrated afresh 3.2 → 4.9): that model read the noise 1.19× low in the element directions
+(:func:`~cloud.bridge.static.element_band_sigma`). With the noise read there (session 9), healthy,
+300 passes, seeds 0–4 (fresh edge and calibration): largest element error 2.78/2.34/3.58/1.67/2.14 →
+2.90/1.94/2.96/1.17/2.13 points, no alarm; cracks φ = 10 % at 10/14 m (300 passes) unchanged (the
+reported crack comes from the hypotheses); at 30 passes the global estimate is unchanged
+(bridge-global10, 10 seeds: spread 0.72 → 0.73 points, every effective loss and D2 within ±1.1) but
+the plain mean of the element ratios swings more at the barely seen ends (seeds 2/4: −1.17/+1.70 →
+−1.62/+2.44 points). Relinearising once at the per-element estimate moved the largest error by
+< 0.1 point (300-pass seeds 0, 1), so it is not done; a pass update costs 0.42 s at 30 passes
+(``python -m benchmarks bridge``). So it is on by default.
 This is a simplification of the coupled vehicle–bridge
 system the data came from (``shared.vbi``): the coupling enters only through the measured wheel
 load. Measured (``tests/test_bridge_dynamic.py``): with the coupled simulation's actual wheel

@@ -64,7 +64,7 @@ class BridgeSettings:
     #: (:func:`~cloud.bridge.dynamic.fit_elements_dynamic`); False: the excess at the profile-likelihood
     #: level only, the fit recentred on it (see the module docstring of :mod:`cloud.bridge.dynamic`
     #: for what each costs)
-    dynamic_sensitivities: bool = False
+    dynamic_sensitivities: bool = True
     min_passes: int = 3
     baseline_passes: int | None = None
     assess: bool = True
