@@ -28,7 +28,7 @@ Measured in one run, each on the same daemons:
 Latency, precisely: from the publication of the raw chunk that releases a segment at the edge
 (the publisher stamps ``time.time()`` into the chunk's zenoh attachment just before ``put``;
 the edge passes the attachment on to what that chunk releases) to the moment the cloud has
-applied the segment to its estimate (``cloud.node`` records the time after the aggregator
+applied the segment to its estimate (``cloud.daemon.node`` records the time after the aggregator
 accepted it and answers ``control/<id>/latency``). It covers both router hops, the edge's queue,
 decode, inverse Newmark-β, tiling, drift control and encode, the cloud's queue, decode,
 validation and estimator update. It does not cover the data's own wait: the edge releases a tile
@@ -61,7 +61,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from cloud.node import TRACE
+from cloud.daemon.node import TRACE
 from shared import keys
 from shared.drivelog import DriveLog, list_drive_logs, read_drive_log
 from shared.schema import ApBatch, ApSegment, PassDone, decode_ack

@@ -82,7 +82,7 @@ def _segments(route_m: float, n_passes: int, rng: np.random.Generator) -> list:
 
 
 def _estimator(route_m: float, segments: list):
-    from cloud.estimators.gmrf_profile import GmrfProfile, iso8608_tau
+    from cloud.road.gmrf_profile import GmrfProfile, iso8608_tau
 
     est = GmrfProfile({"R1": route_m}, SPACING_M, tau=iso8608_tau(SPACING_M))
     for s in segments:
@@ -154,7 +154,7 @@ def gmrf_results(rng: np.random.Generator) -> Iterator[dict]:
 
 
 def drift_results(rng: np.random.Generator) -> Iterator[dict]:
-    from cloud.estimators.gmrf_profile import GmrfProfile, iso8608_tau
+    from cloud.road.gmrf_profile import GmrfProfile, iso8608_tau
 
     passes = [1, 10, 30, 60]
     snaps, ups = [], []
@@ -381,7 +381,7 @@ def thesis_chain_results(cpu_budget_s: float = 100.0) -> Iterator[dict]:
 
 
 def calibration_results() -> Iterator[dict]:
-    from cloud.calibration import PassAp, class_prior, fit_vehicle
+    from cloud.road.calibration import PassAp, class_prior, fit_vehicle
     from shared.dynamics.forward import simulate_on_profile
     from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
     from shared.profiles import iso8608_profile, tyre_filter

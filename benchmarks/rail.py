@@ -1,6 +1,6 @@
 """Batch self-calibration of a carriage's run properties (issue #6): 50 runs of ``rail-track``
-(150 m of ballasted track, 2 % noise, GNSS speed ~2 % off), ours (:func:`cloud.rail_calibration.
-calibrate_batch`) against the thesis's Cross-Entropy with restarts (:func:`cloud.rail_calibration.
+(150 m of ballasted track, 2 % noise, GNSS speed ~2 % off), ours (:func:`cloud.rail.calibration.
+calibrate_batch`) against the thesis's Cross-Entropy with restarts (:func:`cloud.rail.calibration.
 cross_entropy_batch`) on the same runs, window and low-pass band, with the same primitives (the
 batched inverse, the one-call mapping); CE low-passes the channels once per run, ours the mapped AP in
 space (on the channels the filter's edge error over-dispersed the masses; CE keeps the cheaper form,
@@ -28,7 +28,7 @@ class means of mv and Iv, the GNSS speed), the floor any calibration should beat
 settings below does not beat it on mv and Iv on this batch (measured: CE 7.1 / 7.0 %, class means
 6.7 / 6.9 %; CE's speed 0.28 % against GNSS 1.35 %).
 
-CE (:func:`cloud.rail_calibration.cross_entropy_batch` defaults) against thesis §3.4.1: the objective
+CE (:func:`cloud.rail.calibration.cross_entropy_batch` defaults) against thesis §3.4.1: the objective
 (3.11)–(3.12), normal sampling, the 10 % elite, restarts that keep the mean and reset the sd to its
 initial value, globals held at the class means — as the thesis states. Not stated there, so ours to
 choose: the population (60 trial vectors of the 3·n_b = 150 unknowns), the number of restarts (3),
@@ -93,7 +93,7 @@ def _timed(fn):
 
 def run(work: Path | None = None, passes: int = PASSES):
     from benchmarks.profile import one_blas_thread
-    from cloud.rail_calibration import calibrate_batch, cross_entropy_batch
+    from cloud.rail.calibration import calibrate_batch, cross_entropy_batch
     from simfleet.reproduce_rail import calibration_errors
 
     pinned = one_blas_thread()

@@ -69,7 +69,7 @@ import numpy as np
 import zenoh
 
 from benchmarks.bus import BenchError, _spawn, _stop, control_query, watch_alive
-from cloud.node import TRACE
+from cloud.daemon.node import TRACE
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log, write_drive_log
 from shared.schema import decode_ack

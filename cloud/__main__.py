@@ -4,6 +4,6 @@ from shared.cli import single_threaded_blas
 
 single_threaded_blas()  # before numpy loads BLAS (OPENBLAS_NUM_THREADS etc. set by the user win)
 
-from .node import main  # noqa: E402
+from cloud.daemon.node import main  # noqa: E402
 
 sys.exit(main())

@@ -8,7 +8,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from .estimators.mean_profile import ProfileSnapshot
+from cloud.road.mean_profile import ProfileSnapshot
 
 ROUGHNESS_SEGMENTS_M = (10.0, 100.0)
 """Segment lengths of ``roughness.parquet`` (m)."""
@@ -42,7 +42,7 @@ def profile_draws(profile, route_id: str, snap: ProfileSnapshot, segments: list,
     (:func:`.estimators.long_wave.pass_error_draws`, told of the drift nuisance), so that what is
     computed from them (the IRI) has the band's uncertainty. ``snap`` is the posterior's snapshot of
     the route, ``segments`` the held segments."""
-    from .estimators.long_wave import drift_of, pass_error_draws
+    from cloud.road.long_wave import drift_of, pass_error_draws
 
     rng = np.random.default_rng(rng)
     draws = profile.sample(route_id, n, rng)  # (first: the posterior, hence its drift level, is computed)

@@ -297,7 +297,7 @@ class View:
     def log_profile(self, snapshot: Any) -> None:
         """Log one update of a route's profile: the mean and its 95 % band, mm against chainage m.
 
-        ``snapshot`` is a `cloud.estimators.mean_profile.ProfileSnapshot` (or anything with
+        ``snapshot`` is a `cloud.road.mean_profile.ProfileSnapshot` (or anything with
         ``route_id``, ``chainage_m``, ``elevation_m``, ``lo95_m``, ``hi95_m`` in metres). Curves are
         binned to at most `MAX_STRIP_POINTS` points and split at NaN gaps.
         """

@@ -350,7 +350,7 @@ def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
 
 
 #: Rail vehicles: the cloud re-runs their dynamics over the whole record (batch calibration of the
-#: run's properties, cloud.rail), which needs every wheel's AP from the first sample. So their
+#: run's properties, cloud.rail.batches), which needs every wheel's AP from the first sample. So their
 #: warm-up is sent flagged (none dropped), and so is the AP of wheels still behind chainage 0 when
 #: the log starts (a carriage's trailing bogie starts Lv + Lb behind the body's centre): those
 #: points belong to tile 0, at negative grid indices; the cloud fuses only chainage >= 0.

@@ -46,7 +46,7 @@ def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0, fit_frame
     tx = p["start_m"] + h * np.arange(len(p["elevation_m"]))
     true = np.interp(x, tx, p["elevation_m"])
     if fit_frame:
-        from cloud.alignment import FINE_BAND_M, estimate_alignment
+        from cloud.road.alignment import FINE_BAND_M, estimate_alignment
 
         # The frame that fits inside the scored band (the cloud's last step fits above wheel hop,
         # where the fused profile's phase against the truth is a few mm off: 3x the 2-5 m error).
@@ -116,7 +116,7 @@ def load_truth(path: Path) -> dict:
 
 def score_vehicles(export_dir: Path, truth: dict) -> dict[str, tuple[float, float]]:
     """Per calibrated quantity: (median, max) relative error of the exported means against truth."""
-    from cloud.calibration import to_calibration
+    from cloud.road.calibration import to_calibration
 
     t = pq.read_table(Path(export_dir) / "vehicles.parquet").to_pydict()
     model = truth["vehicle_model"]

@@ -83,11 +83,11 @@ def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spa
                    align: bool = False):
     """The edge and cloud cores wired by an in-memory queue instead of Zenoh; returns (cloud, rounds).
 
-    Same code as the daemons (``edge.node.Edge``, ``cloud.node.Cloud``): chunks in, segments,
+    Same code as the daemons (``edge.node.Edge``, ``cloud.daemon.node.Cloud``): chunks in, segments,
     pass markers and calibrations routed by key, and whenever the queue is empty what the daemon
     does when the bus is quiet: an alignment sweep (``align``) or else a calibration round.
     """
-    from cloud.node import Cloud
+    from cloud.daemon.node import Cloud
     from edge.node import Edge
 
     from .replay import replay
@@ -447,10 +447,10 @@ def vehicle_step_landscape(vehicle: int = 1, ratios=None, seed: int = 4) -> tupl
 
     One noise-free 8 s pass at 20 m/s, its AP computed under the fleet's class mean with the exact
     initial state, the *true* profile as the consensus: the band-passed AP misfit of
-    :class:`cloud.calibration.PassChannels` as k/m varies (the start-state coefficients solved
+    :class:`cloud.road.calibration.PassChannels` as k/m varies (the start-state coefficients solved
     for at each k/m, as the fit does). Returns (k/m values, rms misfit in m, true k/m).
     """
-    from cloud.calibration import REMAP_GAMMA, PassAp, PassChannels
+    from cloud.road.calibration import REMAP_GAMMA, PassAp, PassChannels
     from shared.dynamics.forward import simulate_on_profile
     from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
     from shared.profiles import iso8608_profile, tyre_filter
@@ -549,7 +549,7 @@ def _section_sprung_mass(work: Path, quick: bool, seed: int) -> tuple[list[str],
 
 def _half_car_run(work: Path, quick: bool, seed: int, noise_pct: float) -> dict:
     """road-hc at ``noise_pct`` through the system and through the CE reference; errors per vehicle."""
-    from cloud.calibration import to_calibration
+    from cloud.road.calibration import to_calibration
     from cloud.reference import cross_entropy_fleet, fleet_objective
 
     from .scenarios import SCENARIOS
@@ -602,7 +602,7 @@ def _section_half_car(work: Path, quick: bool, seed: int) -> tuple[list[str], di
         "**System**: fleet self-calibration starting from the class mean (the mean of Table 2.4, much closer than "
         "the thesis's start): each vehicle in acceleration space, its measured channels (reconstructed from its AP) "
         "against its forward model driven by the leave-one-out consensus of the others, rounds alternating with "
-        "the exact profile step (`cloud.fleet_calibration`). **CE reference** on the same logs from the thesis's "
+        "the exact profile step (`cloud.road.fleet_calibration`). **CE reference** on the same logs from the thesis's "
         "initial values (Table 2.4, sd "
         f"30 %, axle distances 15 %), population {first['population']}, through all six injections of the thesis's "
         "schedule (two resets to the initial sd, then narrower ones; stopping after the first two, its best "
@@ -650,7 +650,7 @@ def _section_half_car(work: Path, quick: bool, seed: int) -> tuple[list[str], di
                   "where the sensor noise is white, not APs: the joint AP-space step it replaced for half-cars (seed "
                   "0, 1 % noise: profile error 46 %, medians up to 72 %) weighed an AP whose noise swamps the road "
                   "at short wavelengths. Two details make the channel comparison work on a noisy half-car AP "
-                  "(`cloud.calibration.RemapSettings`): each pass's unknown start state is profiled out (the forward "
+                  "(`cloud.road.calibration.RemapSettings`): each pass's unknown start state is profiled out (the forward "
                   "model's start on a noisy AP left a free response of 1–3 channel sd), and the prediction keeps the "
                   "edge inverse's Newmark γ (the consensus is made of APs from that inverse and carries its "
                   "numerical damping at the wheel hop; predicting with the exact γ = ½ let every vehicle settle off "
@@ -711,7 +711,7 @@ def _section_noise(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]
 
 
 def _section_mcmc(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
-    from cloud.calibration import to_calibration
+    from cloud.road.calibration import to_calibration
     from cloud.reference import mcmc_profile_and_vehicles
     from cloud.reference.mcmc import THESIS_N_ITER
 

@@ -162,7 +162,7 @@ def estimate_case(case: Case, settings=None, model: str = "quarter_car"):
     from cloud.bridge.passdata import group_segments
 
     bridge = case.site.bridges[0]
-    # The registry's word on the deck, as the daemon (cloud.bridges.BridgeMonitor) takes it.
+    # The registry's word on the deck, as the daemon (cloud.bridge.monitor.BridgeMonitor) takes it.
     settings = dataclasses.replace(settings or BridgeSettings(), deck=bridge.deck)
     est = BridgeEstimator(bridge, class_weight_prior(case.site, model), settings)
     for (vid, _), segs in group_segments(case.segments).items():

@@ -2,13 +2,13 @@
 
 Fourteen batches of 50 carriage runs (``rail-bridge-state1..7-profile1/2``: seven global damage
 levels of a 10.2 m culvert, state 7 healthy, two track profiles), each analysed as the thesis's
-UCD team did, blind: the batch is self-calibrated off the bridge (:func:`cloud.rail_calibration.
+UCD team did, blind: the batch is self-calibrated off the bridge (:func:`cloud.rail.calibration.
 calibrate_batch`, the 120 m before the span; class means and GNSS speeds only), the AP on the span
 comes from each run's inverse under its calibrated properties, and the leading bogie's
-moving-reference influence per unit wheel load (:func:`cloud.rail_bridge.bogie_influence`) gives
+moving-reference influence per unit wheel load (:func:`cloud.rail.bridge.bogie_influence`) gives
 D1 and D2 of eq. 3.24 against the healthy batch of the same profile — the damage level in %
 directly, ``D = 100·(1 − IL_H / IL_D)``, with no calibration line fitted to the states. Ours is
-:func:`cloud.rail_bridge.damage_from_batch_means` (the change of the batch-mean AP per unit load)
+:func:`cloud.rail.bridge.damage_from_batch_means` (the change of the batch-mean AP per unit load)
 with every run first registered on the wheels' difference beside the span and the healthy line's
 scale pooled over the track's batches (:data:`OURS`), reported with its own sd (:func:`reading_spread`:
 bootstrap over the runs and draws from the calibration's intervals, no truth); the per-batch regression lines, the
@@ -16,7 +16,7 @@ wheel-difference (J⁰) forms and the thesis's unseparated reading are reported 
 state's batch is 50 different journeys (``RailScenario.batch``), as the thesis's: no run is shared
 between the healthy and a damaged batch, and each batch is calibrated on its own. Both the
 carriage inverse (App. B.2), the 2-DOF bogie half-car (App. A.3, Table 3.5) and the leading bogie's
-same two channels with the body modelled (:func:`cloud.rail_bridge.leading_bogie_ap`: the trailing
+same two channels with the body modelled (:func:`cloud.rail.bridge.leading_bogie_ap`: the trailing
 bogie runs over the AP the leading wheels found) are used; the wheel loads are the calibrated ones
 in all (the thesis's half-car used the class mean ``mv``).
 
@@ -65,8 +65,8 @@ TABLE_3_6 = {
 TABLE_3_6.update({("leading_bogie",) + k[1:]: v for k, v in list(TABLE_3_6.items()) if k[0] == "bogie_half_car"})
 MODELS = ("carriage", "bogie_half_car", "leading_bogie")
 TITLE = {"carriage": "4-axle railway carriage model", "bogie_half_car": "2-axle bogie half-car (App. A.3)",
-         "leading_bogie": "leading bogie's two channels, the body modelled (cloud.rail_bridge.leading_bogie_ap)"}
-#: How the influence per unit load is read from the batch (cloud.rail_bridge.BogieInfluence): ``mril``
+         "leading_bogie": "leading bogie's two channels, the body modelled (cloud.rail.bridge.leading_bogie_ap)"}
+#: How the influence per unit load is read from the batch (cloud.rail.bridge.BogieInfluence): ``mril``
 #: the regression over the calibrated wheel loads (profile separated), ``unseparated`` the thesis's
 #: mean AP per unit load (profile left in).
 VARIANTS = ("registered_batch_means_pooled", "registered_batch_means_pooled_dynamic",
@@ -76,10 +76,10 @@ VARIANTS = ("registered_batch_means_pooled", "registered_batch_means_pooled_dyna
             "unseparated")
 VARIANT_NAME = {
     "registered_batch_means_pooled": "each run first registered on the wheels' difference beside the span "
-                                     "(cloud.rail_bridge.registered_runs), then the pooled batch-means reading",
+                                     "(cloud.rail.bridge.registered_runs), then the pooled batch-means reading",
     "registered_batch_means_pooled_dynamic": "ours with each wheel's AP first taken to the static load's from the "
                                              "carriage model's dynamic wheel forces over the AP it found "
-                                             "(cloud.rail_bridge.static_equivalent; carriage only, the others as ours)",
+                                             "(cloud.rail.bridge.static_equivalent; carriage only, the others as ours)",
     "registered_batch_means_difference_pooled": "each run registered, then the wheels' difference reading (J⁰) with "
                                                 "the healthy J⁰ pooled over every batch",
     "registered_batch_means": "each run registered, then the batch-means reading with the healthy batch's own line",
@@ -89,10 +89,10 @@ VARIANT_NAME = {
                    "regression line for the scale",
     "batch_means_difference": "the same on the wheels' time-synchronous difference (J⁰, matrix method)",
     "batch_means_pooled": "the same as ours with the healthy line from every batch of the track (each batch's "
-                          "regression and batch-mean change; cloud.rail_bridge.pooled_healthy)",
+                          "regression and batch-mean change; cloud.rail.bridge.pooled_healthy)",
     "batch_means_difference_pooled": "the wheels' difference reading (J⁰) with the healthy J⁰ pooled over every batch",
     "batch_means_design": "the same as ours with the scale from the design drawings (registry E·I) instead of the "
-                          "healthy batch's load regression (cloud.rail_bridge.design_scale)",
+                          "healthy batch's load regression (cloud.rail.bridge.design_scale)",
     "batch_means_difference_design": "the wheels' difference reading (J⁰) with the scale from the design drawings",
     "mril": "regression over wheel loads, per batch",
     "difference": "regression on the wheels' difference, matrix method, per batch",
@@ -102,7 +102,7 @@ HEALTHY_STATE = 7
 #: The issue's bounds on |ours − true| in points, per model (thesis: ~2 and ~4).
 BOUND_PTS = {"carriage": 2.0, "bogie_half_car": 3.0, "leading_bogie": 3.0}
 #: Our reading per model. The half-car's own AP is off by the body's force on the bogie, which it
-#: does not model and which grows with the body mass (cloud.rail_bridge), so it is read as the thesis
+#: does not model and which grows with the body mass (cloud.rail.bridge), so it is read as the thesis
 #: reads both models: J⁰ by the matrix method from the wheels' time-synchronous difference, free of
 #: that force (the half-car's and the carriage's differences are the same), registered on the
 #: difference too — one bogie's two channels and the calibrated run properties are all it needs.
@@ -119,7 +119,7 @@ BOUND_PTS = {"carriage": 2.0, "bogie_half_car": 3.0, "leading_bogie": 3.0}
 #: 10–16 % / 25–45 % under the 0.03 % that two calibrations differed by (seed 0 profile 1). The
 #: readings' sd from those speed draws, rms over the states, per seed × profile: healthy batch alone
 #: 0.1–0.8 (carriage), 1.2–269 (half-car J⁰: its healthy J⁰ can come out near zero); pooled 0.06–0.28
-#: and 0.6–1.3; each run registered first (cloud.rail_bridge.registered_runs) 0.01–0.02 and 0.06–0.18.
+#: and 0.6–1.3; each run registered first (cloud.rail.bridge.registered_runs) 0.01–0.02 and 0.06–0.18.
 #: The choice, made on the sd alone (bootstrap noise and speed draws together, rms over all 72 cells of
 #: a model; smallest wins, within 5 % the simpler): carriage — registered + pooled 0.46, registered +
 #: inverse-variance weights 0.46, pooled 0.49, registered healthy-alone 0.57, healthy-alone 0.74;
@@ -133,10 +133,10 @@ BOUND_PTS = {"carriage": 2.0, "bogie_half_car": 3.0, "leading_bogie": 3.0}
 #: 0.03 % (speeds) per run (H7, session 7): the half-car's reading chosen before moved by up to 6.4
 #: points between them (rms 3.0 over the states × D1/D2), this one by ≤ 0.37 (rms 0.27); the
 #: carriage's 1.0 → 0.18.
-#: Session 9: J⁰ fitted in the span's first sine modes (cloud.rail_fundamental), not grid point by grid point:
+#: Session 9: J⁰ fitted in the span's first sine modes (cloud.rail.fundamental), not grid point by grid point:
 #: the half-car's sd (rms over seeds 0–4 × 60 cells) D1/D2 1.25/2.22 → 0.56/0.70 points; its largest error
 #: seeds 0–4 3.7/2.7/4.4/6.0/5.8 → 1.5/1.6/3.5/2.3/2.2 (seed 2's left: the healthy J⁰'s common scale, below).
-#: Session 9 (the per-profile scale error, cloud.rail_bridge's module docstring): the deflection follows the
+#: Session 9 (the per-profile scale error, cloud.rail.bridge's module docstring): the deflection follows the
 #: dynamic wheel force, and the load regression on the static loads takes its share and the track's deflection
 #: at the supports into the scale (+2…+22 % on the simulator's own AP); ``…_dynamic`` takes them out, but then
 #: the track's own compliance along the span (−13…+5 % of the span's line per profile) reads in full, and on
@@ -180,7 +180,7 @@ def simulate_batch(state: int, profile: int, cache: Path, passes: int, seed: int
 def load_runs(d: Path):
     """The batch's runs as the cloud sees them (GNSS speed, chainage of the first sample), and the
     site's carriage class and bridge (None without one)."""
-    from cloud.rail_calibration import RailRun
+    from cloud.rail.calibration import RailRun
     from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
     from shared.registry import load_site
 
@@ -199,18 +199,18 @@ class BatchResult:
 
     state: int
     profile: int
-    fit: object  # cloud.rail_calibration.BatchFit
-    influence: dict  # model → cloud.rail_bridge.BogieInfluence
+    fit: object  # cloud.rail.calibration.BatchFit
+    influence: dict  # model → cloud.rail.bridge.BogieInfluence
     calib_seconds: float
-    #: model → each run's AP (cloud.rail_bridge.RunAp), and the influence with every run registered
-    #: (cloud.rail_bridge.registered_runs); what the reading's spread is drawn from.
+    #: model → each run's AP (cloud.rail.bridge.RunAp), and the influence with every run registered
+    #: (cloud.rail.bridge.registered_runs); what the reading's spread is drawn from.
     aps: dict = dataclasses.field(default_factory=dict)
     influence_registered: dict = dataclasses.field(default_factory=dict)
-    speed_log_sd: np.ndarray | None = None  # per run (cloud.rail_bridge.calibration_sds)
+    speed_log_sd: np.ndarray | None = None  # per run (cloud.rail.bridge.calibration_sds)
     load_sd_n: np.ndarray | None = None
     span: tuple[float, float] = (0.0, 0.0)  # the span's first support (route chainage) and length, m
     #: model → the influence with every run registered and each wheel's AP taken to the static loads'
-    #: (cloud.rail_bridge.static_equivalent) where its runs carry their dynamic wheel forces (the carriage).
+    #: (cloud.rail.bridge.static_equivalent) where its runs carry their dynamic wheel forces (the carriage).
     influence_registered_dynamic: dict = dataclasses.field(default_factory=dict)
 
 
@@ -229,8 +229,8 @@ def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str,
     ``healthy``: the healthy batch of the track, whose registered wheel-difference line every run of
     this batch is registered to (:func:`registered`).
     """
-    from cloud.rail_bridge import calibration_sds, influence_of_aps, run_aps
-    from cloud.rail_calibration import GLOBAL_FIT, calibrate_batch
+    from cloud.rail.bridge import calibration_sds, influence_of_aps, run_aps
+    from cloud.rail.calibration import GLOBAL_FIT, calibrate_batch
 
     # The calibration is the slow part, cached; the influences are recomputed.
     # (v2: the calibration's inverse at γ = 0.5 and the held globals' covariance; v3: its low-pass in
@@ -264,14 +264,14 @@ def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str,
 
 
 def registered(aps: list, span: tuple[float, float], healthy=None, dynamic: bool = False):
-    """The batch's influence (cloud.rail_bridge.BogieInfluence) with every run registered on the wheels'
-    difference beside the span (cloud.rail_bridge.registered_runs): the healthy batch's runs to their
+    """The batch's influence (cloud.rail.bridge.BogieInfluence) with every run registered on the wheels'
+    difference beside the span (cloud.rail.bridge.registered_runs): the healthy batch's runs to their
     own mean, every other batch's runs to the healthy batch's registered line (``healthy``, its
     BogieInfluence), so that no batch's mean chainage is left to the batch-to-batch registration
     (on the synthetic batches of tests/test_rail_bridge_registration.py, per-run speed changes of
     0.03 % then moved the pooled readings by ≤ 0.13 points in three draws, up to 0.2 with each batch
     registered to its own mean and then to the healthy batch's; unregistered, up to 1.6)."""
-    from cloud.rail_bridge import influence_of_aps, registered_runs
+    from cloud.rail.bridge import influence_of_aps, registered_runs
 
     ref = None if healthy is None else healthy.difference_line
     return influence_of_aps(registered_runs(aps, *span, reference=ref), *span, dynamic=dynamic)
@@ -288,7 +288,7 @@ def read_batches(influence: dict, variant: str) -> dict:
     """state → D1/D2 (cloud.bridge.mril.DamageIndicators) of every state of one profile by a
     ``batch_means``-family ``variant`` (without ``_design``), from the batches' influences (state →
     BogieInfluence; the healthy state's included)."""
-    from cloud.rail_bridge import damage_from_batch_means, pooled_healthy
+    from cloud.rail.bridge import damage_from_batch_means, pooled_healthy
 
     healthy = influence[HEALTHY_STATE]
     ref = pooled_healthy(healthy, list(influence.values())) if variant.endswith("_pooled") else healthy
@@ -305,7 +305,7 @@ def _worst(errors: list[float]) -> tuple[float, bool]:
 
 def _read_or_nan(read, what: str):
     """``read()`` (DamageIndicators), or NaN for both when its lines are not a deflection
-    (cloud.rail_bridge.readable_line): a cell that is not read, logged and shown as nan, never a number."""
+    (cloud.rail.bridge.readable_line): a cell that is not read, logged and shown as nan, never a number."""
     from cloud.bridge.mril import DamageIndicators
 
     try:
@@ -323,10 +323,10 @@ def reading_spread(batches: dict, model: str, variant: str, rng: np.random.Gener
                    draws: int = SPREAD_DRAWS) -> dict:
     """state → (sd of D1/D2 from the batches' own noise, sd from their calibration), points: the
     reading (:func:`read_batches`) redone on ``draws`` bootstrap resamplings of every batch's runs
-    (cloud.rail_bridge.resampled_runs) and on ``draws`` draws of every run's speed and wheel load from
-    its calibration's intervals (cloud.rail_bridge.calibration_draw). No truth: this is what the
+    (cloud.rail.bridge.resampled_runs) and on ``draws`` draws of every run's speed and wheel load from
+    its calibration's intervals (cloud.rail.bridge.calibration_draw). No truth: this is what the
     reading itself says about how sure it is. ``batches``: state → BatchResult of one profile."""
-    from cloud.rail_bridge import calibration_draw, influence_of_aps, resampled_runs
+    from cloud.rail.bridge import calibration_draw, influence_of_aps, resampled_runs
 
     is_registered = variant.startswith("registered_")
     out = {}
@@ -392,7 +392,7 @@ def calibration_errors(fit, truth: dict) -> dict:
 def ce_reference(d: Path, seed: int, quick: bool) -> dict:
     """The thesis's Cross-Entropy batch calibration on the same batch and window (cached; with
     ``quick`` at most 40 generations and one restart)."""
-    from cloud.rail_calibration import cross_entropy_batch
+    from cloud.rail.calibration import cross_entropy_batch
 
     cached = d / "cross_entropy-v2.pkl"  # v2: the inverse at γ = 0.5 (rail_calibration.INVERSE_GAMMA)
     if cached.exists():
@@ -437,7 +437,7 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
                                                     batches.get((HEALTHY_STATE, profile)))
             truths[state, profile] = json.loads((d / "truth.json").read_text())
     from cloud.bridge.mril import damage_indicators
-    from cloud.rail_bridge import damage_from_batch_means, design_scale, pooled_healthy, readable_line
+    from cloud.rail.bridge import damage_from_batch_means, design_scale, pooled_healthy, readable_line
     from shared.registry import load_site
 
     rng = np.random.default_rng([seed, 6])
@@ -456,7 +456,7 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
             row = {"state": state, "profile": profile, "nominal_pct": 100 * truths[state, profile]["bridge"]["global_loss"],
                    "true_D1_pct": true[0], "true_D2_pct": true[1],
                    "effective_D1_pct": eff[0], "effective_D2_pct": eff[1]}
-            for m in MODELS:  # the AP's compliance beside the span (cloud.rail_bridge.ap_compliance), if modelled
+            for m in MODELS:  # the AP's compliance beside the span (cloud.rail.bridge.ap_compliance), if modelled
                 row[f"{m}_ap_compliance_m_per_n"] = b.influence_registered_dynamic[m].track_compliance_m_per_n
             for m in SPREAD_MODELS:
                 (n1, n2), (c1, c2) = spread[m][state]
@@ -534,9 +534,9 @@ def _report(r: dict) -> str:
          "from each run's inverse under its calibrated properties (carriage: App. B.2; bogie half-car: App. A.3 "
          "from the leading bogie's two channels; leading_bogie: the same two channels with the body's force "
          "modelled — the carriage inverse with the trailing bogie simulated over the AP the leading wheels "
-         "found 2·Lv/v earlier, `cloud.rail_bridge.leading_bogie_ap`), the leading bogie's influence per unit wheel load, D1/D2 of "
+         "found 2·Lv/v earlier, `cloud.rail.bridge.leading_bogie_ap`), the leading bogie's influence per unit wheel load, D1/D2 of "
          "eq. 3.24 against the healthy batch (state 7) of the same profile. The influence is read five ways "
-         "(`cloud.rail_bridge`): **batch_means** — J_D = (Ȳ_D − Ȳ_H)/W̄_D + J_H·W̄_H/W̄_D: the change "
+         "(`cloud.rail.bridge`): **batch_means** — J_D = (Ȳ_D − Ȳ_H)/W̄_D + J_H·W̄_H/W̄_D: the change "
          "of the batch-mean AP between the healthy and the current batch (the unloaded profile, common to both, "
          "cancels; the current batch's chainage first registered to the healthy one's — shift and stretch, on the leading "
          "bogie's time-synchronous wheel difference over 40 m before and 20 m after the span, which the body's force "
@@ -545,7 +545,7 @@ def _report(r: dict) -> str:
          "the runs' calibrated wheel loads: the slope is the deflection per unit load, profile separated), which "
          "only sets the scale; **…_pooled** (ours) — the same with the healthy line from every batch of the track "
          "(each batch's regression less the change of its batch mean, `pooled_healthy`); **batch_means_difference** — the same on the two wheels' time-synchronous AP "
-         "difference with the matrix method (eq. 3.16–3.23, equal loads; J⁰ in the span's first 10 sine modes, cloud.rail_fundamental) for the fundamental J⁰: a force at the "
+         "difference with the matrix method (eq. 3.16–3.23, equal loads; J⁰ in the span's first 10 sine modes, cloud.rail.fundamental) for the fundamental J⁰: a force at the "
          "bogie's centre (the body's, which the bogie half-car does not model) cancels, so both models give the "
          "same line; **mril** / **difference** — the regression lines of each batch compared directly; "
          "**unseparated** — the mean AP per unit load with the profile left in, as the thesis reads it. "

@@ -1,7 +1,7 @@
 """Where bridge tests keep their simulated (and self-calibrated) passes between sessions.
 
 Keyed by the source of everything that makes them — simulator, edge, cloud, shared; not the bridge
-estimator under test (``cloud/bridge/``, ``cloud/bridges.py``), which runs every time — and by the
+estimator under test (``cloud/bridge/``, ``cloud/bridge/monitor.py``), which runs every time — and by the
 Python and NumPy versions: any change to that code simulates and calibrates afresh.
 ``DRIVEBY_BRIDGE_TEST_WORK`` (a directory) overrides the key: for checking the bridge estimator
 alone against passes made earlier while other code changes under it (say so when quoting results).
@@ -28,7 +28,7 @@ def source_key() -> str:
     for pkg in ("shared", "edge", "cloud", "simfleet"):
         for p in sorted((ROOT / pkg).rglob("*.py")):
             rel = p.relative_to(ROOT).as_posix()
-            if rel.startswith("cloud/bridge/") or rel == "cloud/bridges.py":
+            if rel.startswith("cloud/bridge/"):
                 continue
             h.update(rel.encode() + b"\0" + p.read_bytes())
     return h.hexdigest()[:16]

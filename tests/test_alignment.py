@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloud.alignment import Alignment, estimate_alignment, realign
+from cloud.road.alignment import Alignment, estimate_alignment, realign
 from shared.profiles import iso8608_profile, tyre_filter
 from shared.schema import ApSegment
 

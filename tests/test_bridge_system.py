@@ -7,7 +7,7 @@ bridge is not checked through that path: with the cloud's stand-in parameters (n
 class mean, see ``Cloud._bridge_params``) the estimator cannot see a stiffness loss, and fleet
 self-calibration, which gives it the vehicles' parameters, takes minutes (12 rounds, measured ~160 s
 for 12 passes on this machine). The alarm logic is checked instead on the cloud's transport-free
-:class:`~cloud.bridges.BridgeMonitor`, fed by the real edge with the parameters the edge itself used
+:class:`~cloud.bridge.monitor.BridgeMonitor`, fed by the real edge with the parameters the edge itself used
 (each log's nominal parameters) — that is where the state machine (raise once, clear once) lives.
 """
 
@@ -119,9 +119,9 @@ def fed_monitor(global_loss: float):
 def new_fed_monitor(global_loss: float):
     """A BridgeMonitor fed by the real edge (in-process) with 12 passes whose logs carry each
     vehicle's own parameters: the edge computes with them, and so does the monitor."""
-    from cloud.aggregator import Aggregator
+    from cloud.ingest.aggregator import Aggregator
     from cloud.bridge.estimator import BridgeSettings
-    from cloud.bridges import BridgeMonitor
+    from cloud.bridge.monitor import BridgeMonitor
     from edge.node import Edge
     from simfleet.replay import chunks_of
 
@@ -195,7 +195,7 @@ def test_the_cloud_publishes_an_alarm_over_zenoh_once():
     """Cloud.maybe_estimate_bridges publishes on driveby/<net>/alarm/<bridge> (a real Zenoh session
     on a loopback router) — here with the monitor fed above, the Cloud's own being unable to see
     the loss in nominal mode (module docstring)."""
-    from cloud.node import Cloud
+    from cloud.daemon.node import Cloud
 
     monitor, *_ = new_fed_monitor(0.30)
     got, arrived, marker = [], threading.Event(), threading.Event()
@@ -210,7 +210,7 @@ def test_the_cloud_publishes_an_alarm_over_zenoh_once():
 
         session.declare_subscriber(keys.alarm_keyexpr(NET), on_alarm)
         cloud = Cloud(NET, monitor.site, lambda k, p: session.put(k, p), calibration="nominal")
-        cloud.bridges = monitor
+        cloud.bridge.monitor = monitor
         assert cloud.maybe_estimate_bridges(force=True)
         assert arrived.wait(10.0), "no alarm arrived"
         assert not cloud.maybe_estimate_bridges(force=True)  # nothing new: no estimate, no alarm

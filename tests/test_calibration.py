@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from cloud.calibration import (PassAp, PassChannels, calibration_names, class_prior, fit_fleet, fit_vehicle,
+from cloud.road.calibration import (PassAp, PassChannels, calibration_names, class_prior, fit_fleet, fit_vehicle,
                                from_calibration, to_calibration)
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
@@ -18,7 +18,7 @@ from shared.vehicles import QuarterCar
 from simfleet.scenarios import SCENARIOS, TABLE_4_1
 from simfleet.sim import generate
 
-EDGE_QC = edge_gamma("quarter_car")  # the edge's inverse (cloud.calibration reconstructs with it)
+EDGE_QC = edge_gamma("quarter_car")  # the edge's inverse (cloud.road.calibration reconstructs with it)
 
 QC = dict(M=4450.0, m=420.0, K=5.0e5, k=1.95e6, c=2.0e4)
 
@@ -82,7 +82,7 @@ def test_sprung_mass_fleet_found_jointly_from_the_class_mean(tmp_path):
     """Thesis Table 2.2's six sprung masses, noise-free, APs made by the edge under the class mean:
     one joint step finds every k/m (the thesis's Table 2.3 is within ~1 %; the local per-vehicle
     acceleration-space step was off by ~86 %, stuck in a resonance-match minimum)."""
-    from cloud.fleet_calibration import FleetCalibrator
+    from cloud.road.fleet_calibration import FleetCalibrator
     from edge.pipeline import PassProcessor
     from shared.drivelog import list_drive_logs, read_drive_log
     from shared.registry import load_site
@@ -160,7 +160,7 @@ def test_sprung_mass_fleet_through_edge_and_cloud_settles(tmp_path):
 
 def test_a_new_pass_reopens_the_round_budget_a_recomputed_one_does_not():
     """A daemon runs for months: vehicles joining after the first rounds must be calibrated too."""
-    from cloud.fleet_calibration import FleetCalibrator
+    from cloud.road.fleet_calibration import FleetCalibrator
     from shared.registry import Route, Site, VehicleClass
 
     site = Site(routes=(Route("R1", 200.0),),
@@ -184,7 +184,7 @@ def test_common_mode_relaxation_extrapolates_a_contracting_trend_and_freezes_a_r
     steps are taken, the common part is over-relaxed by ``relax``; where it does not shrink (lane
     scatter on a 3-D carpet feeding back through the consensus: a drift of k/M by −5 % a round,
     24.6 % profile error before), that quantity's common part is frozen."""
-    from cloud.fleet_calibration import FleetCalibrator
+    from cloud.road.fleet_calibration import FleetCalibrator
     from shared.registry import Route, Site, VehicleClass
 
     site = Site(routes=(Route("R1", 200.0),),
@@ -220,7 +220,7 @@ def test_common_mode_trend_restarts_when_the_rounds_passes_change():
     moves with the passes. A trend line through both epochs' rounds read no contraction at the jump
     and froze the common mode where the small epoch had left it (road-qc seed 0, alias-free AP:
     m/M and c/M 3.1 % off on every vehicle, the class mean's offset). The trend is the epoch's own."""
-    from cloud.fleet_calibration import FleetCalibrator
+    from cloud.road.fleet_calibration import FleetCalibrator
     from shared.registry import Route, Site, VehicleClass
 
     site = Site(routes=(Route("R1", 200.0),),
@@ -254,7 +254,7 @@ def test_half_car_step_halvings_restart_with_new_passes():
     """Half-cars halve a vehicle's steps at each reversal (a converging sequence around one epoch's
     optimum); new passes move the optimum, so the halvings start over — never a vehicle frozen by
     the reversals of epochs long gone. Quarter-cars do not halve."""
-    from cloud.fleet_calibration import FleetCalibrator, VehicleState
+    from cloud.road.fleet_calibration import FleetCalibrator, VehicleState
     from shared.registry import Route, Site
 
     c = FleetCalibrator(Site(routes=(Route("R1", 100.0),)), None)
@@ -295,7 +295,7 @@ def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
 def test_remap_drives_each_axle_over_the_road_at_its_own_position():
     """A half-car's rear axle meets a bump a wheelbase after the front one: the remap places contact i
     at x_cg + offsets_m[i] (it used to drive every contact at the same chainage)."""
-    from cloud.calibration import REMAP_DT, PassRemap
+    from cloud.road.calibration import REMAP_DT, PassRemap
     from shared.vehicles import vehicle_from_params
     from shared.vehicles.half_car import TABLE_2_1
 

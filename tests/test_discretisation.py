@@ -3,7 +3,7 @@
 The edge runs its inverse at Newmark γ > ½ for stability (quarter-car 0.6, half-car 0.8). Against the
 road that scheme has a gain and phase error every vehicle of a class shares, so fused as sent it
 biases the profile, its IRI and the fleet calibration alike. The cloud maps each complete pass to
-the AP of an exact continuous-time inverse (cloud.calibration.continuous_segments), fuses that,
+the AP of an exact continuous-time inverse (cloud.road.calibration.continuous_segments), fuses that,
 and calibrates on it with a vehicle step that reconstructs and predicts at γ ½.
 
 Data from finer physics than the edge's (the simulator: γ ½ at a quarter of the logger's step).
@@ -15,8 +15,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-import cloud.node
-from cloud.calibration import PassAp, class_prior, continuous_ap, fit_vehicle, to_calibration
+import cloud.daemon.node
+from cloud.road.calibration import PassAp, class_prior, continuous_ap, fit_vehicle, to_calibration
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
 from shared.profiles import iso8608_profile, tyre_filter
@@ -88,7 +88,7 @@ def test_the_fused_profile_has_the_roads_gain_at_short_wavelengths(tmp_path, mon
     sim = tmp_path / "sim"
     generate(SCENARIOS["road-qc"], sim, seed=5, passes=6, vehicles=6, noise_pct=0.2, nominal="true", workers=1,
              progress=False)
-    monkeypatch.setattr(cloud.node, "CONTINUOUS_APS", corrected)
+    monkeypatch.setattr(cloud.daemon.node, "CONTINUOUS_APS", corrected)
     for (lo, hi), gain in fused_profile_gains(sim, tmp_path / "out").items():
         if corrected:
             assert abs(gain - 1.0) < 0.006, (lo, hi, gain)

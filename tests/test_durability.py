@@ -17,9 +17,9 @@ import pyarrow.parquet as pq
 import pytest
 import zenoh
 
-from cloud.durable import AP, DONE, Durability
-from cloud.journal import Journal
-from cloud.node import Cloud
+from cloud.daemon.durable import AP, DONE, Durability
+from cloud.daemon.journal import Journal
+from cloud.daemon.node import Cloud
 from edge.node import Edge
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log
@@ -272,9 +272,9 @@ def test_a_restarted_cloud_does_not_raise_a_standing_alarm_again(tmp_path):
     fed outside the cloud, as in test_bridge_system (nominal calibration cannot see the loss)."""
     import copy
 
-    from cloud.aggregator import Aggregator
+    from cloud.ingest.aggregator import Aggregator
     from cloud.bridge.estimator import BridgeSettings
-    from cloud.bridges import BridgeMonitor
+    from cloud.bridge.monitor import BridgeMonitor
     from tests.test_bridge_system import simulated
 
     # The real edge's passes over a bridge with 30 % stiffness loss, computed with each vehicle's own
@@ -421,7 +421,7 @@ def test_compaction_runs_when_the_journal_is_mostly_garbage(road, tmp_path, monk
     """A snapshot rewrites the live state: not due while every journalled record is live (a soak's
     steady stream), due once superseded or duplicate records make the journal twice the live state;
     the compacted state restarts to the same cloud."""
-    import cloud.durable as durable
+    import cloud.daemon.durable as durable
 
     monkeypatch.setattr(durable, "SNAPSHOT_MIN_RECORDS", 5)
     msgs = _messages(road)

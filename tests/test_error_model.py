@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from cloud.estimators.gmrf_profile import GmrfProfile, _accumulate_band, segment_band_information
+from cloud.road.gmrf_profile import GmrfProfile, _accumulate_band, segment_band_information
 from edge.drift import local_linear_trend
 from edge.error_model import band_symbol, channel_noise_sd, fit_error_band
 from edge.pipeline import EdgeConfig, PassProcessor
@@ -302,7 +302,7 @@ def test_long_wave_band_shares_follow_the_segment_model():
     noise drawn from that model (here 20 000 points drawn through its banded Cholesky factor)."""
     from scipy.linalg import cholesky_banded, solve_banded
 
-    from cloud.estimators.gmrf_profile import error_band_shares
+    from cloud.road.gmrf_profile import error_band_shares
 
     widths = [11, 41, 201]
     assert np.allclose(error_band_shares(np.zeros(0), widths), [1 / 11 - 1 / 41, 1 / 41 - 1 / 201, 1 / 201])

@@ -14,10 +14,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from cloud.aggregator import Aggregator
-from cloud.estimators.gmrf_profile import GmrfProfile, segment_information
-from cloud.estimators.mean_profile import MeanProfile
-from cloud.node import Cloud
+from cloud.ingest.aggregator import Aggregator
+from cloud.road.gmrf_profile import GmrfProfile, segment_information
+from cloud.road.mean_profile import MeanProfile
+from cloud.daemon.node import Cloud
 from edge.node import Edge, in_shard, parse_shard
 from edge.pipeline import EdgeConfig, PassProcessor, _AxleGrid
 from shared import keys, schema

@@ -9,7 +9,7 @@ With γ = 0.8 at 2 ms it was c/M −4.2 %, m/M +4.6 %, k/M +6.4 %.
 import numpy as np
 import pytest
 
-from cloud.calibration import PassAp, class_prior, fit_vehicle, to_calibration
+from cloud.road.calibration import PassAp, class_prior, fit_vehicle, to_calibration
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
 from shared.profiles import iso8608_profile, tyre_filter

@@ -13,10 +13,10 @@ import types
 import numpy as np
 import pytest
 
-import cloud.node as node
-from cloud.calibration import to_calibration
-from cloud.fleet_calibration import SIGNIFICANT
-from cloud.node import Cloud
+import cloud.daemon.node as node
+from cloud.road.calibration import to_calibration
+from cloud.road.fleet_calibration import SIGNIFICANT
+from cloud.daemon.node import Cloud
 from edge.node import Edge
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site

@@ -1,4 +1,4 @@
-"""Tests for cloud.estimators.gmrf_profile: exact against dense algebra, incremental, calibrated."""
+"""Tests for cloud.road.gmrf_profile: exact against dense algebra, incremental, calibrated."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from cloud.estimators.gmrf_profile import GmrfProfile, difference_precision, segment_information
+from cloud.road.gmrf_profile import GmrfProfile, difference_precision, segment_information
 from cloud.export import profile_table
 from shared.schema import ApSegment
 

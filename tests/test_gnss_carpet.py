@@ -1,8 +1,8 @@
 """Issue #4 item 4 on small, fast versions of the scenarios: GNSS chainage error removed by aligning
 each pass against the consensus; the 3-D carpet's fleet-mean profile under lane scatter.
 
-Everything runs the daemons' cores (``edge.node.Edge``, ``cloud.node.Cloud``) wired by an in-memory
-queue instead of Zenoh, sequenced as ``cloud.node.serve`` does when the bus is quiet: align, else
+Everything runs the daemons' cores (``edge.node.Edge``, ``cloud.daemon.node.Cloud``) wired by an in-memory
+queue instead of Zenoh, sequenced as ``cloud.daemon.node.serve`` does when the bus is quiet: align, else
 calibrate. Truth is read only here, to score.
 """
 
@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from cloud.node import Cloud
+from cloud.daemon.node import Cloud
 from edge.chainage import ChainageTracker
 from shared.drivelog import list_drive_logs, read_drive_log
 from simfleet.evaluate import load_truth, score_profile

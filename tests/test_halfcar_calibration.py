@@ -4,7 +4,7 @@ Data from finer physics than the step's own discretisation (Newmark γ = ½ at 0
 at 2 ms), 1 % sensor noise, through the edge's real pass processor (inverse under the current
 calibration, anti-aliased gridding); the consensus is the mean AP of two other vehicles of
 Table 2.4 under their true parameters, at other speeds (what a calibrated fleet makes of the road,
-the edge's discretisation undone per pass, as the fleet's vehicle step does). Before the remap settings (cloud.calibration.RemapSettings: the
+the edge's discretisation undone per pass, as the fleet's vehicle step does). Before the remap settings (cloud.road.calibration.RemapSettings: the
 start state a nuisance, a low-pass) the channels reconstructed from the noisy AP were 26–44 % of
 their sd off and a pass hardly moved the ratios off the class prior.
 """
@@ -13,8 +13,8 @@ import numpy as np
 
 from scipy.signal import butter, sosfiltfilt
 
-from cloud.calibration import PassAp, calibration_names, class_prior, continuous_ap, fit_vehicle, to_calibration
-from cloud.fleet_calibration import FleetCalibrator
+from cloud.road.calibration import PassAp, calibration_names, class_prior, continuous_ap, fit_vehicle, to_calibration
+from cloud.road.fleet_calibration import FleetCalibrator
 from edge.pipeline import PassProcessor
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import build_inverse, edge_gamma
@@ -60,7 +60,7 @@ def test_half_car_step_recovers_ratios_from_a_wrong_start():
     # The consensus: what a well-calibrated fleet makes of the road, the mean AP of two other vehicles
     # of Table 2.4 under their true parameters (noise-free: a large fleet's average), through the
     # same edge inverse, each with the edge's discretisation undone under its own parameters (as
-    # cloud.fleet_calibration.CONTINUOUS_CONSENSUS does). Without that, the edge's Newmark γ = 0.8
+    # cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS does). Without that, the edge's Newmark γ = 0.8
     # distorts every AP's wheel-hop band, each vehicle's differently, and no vehicle matches the blend.
     others = []
     for j, speed in ((0, 18.0), (2, 19.0)):

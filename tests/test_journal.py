@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from cloud.journal import Journal, JournalError
+from cloud.daemon.journal import Journal, JournalError
 
 
 def _payloads(n, tag=b"p"):
@@ -35,7 +35,7 @@ def test_a_killed_writer_loses_nothing_it_wrote(tmp_path):
     # mean every record it returned from append() is readable.
     code = textwrap.dedent(f"""
         import os, signal, sys
-        from cloud.journal import Journal
+        from cloud.daemon.journal import Journal
         j = Journal({str(tmp_path)!r}, fsync_interval_s=1e9)
         j.recover()
         for i in range(200):

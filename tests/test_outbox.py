@@ -80,7 +80,7 @@ def test_bad_settings_are_clear_errors(tmp_path):
 
 import numpy as np  # noqa: E402
 
-from cloud.node import Cloud  # noqa: E402
+from cloud.daemon.node import Cloud  # noqa: E402
 from edge.node import Edge  # noqa: E402
 from shared.drivelog import list_drive_logs, read_drive_log  # noqa: E402
 from shared.registry import load_site  # noqa: E402

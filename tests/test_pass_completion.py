@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cloud.aggregator import Aggregator
-from cloud.estimators import MeanProfile
+from cloud.ingest.aggregator import Aggregator
+from cloud.road.mean_profile import MeanProfile
 from shared.registry import Route, Site
 from shared.schema import ApSegment, PassDone
 

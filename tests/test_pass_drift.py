@@ -1,4 +1,4 @@
-"""The per-pass drift nuisance (cloud.estimators.pass_drift), eliminated locally, against dense algebra.
+"""The per-pass drift nuisance (cloud.road.pass_drift), eliminated locally, against dense algebra.
 
 The estimator eliminates the profile chunk by chunk between separators at the knots; the references
 here build the whole joint (profile + every pass's knot coefficients) densely and invert it, so any
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from cloud.estimators.gmrf_profile import GmrfProfile
+from cloud.road.gmrf_profile import GmrfProfile
 from tests.test_gmrf_profile import DX, make_seg, route_length, sd_of
 
 
@@ -177,7 +177,7 @@ def test_reduced_system_stays_local_as_the_route_grows():
 def _history_run(segs, order, snapshots_after, retracted):
     """Feed ``segs`` in ``order`` (indices), snapshotting after the given steps and retracting and
     re-adding ``retracted`` at the first of them; the final snapshot with its long-wave band."""
-    from cloud.estimators.long_wave import with_long_wave_band
+    from cloud.road.long_wave import with_long_wave_band
 
     g = GmrfProfile({"R1": route_length(401)}, drift_knot_m=2.5)  # τ and the drift level both learnt
     fed = []
@@ -237,7 +237,7 @@ def _hat_drift(n, knot_pts, beta):
 def test_drift_band_shares_are_the_hat_drifts_variance_per_band():
     """The long-wave term's model share of each band for the drift nuisance, against Monte Carlo
     drifts built from the hats directly and cut into bands as the passes' residuals are."""
-    from cloud.estimators.long_wave import _moving_average, drift_band_shares
+    from cloud.road.long_wave import _moving_average, drift_band_shares
 
     rng = np.random.default_rng(43)
     widths, knot_m = [11, 41, 201, 1001], 25.0
@@ -256,7 +256,7 @@ def test_the_passes_scatter_adds_only_the_drift_beyond_the_learnt_level():
     as modelled: passes drifting as the model says add next to nothing beyond 50 m (the drift is not
     counted twice), while a stretch where they drift 3× more than the route-wide level gets the
     excess (a level learnt for the whole route cannot see it)."""
-    from cloud.estimators.long_wave import band_error_variances, drift_of
+    from cloud.road.long_wave import band_error_variances, drift_of
     from shared.profiles.iso8608 import iso8608_profile
     from tests.test_profile_coverage import _segments
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cloud.estimators.gmrf_profile import GmrfProfile
-from cloud.estimators.long_wave import pass_error_variance, with_pass_error_band
+from cloud.road.gmrf_profile import GmrfProfile
+from cloud.road.long_wave import pass_error_variance, with_pass_error_band
 from edge.drift import local_linear_trend
 from shared.schema import ApSegment
 from simfleet.evaluate import drift_controlled_truth, pass_extents

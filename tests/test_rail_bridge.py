@@ -1,4 +1,4 @@
-"""Bridge damage from bogie data (cloud.rail_bridge, thesis §3.5–3.6): a healthy and a 13 %-damaged
+"""Bridge damage from bogie data (cloud.rail.bridge, thesis §3.5–3.6): a healthy and a 13 %-damaged
 culvert span under quick batches (10 runs, 40 m approach instead of 50 runs over 120 m)."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from cloud.bridge.mril import damage_indicators
-from cloud.rail_bridge import (MODELS, _difference_shift, bogie_influence, damage_from_batch_means, influence_of_aps,
+from cloud.rail.bridge import (MODELS, _difference_shift, bogie_influence, damage_from_batch_means, influence_of_aps,
                                 pooled_healthy, run_aps)
-from cloud.rail_calibration import calibrate_batch
+from cloud.rail.calibration import calibrate_batch
 from simfleet.rail import RailBridgeSpec
 from simfleet.reproduce_rail import load_runs, true_effective_levels
 from simfleet.scenarios import SCENARIOS

@@ -1,6 +1,6 @@
-"""The load regression with the carriage's dynamic wheel forces (cloud.rail_bridge.static_equivalent), on the
+"""The load regression with the carriage's dynamic wheel forces (cloud.rail.bridge.static_equivalent), on the
 train–track–bridge simulator's own AP under each wheel (no inverse, no calibration: the physics alone), the
-forces from the cloud's carriage model over that AP (cloud.rail_bridge.dynamic_wheel_forces). The
+forces from the cloud's carriage model over that AP (cloud.rail.bridge.dynamic_wheel_forces). The
 simulator's contact forces and its track are read here only, to score."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.signal import butter, sosfiltfilt
 
 from cloud.bridge.mril import MrIl
-from cloud.rail_bridge import (FORCE_MIN_WAVELENGTH_M, GRID_M, MIN_WAVELENGTH_M, RunAp, ap_compliance,
+from cloud.rail.bridge import (FORCE_MIN_WAVELENGTH_M, GRID_M, MIN_WAVELENGTH_M, RunAp, ap_compliance,
                                dynamic_wheel_forces, influence_of_aps)
 from shared.dynamics.train_track import simulate_train_track
 from shared.vehicles.carriage import Carriage

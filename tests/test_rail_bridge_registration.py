@@ -1,5 +1,5 @@
 """The blind-test reading's stability under the batch calibration's per-run speed errors
-(cloud.rail_bridge.registered_runs; issue #6).
+(cloud.rail.bridge.registered_runs; issue #6).
 
 Synthetic batches of the leading bogie's AP (no inverse: the AP is built from a rail irregularity
 of the German low spectrum, 1–80 m, and the static deflection of a 10.2 m simply supported span
@@ -18,7 +18,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from cloud.rail_bridge import RunAp, damage_from_batch_means, influence_of_aps, pooled_healthy, registered_runs
+from cloud.rail.bridge import RunAp, damage_from_batch_means, influence_of_aps, pooled_healthy, registered_runs
 from shared.track.random_fields import RailIrregularity
 
 SPAN_START_M, SPAN_M, EI_NM2 = 130.0, 10.2, 2.0e9
@@ -97,7 +97,7 @@ def test_reading_does_not_swing_with_sub_permille_speed_changes(batches):
     """Every run's calibrated speed changed by 0.03 % (independent draws; chainage ~4 cm at the
     span): unregistered, the pooled reading on the wheels' difference moves by more than a point
     (measured: 0.2/0.6/1.6 points in three draws); with each run registered
-    (:func:`cloud.rail_bridge.registered_runs`), no reading moves by 0.2 (measured: 0.00/0.13/0.02)."""
+    (:func:`cloud.rail.bridge.registered_runs`), no reading moves by 0.2 (measured: 0.00/0.13/0.02)."""
     (healthy, _), (damaged, _) = batches
     rng = np.random.default_rng(2)
     moves = {False: [], True: []}

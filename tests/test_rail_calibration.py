@@ -1,4 +1,4 @@
-"""Rail scenarios (simfleet.rail) and batch self-calibration of run properties (cloud.rail_calibration,
+"""Rail scenarios (simfleet.rail) and batch self-calibration of run properties (cloud.rail.calibration,
 thesis §3.4): a quick batch of the rail-track world, 2 % noise, GNSS speed ~2 % off."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from benchmarks.rail import started_mid_motion
-from cloud.rail_calibration import RailRun, calibrate_batch, cross_entropy_batch
+from cloud.rail.calibration import RailRun, calibrate_batch, cross_entropy_batch
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
 from shared.registry import load_site
 from shared.track_quality import d1_longitudinal_level
@@ -90,7 +90,7 @@ def test_batch_calibration_of_records_that_start_mid_motion(batch, monkeypatch):
     (seed 5, 4 runs, 100 m, truncation seed 0): median |error| mv 1.7 %, Iv 0.8 %, v 0.23 %; every run
     found far from rest (Wald 2 900–10 100 against the 18.5 threshold). The inverse held at rest (the
     calibration before the nuisance) on the same records: mv 3.3 %, Iv 13.5 %."""
-    import cloud.rail_calibration as rc
+    import cloud.rail.calibration as rc
 
     _, truth, site, runs = batch
     cls = site.vehicle_class("carriage")
@@ -127,7 +127,7 @@ def test_records_at_the_logs_chainage_keep_it(batch, fit, monkeypatch):
     its error and scattered (the blind test's healthy batches: per-run speed sd 0.007 → 0.033 %).
     Measured here (seed 5, 4 runs, 100 m, exact logged chainages): every shift held; the runs' speed
     errors' sd 0.0033 % held, 0.011 % with the shift never held."""
-    import cloud.rail_calibration as rc
+    import cloud.rail.calibration as rc
 
     _, truth, site, runs = batch
     true = {p["pass_id"]: p for p in truth["passes"]}
@@ -172,7 +172,7 @@ def _prior_explained_log_scale_error(truth: dict, cls) -> float:
     ratio of the inverse's masses, stiffnesses and dampings (it is invariant to scaling them all),
     so the common scale s is where the priors balance: Σ (log true + s − log class mean)/sd² = 0 over
     every run's mv and Iv and the carriage's six globals."""
-    from cloud.rail_calibration import GLOBAL_FIT
+    from cloud.rail.calibration import GLOBAL_FIT
 
     car = next(iter(truth["vehicles"].values()))
     terms = [(p[k], cls.mean[k], cls.std[k]) for p in truth["passes"] for k in ("mv", "Iv")]
@@ -222,7 +222,7 @@ def test_masses_share_one_scale_without_noise(tmp_path):
     over-disperses the masses and biases the bridge's load regression. Measured: log-log slope of
     calibrated on true mv 0.997, scatter of log(mv / true) about its mean 0.03 %; with the stages'
     low-pass on the channels before the inverse (the filter's edge error at the record's start,
-    carried for seconds by the inverse's body modes, depends on mv: :class:`cloud.rail_calibration.
+    carried for seconds by the inverse's body modes, depends on mv: :class:`cloud.rail.calibration.
     _Mapper`) 1.024 and 0.28 % (the blind test's healthy batch, 50 noisy runs: slope 1.045 → 1.010)."""
     out = tmp_path / "quiet"
     generate(dataclasses.replace(SCENARIOS["rail-track"], route_length_m=100.0, noise_pct=0.0), out, seed=5,
@@ -298,7 +298,7 @@ def test_batched_inverse_is_the_reference_inverse():
     """carriage_aps_runs (all trials of all runs in one compiled call) gives the AP of the per-trial
     reference inverse (cloud.reference.cross_entropy.population_aps) exactly, runs of different
     lengths and steps included."""
-    from cloud.rail_calibration import INVERSE_GAMMA, INVERSE_NAMES, carriage_aps_runs
+    from cloud.rail.calibration import INVERSE_GAMMA, INVERSE_NAMES, carriage_aps_runs
     from cloud.reference.cross_entropy import population_aps
     from shared.vehicles.carriage import TABLE_3_1
 
@@ -322,7 +322,7 @@ def test_sensitivities_are_the_derivatives_of_the_inverse():
     Jacobian) gives carriage_aps_runs' AP exactly and its derivatives in every log parameter as a
     central difference of carriage_aps_runs does (to the difference's own error, ~1e-7 here), runs
     of different lengths and steps included, damped and undamped contacts."""
-    from cloud.rail_calibration import INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
+    from cloud.rail.calibration import INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
     from shared.vehicles.carriage import TABLE_3_1
 
     rng = np.random.default_rng(2)
@@ -357,7 +357,7 @@ def test_sensitivities_in_the_body_initial_state():
     sensitivities' AP agree exactly, at rest they are the batched inverse's, and the derivatives in
     the state (the free responses: the AP is affine in it) are its central differences to rounding;
     the parameters' derivatives still match theirs."""
-    from cloud.rail_calibration import BODY0_NAMES, INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
+    from cloud.rail.calibration import BODY0_NAMES, INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
     from shared.vehicles.carriage import TABLE_3_1
 
     rng = np.random.default_rng(4)
@@ -397,7 +397,7 @@ def test_lowpass_is_scipys_zero_phase_filter():
     starts) on the closed-form Butterworth sections, to rounding, short records included."""
     from scipy.signal import butter, sosfiltfilt
 
-    from cloud.rail_calibration import _butter4_sos, _sosfiltfilt, _sosfiltfilt_rows
+    from cloud.rail.calibration import _butter4_sos, _sosfiltfilt, _sosfiltfilt_rows
 
     rng = np.random.default_rng(3)
     for wn in (0.01, 0.06, 0.3):
@@ -415,12 +415,12 @@ def test_lowpass_is_scipys_zero_phase_filter():
 
 
 def test_noise_information_is_the_profiled_jacobians_quadratic_form():
-    """The sandwich's meat (cloud.rail_calibration._noise_information, from per-run spectra) is
+    """The sandwich's meat (cloud.rail.calibration._noise_information, from per-run spectra) is
     Jᵀ Σ J of the dense profiled-consensus Jacobian (each run's rows, less the mean of all rows) with
     Σ block-diagonal over runs, each block the four wheels' block-Toeplitz cross-covariances that the
     residual shows (biased estimates, pooled over runs): a residual correlated along the track and
     between wheels, inactive local coordinates left out."""
-    from cloud.rail_calibration import _noise_information
+    from cloud.rail.calibration import _noise_information
 
     rng = np.random.default_rng(0)
     n, L, n_g, K = 3, 5, 2, 17

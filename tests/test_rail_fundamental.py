@@ -1,4 +1,4 @@
-"""J⁰ by the matrix method from a bogie's two wheels (cloud.rail_fundamental; issue #6): the area of
+"""J⁰ by the matrix method from a bogie's two wheels (cloud.rail.fundamental; issue #6): the area of
 J⁰ (what D2 compares) from a batch-mean wheel difference with known noise.
 
 The line is the exact J⁰(x) − J⁰(x − d) of a Hermite FE beam (10.2 m, simply supported, 5 % per-
@@ -15,7 +15,7 @@ import pytest
 from scipy.signal import butter, sosfiltfilt
 
 from cloud.bridge.mril import MrIl
-from cloud.rail_fundamental import registered_fundamental, smooth_operator
+from cloud.rail.fundamental import registered_fundamental, smooth_operator
 from shared.fe.beam import Beam, influence_line
 
 SPAN_M, WHEELBASE_M, GRID_M, MIN_WAVELENGTH_M = 10.2, 2.5, 0.05, 4.0

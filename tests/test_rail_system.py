@@ -13,8 +13,8 @@ import pytest
 from rerun.chunk import RrdReader
 from scipy.interpolate import make_interp_spline
 
-from cloud.aggregator import on_route
-from cloud.rail import rebuild_pass
+from cloud.ingest.aggregator import on_route
+from cloud.rail.batches import rebuild_pass
 from cloud.reference.cross_entropy import population_aps
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
 from shared.registry import load_site
@@ -169,15 +169,15 @@ def test_bridge_batches_give_d1_d2_and_the_alarm_state(bridge_runs, tmp_path):
     """Plumbing and fidelity of the daemon's bridge path (the indicators' accuracy needs the thesis's
     large batches: measured on the full worlds with 25 + 25 runs, D1 13.3 % and D2 12.4 % for a 13 %
     loss, and the daemon's MR-ILs within 0.4 % at mid-span of those from the raw channels)."""
-    from cloud.rail import RailBatches
+    from cloud.rail.batches import RailBatches
     from cloud.view import View
-    from cloud.rail_bridge import bogie_influence
-    from cloud.rail_calibration import RailRun
+    from cloud.rail.bridge import bogie_influence
+    from cloud.rail.calibration import RailRun
     from shared.schema import decode_alarm
 
     logs, site = bridge_runs
     cloud, _ = run_in_process(logs, site, None)
-    cloud.rail = RailBatches(site, bridge_batch_runs=3)
+    cloud.rail.batches = RailBatches(site, bridge_batch_runs=3)
     cloud.view = View(rrd_path=tmp_path / "bridge.rrd", routes={"L1": 90.0}, bridges=list(site.bridges))
     published = []
     cloud.publish = lambda key, payload: published.append((key, payload))

@@ -6,7 +6,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from cloud.estimators.mean_profile import ProfileSnapshot
+from cloud.road.mean_profile import ProfileSnapshot
 from cloud.export import track_quality_table, vehicles_table, write_export
 from shared.track import RailIrregularity
 from shared.track_quality import d1_longitudinal_level, isolated_defects, segment_quality

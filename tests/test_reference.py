@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloud.calibration import to_calibration
+from cloud.road.calibration import to_calibration
 from cloud.reference import (cross_entropy_fleet, exact_profile_posterior, forward_channels,
                              mcmc_profile_and_vehicles, population_aps, response_matrix)
 from cloud.reference.cross_entropy import injection_sd

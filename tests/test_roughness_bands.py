@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from cloud.estimators.gmrf_profile import GmrfProfile
-from cloud.estimators.long_wave import drift_of, pass_error_draws, pass_error_variance
+from cloud.road.gmrf_profile import GmrfProfile
+from cloud.road.long_wave import drift_of, pass_error_draws, pass_error_variance
 from cloud.export import profile_draws
 from shared.profiles.iso8608 import iso8608_profile
 from shared.roughness import iri_segments

@@ -1,6 +1,6 @@
 """Logs at sample rates other than the logger's original 500 Hz (interfaces.md §1: any rate).
 
-The cloud undoes the edge inverse's Newmark transfer per pass (cloud.calibration.continuous_ap), and
+The cloud undoes the edge inverse's Newmark transfer per pass (cloud.road.calibration.continuous_ap), and
 that transfer depends on the step the edge inverted at. Undone at 2 ms whatever the rate, a 1 ms pass's
 AP came out worse than the edge sent it, a 5 ms pass's stayed 12 % off at 0.5–1 m (measured). The
 edge now says its sample interval in the pass-done (``PassDone.sample_interval_s``, optional: a
@@ -12,8 +12,8 @@ import pyarrow as pa
 import pytest
 from scipy.signal import butter, sosfiltfilt
 
-from cloud.aggregator import Aggregator
-from cloud.calibration import continuous_segments
+from cloud.ingest.aggregator import Aggregator
+from cloud.road.calibration import continuous_segments
 from edge.pipeline import PassProcessor
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import build_inverse, edge_gamma
@@ -78,7 +78,7 @@ def test_the_cloud_undoes_the_edge_inverse_at_the_edges_own_step(rate_hz):
     segs = proc.feed(chunk)
     more, done = proc.finish()
     segs += more
-    # The edge says its step; the cloud's pass state keeps what the pass-done said (as cloud.node
+    # The edge says its step; the cloud's pass state keeps what the pass-done said (as cloud.daemon.node
     # reads it for the correction), on the wire both ways.
     agg = Aggregator(parse_site({"route": [{"id": "R1", "length_m": 230.0}]}), [])
     for seg in segs:

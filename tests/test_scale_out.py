@@ -129,7 +129,7 @@ def test_each_vehicle_is_calibrated_by_one_shard_and_the_others_apply_it(shared_
     of its passes only; the other applies its calibrations, so every pass ends current everywhere."""
     import collections
 
-    from cloud.node import Cloud
+    from cloud.daemon.node import Cloud
     from edge.node import Edge
     from simfleet.replay import replay
 

@@ -1,4 +1,4 @@
-"""The spill map (cloud.spill) behaves as a dict — order included — with a bounded number of values in
+"""The spill map (cloud.ingest.spill) behaves as a dict — order included — with a bounded number of values in
 memory, and the segment store built on it reads spilled segments back exactly."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import random
 import numpy as np
 import pytest
 
-from cloud.segment_store import SegmentStore
-from cloud.spill import SpillMap
+from cloud.ingest.segment_store import SegmentStore
+from cloud.ingest.spill import SpillMap
 from shared.schema import ApSegment
 
 

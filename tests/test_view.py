@@ -13,7 +13,7 @@ import pytest
 import rerun as rr  # noqa: E402 - a dependency of the project, never optional
 from rerun.chunk import RrdReader  # noqa: E402
 
-from cloud.estimators.mean_profile import ProfileSnapshot  # noqa: E402
+from cloud.road.mean_profile import ProfileSnapshot  # noqa: E402
 from cloud.view import (  # noqa: E402
     MAX_STRIP_POINTS,
     SCREEN_Y,

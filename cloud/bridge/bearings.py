@@ -40,7 +40,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .static import Setup, Stacked, WeightPrior, WhitenedPass, fit_elements, marginal_loglik_batch, vehicle_stats
+from cloud.bridge.static import Setup, Stacked, WeightPrior, WhitenedPass, fit_elements, marginal_loglik_batch, vehicle_stats
 
 #: as-built tolerance of the global stiffness (log sd) — HypothesisSettings.tolerance_sd
 AS_BUILT_SD = 0.02
@@ -126,7 +126,7 @@ def _log_area_table(setup: Setup, kappa: np.ndarray) -> np.ndarray:
     """log ∫J dx of the uniform design span with both springs at 10^κ (g = 0): the pinned span's J
     with the closed-form rank-2 restraint update (:meth:`~cloud.bridge.hypotheses.Kernels.bearings`)
     — one FE solve for the whole table instead of one per κ."""
-    from .hypotheses import Kernels
+    from cloud.bridge.hypotheses import Kernels
 
     kern = Kernels.of(setup)
     return np.log(kern.bearings(np.ones_like(kappa), 10.0**kappa) @ setup.basis.integrals)
@@ -146,7 +146,7 @@ def _parabola_marginal(gs: Sequence[float], ys: Sequence[float], sd: float) -> t
 def krot_posterior(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: WeightPrior, model,
                   cache: dict | None = None, as_built_sd: float = AS_BUILT_SD) -> KrotPosterior:
     """The grid posterior of log10 Krot (shared by both supports) — see the module docstring."""
-    from .dynamic import LEVEL_GRID, dynamic_deltas
+    from cloud.bridge.dynamic import LEVEL_GRID, dynamic_deltas
 
     cache = {} if cache is None else cache
     ne = model.n_elements
@@ -214,7 +214,7 @@ def krot_posterior(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: W
 
 
 def _design_J(model) -> np.ndarray:
-    from .static import design_influence
+    from cloud.bridge.static import design_influence
 
     return design_influence(model)
 
@@ -225,7 +225,7 @@ def fit_bearings_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
     the Krot grid posterior, the per-element fit linearised at its mode with Krot held there
     (:data:`HOLD_SD`), recentred on the effective level there; Krot and the effective ratio
     reported from the whole grid posterior (Krot one-sided where the data leave a limit open)."""
-    from .dynamic import LEVEL_GRID, DynamicFit, GlobalLevel, dynamic_deltas, recentre
+    from cloud.bridge.dynamic import LEVEL_GRID, DynamicFit, GlobalLevel, dynamic_deltas, recentre
 
     cache = {} if cache is None else cache
     ne = model.n_elements

@@ -53,8 +53,8 @@ from numba import njit
 
 from shared.fe.beam import Beam, BeamSystem, assemble, contact_matrix, influence_line, moving_load_deflection
 
-from .passdata import PassData, Window
-from .static import (ElementPosterior, LinearisedDynamicModel, Setup, Stacked, StiffnessPrior, WeightPrior,
+from cloud.bridge.passdata import PassData, Window
+from cloud.bridge.static import (ElementPosterior, LinearisedDynamicModel, Setup, Stacked, StiffnessPrior, WeightPrior,
                      WhitenedPass, design_beam, fit_elements, fit_elements_per_scale, marginal_loglik_batch,
                      mix_scales, vehicle_stats)
 
@@ -506,7 +506,7 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
     """
     model = model or setup.model(prior)
     if model.n > model.n_elements:  # bearings: Krot is read along the effective-stiffness ridge
-        from .bearings import fit_bearings_dynamic
+        from cloud.bridge.bearings import fit_bearings_dynamic
 
         return fit_bearings_dynamic(passes, setup, weight_prior, model, cache=cache, start=start)
     cache = {} if cache is None else cache

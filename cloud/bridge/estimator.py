@@ -28,11 +28,11 @@ import numpy as np
 from shared.registry import Bridge, Site
 from shared.schema import ApSegment
 
-from .dynamic import GlobalLevel, fit_elements_dynamic
-from .hypotheses import Assessment, HypothesisSettings, Kernels, assess
-from .mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
-from .passdata import EdgeSettings, PassData, Reference, extract_pass, road_load_factor, span_profile
-from .static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, Whitener,
+from cloud.bridge.dynamic import GlobalLevel, fit_elements_dynamic
+from cloud.bridge.hypotheses import Assessment, HypothesisSettings, Kernels, assess
+from cloud.bridge.mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
+from cloud.bridge.passdata import EdgeSettings, PassData, Reference, extract_pass, road_load_factor, span_profile
+from cloud.bridge.static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, Whitener,
                      common_calibration_columns, consensus_distortion, driven_road, fit_elements,
                      marginal_loglik_batch, model_columns, mu_basis, pass_distortion, road_sensitivity, step_basis,
                      vehicle_stats, whiten_pass)
@@ -101,7 +101,7 @@ def class_weight_prior(site: Site, model: str) -> WeightPrior:
     """
     from shared.vehicles import GRAVITY, vehicle_from_params
 
-    from .vehicle_error import class_log_sd
+    from cloud.bridge.vehicle_error import class_log_sd
 
     vc = site.vehicle_class(model)
     mean = vehicle_from_params(model, dict(vc.mean)).system().static_contact_forces()
@@ -210,7 +210,7 @@ class BridgeEstimator:
         ``settings.calibration_log_sd`` on every quantity.
         """
         if params_log_sd is None and self.settings.calibration_log_sd:
-            from cloud.calibration import calibration_names
+            from cloud.road.calibration import calibration_names
 
             params_log_sd = {n: self.settings.calibration_log_sd for n in calibration_names(model)}
         edge = self.settings.edge

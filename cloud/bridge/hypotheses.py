@@ -42,7 +42,7 @@ import numpy as np
 
 from shared.fe.beam import assemble, contact_matrix, crack_ei_factor
 
-from .static import Setup, Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch
+from cloud.bridge.static import Setup, Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch
 
 HYPOTHESES = ("healthy", "global", "crack", "bearings")
 

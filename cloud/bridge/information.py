@@ -140,7 +140,7 @@ def pass_sensitivity(case: PassCase, beam: Beam, pre_m: float = 5.0, post_m: flo
         return PassSensitivity(case, S / case.noise_sd, s_w / case.noise_sd)
     from shared.fe.beam import influence_line
 
-    from .vehicle_error import distortion_of
+    from cloud.bridge.vehicle_error import distortion_of
 
     grid = np.arange(-approach_m, beam.span_m + post_m + 0.5 * spacing_m, spacing_m)
     road = np.zeros(grid.size) if case.road is None else np.asarray(case.road(grid), dtype=float)

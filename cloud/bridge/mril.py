@@ -35,7 +35,7 @@ import numpy as np
 from shared.fe.beam import influence_line
 from shared.registry import Bridge
 
-from .static import design_beam
+from cloud.bridge.static import design_beam
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -59,8 +59,8 @@ import numpy as np
 from shared.fe.beam import Beam, compliance_kernel
 from shared.registry import Bridge
 
-from .passdata import PassData, Reference, Window, consensus_end, consensus_used, residual
-from .vehicle_error import FD_STEP, CalibrationMarginal, perturbed_params
+from cloud.bridge.passdata import PassData, Reference, Window, consensus_end, consensus_used, residual
+from cloud.bridge.vehicle_error import FD_STEP, CalibrationMarginal, perturbed_params
 
 #: The likelihood window starts this far before the first support (m); the noise is estimated on
 #: the approach before it, after a burn-in of the forward model.
@@ -519,7 +519,7 @@ def common_calibration_columns(passes: Sequence[PassData], ref: Reference, names
 def pass_distortion(p: PassData, ref: Reference, names: Sequence[str], deck: str, deflection: np.ndarray) -> np.ndarray:
     """``u_p`` of :func:`common_calibration_columns`: the pass's AP distortion (n_window, K) over
     the consensus road plus its deflection ``deflection`` (m)."""
-    from .vehicle_error import ap_distortion
+    from cloud.bridge.vehicle_error import ap_distortion
 
     return ap_distortion(p, driven_road(p, ref, deck) + deflection, names)
 

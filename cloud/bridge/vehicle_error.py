@@ -72,7 +72,7 @@ def perturbed_params(params: Mapping[str, float], name: str, step: float) -> dic
 
 def class_log_sd(site, model: str) -> dict[str, float]:
     """Log-sd of every calibration quantity under the vehicle class prior (an uncalibrated vehicle)."""
-    from cloud.calibration import calibration_names, class_prior
+    from cloud.road.calibration import calibration_names, class_prior
 
     vc = site.vehicle_class(model)
     _, sd = class_prior(model, dict(vc.mean), dict(vc.std))
@@ -80,7 +80,7 @@ def class_log_sd(site, model: str) -> dict[str, float]:
 
 
 def fit_log_sd(fit) -> dict[str, float]:
-    """Log-sd of the calibration quantities from a calibrator's :class:`~cloud.calibration.VehicleFit`
+    """Log-sd of the calibration quantities from a calibrator's :class:`~cloud.road.calibration.VehicleFit`
     (its 95 % interval on the quantity, taken as log-normal)."""
     lo, hi = np.asarray(fit.lo95, dtype=float), np.asarray(fit.hi95, dtype=float)
     sd = np.log(np.maximum(hi, 1e-300) / np.maximum(lo, 1e-300)) / (2 * 1.959964)
@@ -139,7 +139,7 @@ def distortion_of(model: str, params: Mapping[str, float], speed_mps: float, spa
     """
     from shared.vehicles import vehicle_from_params
 
-    from .passdata import newmark_transfer
+    from cloud.bridge.passdata import newmark_transfer
 
     profile = np.asarray(profile, dtype=float)
     n = profile.size

@@ -9,8 +9,8 @@ They are deliberately faithful rather than fast; the production estimators live 
 ``cloud/estimators`` and ``cloud/calibration.py``. Nothing in the daemons imports this package.
 """
 
-from .cross_entropy import cross_entropy_fleet, fleet_aps, fleet_objective, objective, population_aps
-from .mcmc import (THESIS_PROPOSAL_SD, BridgeMcmcResult, McmcResult, ProfilePosterior, exact_profile_posterior, forward_channels,
+from cloud.reference.cross_entropy import cross_entropy_fleet, fleet_aps, fleet_objective, objective, population_aps
+from cloud.reference.mcmc import (THESIS_PROPOSAL_SD, BridgeMcmcResult, McmcResult, ProfilePosterior, exact_profile_posterior, forward_channels,
                    mcmc_bridge_elements, mcmc_profile_and_vehicles, response_matrix)
 
 __all__ = [

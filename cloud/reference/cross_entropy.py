@@ -46,7 +46,7 @@ flat along each vehicle's mass scale, so absolute values wander while ratios con
 what the thesis reports (Tables 2.3, 2.5, 2.6).
 
 Evaluating a trial runs the inverse of every vehicle under new parameters;
-:func:`cloud.batched_inverse.inverse_runs` runs the readable inverse step of
+:func:`shared.dynamics.batched_inverse.inverse_runs` runs the readable inverse step of
 :mod:`shared.dynamics.inverse` for a whole population in one compiled call, without compiling a
 state-space model per trial.
 """
@@ -64,7 +64,7 @@ from scipy.signal import butter, sosfiltfilt
 from shared.dynamics.newmark import newmark_constants
 from shared.vehicles import MODELS, vehicle_from_params
 
-from ..batched_inverse import inverse_runs
+from shared.dynamics.batched_inverse import inverse_runs
 
 log = logging.getLogger(__name__)
 

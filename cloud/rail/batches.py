@@ -2,7 +2,7 @@
 
 The cloud holds each carriage pass as AP segments under its four wheels (the edge's inverse with the
 class-mean properties, keyed on GNSS chainage; the trailing bogie's wheels from before chainage 0 on,
-see ``edge.pipeline.RAIL_MODELS``). What :func:`cloud.rail_calibration.calibrate_batch` needs — each
+see ``edge.pipeline.RAIL_MODELS``). What :func:`cloud.rail.calibration.calibrate_batch` needs — each
 run's bogie channels in time — is rebuilt from them: the carriage's forward model under the
 parameters the edge used, driven by the four APs. The edge's inverse is the exact inverse of that
 discretisation (Newmark γ = 0.8, trapezoidal contact rate), so the calibration's inverse under trial
@@ -13,14 +13,14 @@ drift control (slow: the calibration removes a cubic anyway). The rebuilt step i
 After a batch fit, each run's AP is recomputed under its calibrated properties and re-keyed in
 chainage with its calibrated speed (x = x₀ + v·t + offset), and the estimators are given that in
 place of the edge's version — the cloud re-maps, as it does for chainage alignment
-(:func:`cloud.alignment.realign`), rather than asking the edge to recompute: a run's mass and speed
+(:func:`cloud.road.alignment.realign`), rather than asking the edge to recompute: a run's mass and speed
 belong to that run alone (a ``calib/<vehicle>`` message sets the properties of passes to come), and
 the cloud has everything it needs.
 
 A registry bridge on the route gets, per monitoring batch of runs (``BRIDGE_BATCH_RUNS``), the
-leading bogie's MR-IL per unit wheel load (:func:`cloud.rail_bridge.bogie_influence`, wheel loads
+leading bogie's MR-IL per unit wheel load (:func:`cloud.rail.bridge.bogie_influence`, wheel loads
 from the calibrated masses) and D1/D2 (eq. 3.24) of the latest batch against the first (the bridge
-element-posterior of :mod:`cloud.bridges` models single-contact vehicles on a rigid deck, not a
+element-posterior of :mod:`cloud.bridge.monitor` models single-contact vehicles on a rigid deck, not a
 carriage on ballasted track, so the rail indicators take its place in the bridge summary and alarm).
 
 Results: ``vehicles.parquet`` rows per run (``pass_id``), ``bridge_summary.parquet`` rows of rail
@@ -46,10 +46,10 @@ from shared.track_quality import (ALERT_ISOLATED_MM, ALERT_SD_MM, d1_longitudina
                                   segment_quality)
 from shared.vehicles import vehicle_from_params
 
-from .bridge.mril import MrIl, damage_indicators
-from .bridges import CLEARED
-from .rail_bridge import bogie_influence
-from .rail_calibration import FIXED, RUN_NAMES, BatchFit, RailRun, calibrate_batch
+from cloud.bridge.mril import MrIl, damage_indicators
+from cloud.bridge.monitor import CLEARED
+from cloud.rail.bridge import bogie_influence
+from cloud.rail.calibration import FIXED, RUN_NAMES, BatchFit, RailRun, calibrate_batch
 
 log = logging.getLogger("driveby.cloud.rail")
 
@@ -115,7 +115,7 @@ def rebuild_pass(pass_id: str, segments: list[ApSegment], model: str, params: di
     if t_hi - t_lo < 20 * dt:
         return None
     t = t_lo + dt * np.arange(int(math.floor((t_hi - t_lo) / dt)) + 1)
-    # Cubic, as cloud.alignment.realign: linear interpolation at fractional offsets low-passes short waves.
+    # Cubic, as cloud.road.alignment.realign: linear interpolation at fractional offsets low-passes short waves.
     ap = np.stack([make_interp_spline(ti, ai, k=3)(t) for ti, _, ai, _ in series], axis=1)
     x0 = float(np.mean([np.interp(t_lo, ti, xi) - offsets[i] for i, (ti, xi, _, _) in enumerate(series)]))
     speed = float(np.mean([s.speed_mps for s in segments]))
@@ -127,9 +127,9 @@ def rebuild_pass(pass_id: str, segments: list[ApSegment], model: str, params: di
 def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float,
                shift_m: float = 0.0) -> list[ApSegment]:
     """The run's AP under ``params`` (its calibrated properties), keyed in chainage with its
-    calibrated speed and chainage shift (:attr:`~cloud.rail_calibration.RunEstimate.shift_m`), as replacements of its raw segments (same identities; each keeps the grid
-    points from where it now starts to where the next one starts, as :func:`cloud.alignment.realign`)."""
-    from .reference.cross_entropy import population_aps
+    calibrated speed and chainage shift (:attr:`~cloud.rail.calibration.RunEstimate.shift_m`), as replacements of its raw segments (same identities; each keeps the grid
+    points from where it now starts to where the next one starts, as :func:`cloud.road.alignment.realign`)."""
+    from cloud.reference.cross_entropy import population_aps
 
     run = rebuilt.run
     aps, offs = population_aps(model, [params], run.channels, run.dt, gamma=GAMMA)
@@ -235,7 +235,7 @@ class RailBatches:
 
     def step(self, cloud, force: bool = False) -> bool:
         """Fit every batch that is due, give the estimators its re-keyed runs and log the view.
-        ``cloud``: the :class:`cloud.node.Cloud` (its aggregator, site and view); ``force``: fit
+        ``cloud``: the :class:`cloud.daemon.node.Cloud` (its aggregator, site and view); ``force``: fit
         every batch that changed at all (:meth:`due`). True if any ran."""
         agg = cloud.aggregator
         due = self.due(agg.passes, force)
@@ -365,7 +365,7 @@ class RailBatches:
         per carriage its runs' estimates."""
         import rerun.blueprint as rrb
 
-        from .view import blueprint
+        from cloud.view import blueprint
 
         base = blueprint({r.id: r.length_m for r in self.site.routes}, list(self.site.bridges))
         tabs = []
@@ -388,7 +388,7 @@ class RailBatches:
         """Rerun: the run estimates of every batch, and each rail route's D1 track quality."""
         import rerun as rr
 
-        from .view import SCREEN_Y, finite_runs
+        from cloud.view import SCREEN_Y, finite_runs
 
         rail_routes = {route for (_, route), st in self.batches.items()}
         with view._lock:

@@ -25,34 +25,34 @@ from shared.registry import RegistryError, Site, load_site
 from shared.schema import Calibration, DecodeError, decode_alarm, decode_calibration
 from shared.transport import add_zenoh_arguments, config_from_args
 
-from .aggregator import DEFAULT_MAX_RESIDENT_PASSES, MIN_RESIDENT_PASSES, Aggregator
-from .alignment import Alignment, estimate_alignment, realign
-from .bridge.estimator import BridgeSettings
-from .bridge.vehicle_error import class_log_sd, fit_log_sd
-from .durable import AP, CALIB, DONE, Durability, restore_calibration
-from .bridges import CLEARED, BridgeMonitor
-from .estimators.gmrf_profile import GmrfProfile
-from .estimators.long_wave import drift_of, with_long_wave_band
-from .estimators.mean_profile import MeanProfile
-from .journal import Journal, JournalError
-from .export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
+from cloud.ingest.aggregator import DEFAULT_MAX_RESIDENT_PASSES, MIN_RESIDENT_PASSES, Aggregator
+from cloud.road.alignment import Alignment, estimate_alignment, realign
+from cloud.bridge.estimator import BridgeSettings
+from cloud.bridge.vehicle_error import class_log_sd, fit_log_sd
+from cloud.daemon.durable import AP, CALIB, DONE, Durability, restore_calibration
+from cloud.bridge.monitor import CLEARED, BridgeMonitor
+from cloud.road.gmrf_profile import GmrfProfile
+from cloud.road.long_wave import drift_of, with_long_wave_band
+from cloud.road.mean_profile import MeanProfile
+from cloud.daemon.journal import Journal, JournalError
+from cloud.export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
                      profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
-from .calibration import CONTINUOUS_MODELS, continuous_segments
-from .fleet_calibration import FleetCalibrator
-from .segment_store import DEFAULT_MAX_RESIDENT, SegmentStore
-from .rail import RailBatches
+from cloud.road.calibration import CONTINUOUS_MODELS, continuous_segments
+from cloud.road.fleet_calibration import FleetCalibrator
+from cloud.ingest.segment_store import DEFAULT_MAX_RESIDENT, SegmentStore
+from cloud.rail.batches import RailBatches
 
 log = logging.getLogger("driveby.cloud")
 
 TILE_M = 50.0
-#: Knot spacing (m) of each pass's own drift, a nuisance of the profile posterior (cloud.estimators.pass_drift);
+#: Knot spacing (m) of each pass's own drift, a nuisance of the profile posterior (cloud.road.pass_drift);
 #: None leaves the drift to the band's measured long-wave term. The posterior, its τ and drift level are a
 #: function of the held segments alone, not of their history (tests/test_pass_drift.py), so replays agree.
 DRIFT_KNOT_M: float | None = 25.0
 #: Fuse road passes as continuous-time APs: the edge's inverse (Newmark γ 0.6 / 0.8, for stability)
 #: distorts every AP of a vehicle class alike, so the profile, its IRI and the fleet calibration would
 #: all carry that bias. Each complete pass is corrected in the cloud under the parameters the edge
-#: computed it with (cloud.calibration.continuous_segments): the cloud has the whole pass (the
+#: computed it with (cloud.road.calibration.continuous_segments): the cloud has the whole pass (the
 #: correction is non-causal), and the edge's AP stays the inverse's exact output, which the remap,
 #: the bridge (its own correction, cloud/bridge/passdata.py) and rail rebuild the channels from.
 #: A recalibrated pass is recomputed by the edge, acknowledged again and corrected again. The correction
@@ -780,7 +780,7 @@ class Cloud:
     def snapshot(self) -> dict:
         """The profile posterior per route; its band also holds the passes' non-white error (the
         drift and calibration error each pass adds beyond the likelihood's white noise, measured band
-        by band from their disagreement: :mod:`cloud.estimators.long_wave`)."""
+        by band from their disagreement: :mod:`cloud.road.long_wave`)."""
         segs = self.fused_segments()  # what the posterior holds (chainage-aligned, continuous-time)
         # With the drift nuisance on, the passes' scatter adds only what exceeds its learnt level.
         return {rid: with_long_wave_band(s, segs, drift=drift_of(self.profile, rid))
@@ -1062,7 +1062,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     view = None
     if args.rrd or args.viewer:
-        from .view import View
+        from cloud.view import View
 
         view = View(rrd_path=args.rrd, spawn_viewer=args.viewer, routes={r.id: r.length_m for r in site.routes},
                     bridges=list(site.bridges))

@@ -30,7 +30,7 @@ from collections.abc import Iterable, Iterator
 from shared import keys
 from shared.schema import Calibration, DecodeError, decode_calibration
 
-from .journal import Journal, Record
+from cloud.daemon.journal import Journal, Record
 
 log = logging.getLogger("driveby.cloud.durable")
 

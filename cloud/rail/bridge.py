@@ -54,7 +54,7 @@ for both models, eq. 3.16–3.23) the half-car and the carriage give the same li
 is read that way (one bogie's two channels and the calibrated run properties). The third reading,
 ``leading_bogie`` (:func:`leading_bogie_ap`), keeps the half-car's data (the leading bogie's two channels) and models the body's force: the carriage's body, driven by the
 leading bogie and by a trailing bogie simulated over the AP the leading wheels found. Every
-inverse here runs at the batch calibration's Newmark γ (:data:`cloud.rail_calibration.
+inverse here runs at the batch calibration's Newmark γ (:data:`cloud.rail.calibration.
 INVERSE_GAMMA`), the one its properties were fitted under.
 
 Each run's calibrated speed is off by ~0.01 % (~15 mm of chainage at a span 130 m into the record),
@@ -115,9 +115,9 @@ from shared.vehicles import GRAVITY
 from shared.vehicles.bogie import BogieHalfCar
 from shared.vehicles.carriage import Carriage
 
-from .bridge.mril import MrIl
-from .rail_calibration import FIXED, INVERSE_GAMMA, BatchFit, RailRun
-from .rail_fundamental import chord_windows, difference_mril, registered_fundamental
+from cloud.bridge.mril import MrIl
+from cloud.rail.calibration import FIXED, INVERSE_GAMMA, BatchFit, RailRun
+from cloud.rail.fundamental import chord_windows, difference_mril, registered_fundamental
 
 GRID_M = 0.05
 APPROACH_M = 10.0  # AP kept either side of the span, m
@@ -146,7 +146,7 @@ class BogieInfluence:
     intercept_m: np.ndarray  # (2, K) a_i(x): the profile (relative to the supports' line), m
     #: The thesis's reading (profile not separated): −½ Σ_i mean_r(y_r,i / W_r), m/N — for comparison.
     unseparated: MrIl | None = None
-    #: J⁰ by the matrix method on the wheels' time-synchronous AP difference (:func:`cloud.rail_fundamental.difference_mril`).
+    #: J⁰ by the matrix method on the wheels' time-synchronous AP difference (:func:`cloud.rail.fundamental.difference_mril`).
     difference: MrIl | None = None
     #: The same from the batch mean of the difference per unit load (profile left in), m/N.
     difference_unseparated: MrIl | None = None
@@ -550,7 +550,7 @@ def registered_runs(aps: Sequence[RunAp], start_m: float, span_m: float,
 def calibration_sds(fit: BatchFit, class_mean: dict[str, float], class_std: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     """Each run's calibration uncertainty as the reading feels it, from the fit's 95 % intervals: the
     sd of its log speed with the bogie spacing's share taken out (that one moves every run alike:
-    the registrations absorb it; :func:`cloud.rail_calibration.calibrate_batch` adds it to every
+    the registrations absorb it; :func:`cloud.rail.calibration.calibrate_batch` adds it to every
     run's interval) and the sd of its static wheel load (N, from mv's). The mass's interval carries
     the held globals' error too, common to every run and batch, so the load's is an upper bound."""
     lv = class_std["Lv"] / class_mean["Lv"]
@@ -602,7 +602,7 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
     ``fundamental``: the same on the wheels' difference (J⁰, free of a force at the bogie centre):
     J⁰ of each batch mean by the matrix method from the registered difference line, the healthy
     batch's regression J⁰ for the scale."""
-    from .bridge.mril import damage_indicators
+    from cloud.bridge.mril import damage_indicators
 
     ref = healthy.difference if fundamental else healthy.mril
     w_h, w_c = float(np.mean(healthy.wheel_load_n)), float(np.mean(current.wheel_load_n))
@@ -724,7 +724,7 @@ def design_scale(bridge, healthy: BogieInfluence) -> BogieInfluence:
 
     from shared.fe.beam import _stiffness, contact_matrix, influence_line
 
-    from .bridge.mril import design_beam
+    from cloud.bridge.mril import design_beam
 
     beam = design_beam(bridge)
     x, span, wb = healthy.approach_line.x_m, float(healthy.mril.x_m[-1]), float(healthy.wheelbase_m)

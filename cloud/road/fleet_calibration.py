@@ -4,14 +4,14 @@ in, and each vehicle's calibration published when it moves.
 Two vehicle steps, by model (:data:`PER_VEHICLE`):
 
 * **joint** (sprung masses): every vehicle of a model fitted at once with the road
-  profile profiled out (:func:`cloud.calibration.fit_fleet`). That solves "profile given
+  profile profiled out (:func:`cloud.road.calibration.fit_fleet`). That solves "profile given
   vehicles" inside the step, so a round from the class prior lands near the answer: no local
   minima of a per-vehicle fit, no slow alternation. The edges then recompute their segments;
   the next round, on those, confirms (the remap is exact only up to the grid and each pass's
   unknown start, so a vehicle moves only by more than a fraction of its posterior spread, and a
   move that reverses the last one is halved).
 * **per vehicle** (quarter-cars, half-cars): each vehicle against the leave-one-out consensus of the profile
-  estimator, in acceleration space (:func:`cloud.calibration.fit_vehicle`), alternating with the
+  estimator, in acceleration space (:func:`cloud.road.calibration.fit_vehicle`), alternating with the
   exact profile step; the fleet-wide common part of each round's change is over-relaxed (for
   :data:`OVER_RELAXED` models), which
   removes most of alternation's slow mode (the whole fleet drifting together), and frozen for a
@@ -32,7 +32,7 @@ vehicle step at Newmark γ = 0.8 and 2 ms add numerical damping that, against th
 physics, moves a quarter-car's fit by c/M −4.4 %, m/M +4.7 %, k/M +6.8 % (noise-free, true
 profile) — road-qc seed 0's c/M −3.4 % ± 0.7 % came from there, not from the prior. At the edge's
 γ = 0.6 it was still k/M +1.9 %, c/M −1.3 %, m/M +1.1 %; quarter-car rounds therefore run on
-continuous-time APs (the cloud corrects each pass, cloud.node.CONTINUOUS_APS; the step reconstructs
+continuous-time APs (the cloud corrects each pass, cloud.daemon.node.CONTINUOUS_APS; the step reconstructs
 and predicts at γ ½: ≤ 0.25 %, tests/test_discretisation.py). Road-qc seed 0, k/M median/max
 2.0/3.6 % → 1.0/2.3 %; what common error remains (k/M +1 %, c/M −1.3 %, m/M −0.8 %) is not the
 step's model.
@@ -51,7 +51,7 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from .calibration import (CONTINUOUS_MODELS, REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior,
+from cloud.road.calibration import (CONTINUOUS_MODELS, REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior,
                           continuous_ap_resampled, fit_fleet, fit_vehicle, from_calibration, pass_speed, pass_values,
                           to_calibration)
 
@@ -69,7 +69,7 @@ REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle roun
 #: amplification at short wavelengths weighs wrongly. Half-cars too (road-hc, 6 vehicles, 1 % noise,
 #: seeds 0/1: profile 14.3/15.7 % against the joint step's 46 % (seed 0), coverage 1.00/0.99 against
 #: 0.62, ratios' medians ≤ 4.7/4.4 %, max 7.1/7.6 %, against medians up to 72 %; see
-#: :data:`cloud.calibration.REMAP_SETTINGS` and :data:`CONTINUOUS_CONSENSUS`).
+#: :data:`cloud.road.calibration.REMAP_SETTINGS` and :data:`CONTINUOUS_CONSENSUS`).
 PER_VEHICLE = frozenset({"quarter_car", "half_car"})
 #: Per-vehicle models whose fleet-common change is over-relaxed (:meth:`FleetCalibrator._common_relaxation`).
 #: Not half-cars: on road-hc the common change then grew round on round (±0.1 in log by round 8,
@@ -77,7 +77,7 @@ PER_VEHICLE = frozenset({"quarter_car", "half_car"})
 #: prediction kept the edge's γ, seed 0).
 OVER_RELAXED = frozenset({"quarter_car"})
 #: Per-vehicle models whose vehicle step runs against a consensus of continuous-time APs
-#: (:func:`cloud.calibration.continuous_ap_resampled`: the edge inverse's discretisation undone per pass under
+#: (:func:`cloud.road.calibration.continuous_ap_resampled`: the edge inverse's discretisation undone per pass under
 #: the vehicle's own parameters, in a copy of the profile estimator) and predicts with continuous
 #: physics (``RemapSettings.predict_gamma`` ½). The edge's γ = 0.8 distorts each half-car's AP at
 #: the wheel hop by its own parameters and speed (2–4 % of the road in 1.5 c/m – 30 m, noise-free);
@@ -126,8 +126,8 @@ class FleetCalibrator:
         self.settled = True
         self.dirty = False  # new data since the last round
         #: The segments a round is given are continuous-time APs for :data:`CONTINUOUS_MODELS`
-        #: (the cloud corrected them, cloud.node): the vehicle step then reconstructs and predicts
-        #: at γ ½ (:class:`cloud.calibration.PassRemap`) and needs no corrected copy of the consensus.
+        #: (the cloud corrected them, cloud.daemon.node): the vehicle step then reconstructs and predicts
+        #: at γ ½ (:class:`cloud.road.calibration.PassRemap`) and needs no corrected copy of the consensus.
         self.continuous_aps = False
         #: (vehicle, pass) → the sample interval (s) the edge inverted the pass at (its pass-done; the
         #: daemon sets this before a round, as it sets ``estimator``); a pass not here was a 500 Hz log's.
@@ -417,7 +417,7 @@ class FleetCalibrator:
 
     def _continuous_estimator(self, model: str, vids: list[str], by_vehicle: dict):
         """A copy of the profile estimator with ``vids``' segments replaced by their continuous-time
-        APs (:func:`cloud.calibration.continuous_ap_resampled`, per pass under the vehicle's parameters), and
+        APs (:func:`cloud.road.calibration.continuous_ap_resampled`, per pass under the vehicle's parameters), and
         those segments per vehicle."""
         est = copy.deepcopy(self.estimator)
         out = {}

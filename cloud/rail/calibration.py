@@ -11,7 +11,7 @@ properties by Cross-Entropy with restarts (:func:`cross_entropy_batch`, the refe
 θ_r = log(mv, Iv, v) of run r, θ_g the log global properties (below); B maps a run's AP under wheel i onto a common chainage grid
 (x = x0 + v·t + offset_i) and removes a cubic (the inverse's integrators turn noise into slow drift,
 and the absolute level is unobservable); c(θ) is the consensus, the mean of all runs' and wheels'
-mapped APs (the track profile profiled out, as in :mod:`cloud.calibration`); the prior is the
+mapped APs (the track profile profiled out, as in :mod:`cloud.road.calibration`); the prior is the
 class (mean, sd) of ``mv`` and ``Iv`` from the registry and the run's GNSS speed with its relative
 error.
 
@@ -504,7 +504,7 @@ def _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, body0, nd, out) ->
 
 @njit(cache=True)
 def _inverse_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, run_of, nd, z, lengths, dts, gamma, beta, out):
-    """The carriage's inverse step (:func:`cloud.batched_inverse.inverse_runs` with the carriage's
+    """The carriage's inverse step (:func:`shared.dynamics.batched_inverse.inverse_runs` with the carriage's
     structure: DOFs 2–5 measured, accelerations and pitch rates alternately; 0–1 the body, free;
     four contacts, the primary suspensions kp, cp), parameter set t on run ``run_of[t]``'s channels,
     the body started from ``body0[t]`` (u, θ, u̇, θ̇; its acceleration 0 as the at-rest inverse has

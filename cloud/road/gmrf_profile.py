@@ -61,8 +61,8 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from shared.schema import SIGMA_SCALE, ApSegment
 
-from .mean_profile import ProfileSnapshot
-from .pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
+from cloud.road.mean_profile import ProfileSnapshot
+from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
 
 log = logging.getLogger(__name__)
 

@@ -51,8 +51,8 @@ from scipy.stats import t as student_t
 
 from shared.schema import ApSegment
 
-from .gmrf_profile import error_band_shares
-from .mean_profile import ProfileSnapshot
+from cloud.road.gmrf_profile import error_band_shares
+from cloud.road.mean_profile import ProfileSnapshot
 
 #: Band edges (m): wavelengths below the first are the white model's (the prior smooths them).
 BAND_EDGES_M = (0.5, 2.0, 10.0, 50.0)

@@ -33,7 +33,7 @@ The AP-space misfit weighs every wavelength in the band alike, which is right wh
 error is small against the road (noise-free, or a sprung mass) but not where the inverse amplifies
 sensor noise beyond the road's signal (a half-car at 1 % noise). :func:`fit_vehicle` is the
 per-vehicle alternative in acceleration space, where sensor noise is white (used for quarter-cars
-and half-cars, see :mod:`cloud.fleet_calibration` and :class:`RemapSettings`).
+and half-cars, see :mod:`cloud.road.fleet_calibration` and :class:`RemapSettings`).
 """
 
 from __future__ import annotations
@@ -102,7 +102,7 @@ class RemapSettings:
     at 0.8 against a consensus of 0.8 APs left a fleet-shared bias (each AP distorted by its own
     vehicle and speed; road-hc seed 1 Cs1/ms median 16.7 %), at ½ against it worse (seed 0, every
     vehicle off alike: Cs2/ms +24 %). The half-car therefore predicts at ½ against a consensus of
-    continuous-time APs (:func:`continuous_ap`, :data:`cloud.fleet_calibration.CONTINUOUS_CONSENSUS`);
+    continuous-time APs (:func:`continuous_ap`, :data:`cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS`);
     its own channels are still reconstructed at the edge's γ (exact round trip).
     """
 
@@ -676,7 +676,7 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
 def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0) -> np.ndarray:
     """:func:`continuous_ap` as first written: through the pass's time grid (resampled linearly from
     the route grid and back, which loses 3–6 % of the AP at 0.5–1 m), up to 30 Hz. Kept for the
-    half-car's corrected consensus (cloud.fleet_calibration.CONTINUOUS_CONSENSUS), whose common gain
+    half-car's corrected consensus (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS), whose common gain
     and step halving were tuned on it: with :func:`continuous_ap` instead, road-hc seed 1's Cs1/ms
     reached 18.2 % (7.6 % with this). Retuning the half-car for the exact correction is open.
 
@@ -729,13 +729,13 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
 
 
 #: Vehicle models whose passes the cloud fuses as continuous-time APs (:func:`continuous_segments`).
-#: Rail models are left out (their cloud re-runs the dynamics from the edge's AP, cloud.rail), and so
+#: Rail models are left out (their cloud re-runs the dynamics from the edge's AP, cloud.rail.batches), and so
 #: is the sprung mass (its joint step, :func:`fit_fleet`, reconstructs at the edge's γ; not measured).
 #: Half-cars too, measured: fused corrected, road-hc's profile got worse (true parameters, seed 0:
 #: 12.6 → 13.9 %, more shrinkage and error at 1–5 m; fleet seeds 0/2: 14.3 → 21.1 %, 11.4 → 18.4 %,
 #: measured with zero-padded rather than mirrored pass ends) and seed 1's Cs1/ms reached 16.7 %,
 #: though every seed's worst ratio otherwise improved (0: 7.1 → 5.2 %, 2: 7.3 → 6.5 %). They keep the
-#: corrected consensus in their vehicle step only (cloud.fleet_calibration.CONTINUOUS_CONSENSUS).
+#: corrected consensus in their vehicle step only (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS).
 #: Why worse (seed 0, true parameters): not the correction — each pass's corrected AP is closer to the
 #: road in every band (axle 1, 1–2 m 31 → 26 %, 2–5 m 5.6 → 2.7 %). The fusion over-shrinks half-car
 #: passes at 1–5 m (posterior gain 0.61 at 1–2 m, 0.89 at 2–5 m, where 6 passes × 2 axles of that

@@ -373,7 +373,7 @@ class DriftPosterior:
         ``(E[βᵀβ] / s2 − K) / (2 s2)``, zero where ``s2 = E[βᵀβ] / K`` (the EM fixed point)."""
         if self.n_beta == 0:
             return 0.0
-        from .gmrf_profile import _selected_inverse
+        from cloud.road.gmrf_profile import _selected_inverse
 
         cb = self._factor(s2)
         mb = cho_solve_banded((cb, True), self.b_red, check_finite=False)[self.beta_idx]
@@ -407,7 +407,7 @@ class DriftPosterior:
         out = np.zeros(self.size)
         if self.s2 <= 0.0:
             return out
-        from .gmrf_profile import _selected_inverse  # (gmrf_profile imports this module)
+        from cloud.road.gmrf_profile import _selected_inverse  # (gmrf_profile imports this module)
 
         cov = _selected_inverse(self.factor_red)
         out[self.sep_points] = cov[0, self.sep_red] - self.cov0[0, np.arange(self.sep_points.size)]
@@ -424,7 +424,7 @@ class DriftPosterior:
         normals ``z`` (n, :attr:`n_coefficients`): the reduced system is drawn whole, β taken from it."""
         if self.s2 <= 0.0:
             return np.zeros((z.shape[0], self.size))
-        from .gmrf_profile import _draw
+        from cloud.road.gmrf_profile import _draw
 
         x = np.array(z, dtype=np.float64, order="C")
         _draw(self.factor_red, self.mean_red, x)
@@ -520,7 +520,7 @@ def eliminate(ab: np.ndarray, cb: np.ndarray, b: np.ndarray, system: DriftSystem
     post.red = _to_band(r, c, v, n)
     post.b_red, post.beta_idx, post.sep_red, post.sep_points = b_red, beta_idx, sep_red, sep_points
     if sep_points.size:  # the same system without β: the evidence's reference and the drift-free band
-        from .gmrf_profile import _selected_inverse
+        from cloud.road.gmrf_profile import _selected_inverse
 
         keep = (r < n) & np.isin(r, sep_red) & np.isin(c, sep_red)
         to0 = np.full(n, -1, dtype=np.int64)

@@ -18,9 +18,9 @@ from pathlib import Path
 from shared.registry import Site
 from shared.schema import LEGACY_SAMPLE_INTERVAL_S, Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
 
-from .estimators.base import Estimator
-from .segment_store import SegmentStore
-from .spill import SpillMap
+from cloud.ingest.estimator import Estimator
+from cloud.ingest.segment_store import SegmentStore
+from cloud.ingest.spill import SpillMap
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """J⁰, the span's fundamental influence line, from a bogie's two wheels by the matrix method (thesis
 §3.5.2, eq. 3.16–3.23; issue #6 item 6): the batch's time-synchronous AP difference of the leading
 bogie's two wheels, g_k = J⁰_k − J⁰_(k−c) per unit wheel load (c = the wheelbase in grid steps),
-inverted with J⁰ = 0 off the span. What :mod:`cloud.rail_bridge` reads the bogie half-car's D1/D2 from.
+inverted with J⁰ = 0 off the span. What :mod:`cloud.rail.bridge` reads the bogie half-car's D1/D2 from.
 
 Why J⁰ in a smooth basis (:func:`smooth_operator`), not grid point by grid point. With J⁰ free at
 every grid point (the thesis's least squares, :func:`difference_pinv`) the equations split into c
@@ -30,7 +30,7 @@ import functools
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from .bridge.mril import MrIl
+from cloud.bridge.mril import MrIl
 
 #: The wheels' difference is taken relative to the line through its means over this much track
 #: beyond each end (both wheels off the span), m, not through its two end samples: the end samples'
@@ -52,7 +52,7 @@ FUNDAMENTAL_MODES = 10
 
 def registered_fundamental(line: MrIl, shift: float, span_m: float, wheelbase_m: float, *, grid_m: float,
                            min_wavelength_m: float, modes: int | None = FUNDAMENTAL_MODES) -> np.ndarray:
-    """J⁰ on the span (the grid of :func:`cloud.rail_bridge.bogie_influence`'s ``difference``: whole
+    """J⁰ on the span (the grid of :func:`cloud.rail.bridge.bogie_influence`'s ``difference``: whole
     steps of about ``grid_m`` per wheelbase) from a batch-mean wheel difference line read at x −
     ``shift``: relative to the line through its means beyond the ends (both wheels off the span;
     :func:`chord_windows`), then the matrix method (:func:`difference_mril`, low-passed at
@@ -117,7 +117,7 @@ def difference_mril(x_m: np.ndarray, g: np.ndarray, M: int, c: int, n_runs: int,
     in the span's first ``modes`` sine modes (:func:`smooth_operator`; ``None``: free at every grid
     point, :func:`difference_pinv`, the thesis's), then the low-pass of ``min_wavelength_m``. Why the
     difference: a body's force through the secondary suspension acts at the bogie's centre and moves
-    both wheels' AP alike at each instant — the error of the bogie half-car (:mod:`cloud.rail_bridge`)
+    both wheels' AP alike at each instant — the error of the bogie half-car (:mod:`cloud.rail.bridge`)
     cancels; a uniform track compliance cancels too.
     """
     J = (difference_pinv(M, c) if modes is None else smooth_operator(M, c, modes)) @ g

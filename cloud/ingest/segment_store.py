@@ -4,7 +4,7 @@ The aggregator keeps every accepted segment because a later recalibration of its
 it from the estimators exactly (and the long-wave band, alignment and bridges read them). Memory
 must not grow with the passes, so at most ``max_resident`` segments stay decoded in memory; older
 ones are written, as their wire payload (Arrow IPC, lossless: the estimators work on the wire
-codes), to an on-disk index (:class:`cloud.spill.SpillMap`), and a read of such a slot decodes it
+codes), to an on-disk index (:class:`cloud.ingest.spill.SpillMap`), and a read of such a slot decodes it
 back — the same values, so retraction stays exact and every export equals the unbounded store's.
 
 Nothing per spilled slot stays in memory: its key, its calibration version (kept beside the payload
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from shared.schema import ApSegment, decode_ap
 
-from .spill import SpillMap
+from cloud.ingest.spill import SpillMap
 
 #: Default for the daemon: ~4 kB each, so ~80 MB of decoded segments at most.
 DEFAULT_MAX_RESIDENT = 20_000
