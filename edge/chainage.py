@@ -6,7 +6,7 @@ centimetres, but with a scale error of ~1–3 % (tyre radius, wear, pressure). O
 route section (~10 s) the odometer is the better ruler: chainage that follows it is an affine map
 of the true chainage (x_rep = x₀ + b + (1 + ε)(x − x₀)), which the cloud removes exactly by
 aligning the pass against the consensus. A filter that followed GNSS within seconds would instead
-bend the map where the odometer scale error is being corrected (measured: a first-order pull with
+bend the map where the odometer scale error is being corrected (a first-order pull with
 τ = 2 s leaves a non-affine 0.2 m over the first 50 m of a pass at 2 % scale error, fatal for
 wavelengths of a metre). Over long drives GNSS must win, or the odometer error grows without bound.
 

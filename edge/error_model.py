@@ -25,11 +25,11 @@ How:
    again toward long wavelengths (twice-integrated noise, 50× up from 10 m to 50 m for the
    quarter-car), which a low-order band cannot follow. The spectrum is therefore first filled up
    to its mean level over ``longest_m/2.5 … longest_m`` (:func:`filled_spectrum`), but not above
-   the white level the AP's own second differences show (the ``sigma`` the segment has always
-   carried): the model is then conservative in the valley rather than over-confident at long
+   the white level the AP's own second differences show (the segment's own ``sigma``): the model is
+   then conservative in the valley rather than over-confident at long
    wavelengths, and never more pessimistic than the white model. (An over-confident long-wave
-   level per pass weighs the passes against each other by a number the model does not know;
-   measured on road-qc with true parameters, fused error 1.80 % white, 2.14 % unfilled.) Where
+   level per pass weighs the passes against each other by a number the model does not know, and
+   the fused profile is worse than with the white model.) Where
    the inverse differentiates (the half-car's pitch rate) there is no valley and nothing changes;
    where the body accelerometer is all (a quarter-car) the fill gives back the white model.
    Beyond ``longest_m`` the cloud's drift nuisance / long-wave band cover the rest.

@@ -36,8 +36,8 @@ class EdgeConfig:
     # Anti-alias the AP before gridding (see :func:`_antialias`); off: plain linear interpolation,
     # which folds the inverse's noise up to 250 Hz into the 5 cm grid's band: on a bridge span that is
     # ~10× the sensor noise at the quarter-car's γ = 0.6, and it is coloured like the vehicle's
-    # transfer, so the bridge's calibration nuisance fits it (8 passes: effective stiffness 1.22
-    # against 0.97 alias-free; tests/test_bridge_common_calibration.py).
+    # transfer, so the bridge's calibration nuisance fits it and reads the span stiff
+    # (tests/test_bridge_common_calibration.py).
     antialias: bool = True
     # The AP error model sent with each segment (edge.error_model): each channel's noise level from
     # its data pushed through the inverse's transfer, fitted with a precision band of this order
@@ -165,7 +165,7 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
     garbage AP must not leak into its neighbours. Points whose window the pass's end cuts become
     invalid (``valid``): a truncated kernel is not the filter, and their linear value carries the
     full-band noise (5× the anti-aliased points' second differences at 2 % noise), which the
-    cloud's bridge likelihood saw as χ² ≈ 100 in the last row of every pass ending near a bridge.
+    cloud's bridge likelihood would see as χ² ≈ 100 in the last row of every pass ending near a bridge.
     """
     n = sap.size
     fc_max = _AA_MAX_CUTOFF_FRACTION / dt
@@ -215,7 +215,7 @@ class _AxleGrid:
     """The AP of one axle on the global grid, growing as the pass advances.
 
     The grid lives in arrays of doubling capacity, so appending a chunk's points costs amortised
-    O(points) (appending by concatenation copied the whole pass every chunk: O(n²) over a long
+    O(points) (appending by concatenation would copy the whole pass every chunk: O(n²) over a long
     pass). ``values``, ``valid`` and ``t`` are views of the part that is final.
 
     Without anti-alias a point is final once interpolated. With it (``min_speed`` given), a point

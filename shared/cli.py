@@ -11,8 +11,9 @@ import os
 import sys
 
 #: Thread counts of the BLAS/OpenMP libraries numpy and scipy may load. A daemon's linear algebra is
-#: small (e.g. a 270×270 eigh) and shares the machine with the others: one thread took 0.04 s where a
-#: thread per core took 0.3–4 s on a loaded box, so the daemons run it single-threaded.
+#: small (e.g. a 270×270 eigh) and shares the machine with the others: a thread per core then mostly
+#: waits on the other daemons and is many times slower than one thread, so the daemons run it
+#: single-threaded.
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 

@@ -441,8 +441,8 @@ def _fb_field(buf, table: int, field: int) -> int | None:
 def _refuse_compressed(payload) -> None:
     """Refuse compressed record batches and dictionaries *before* Arrow inflates them.
 
-    A few kB of zstd expand to gigabytes (found by fuzzing: 9 kB became 200 MB before the
-    size cap could see it), and a bound checked after decompression comes too late. Our
+    A few kB of zstd expand to gigabytes (9 kB can become 200 MB before a size cap sees it),
+    and a bound checked after decompression comes too late. Our
     encoder never compresses, nor uses dictionaries, so both are refused from the message
     headers alone, walking the stream's framing (Arrow's Message.fbs: ``Message`` fields
     1 ``header_type``, 2 ``header``, 3 ``bodyLength``; ``RecordBatch`` field 3 ``compression``).
@@ -519,7 +519,7 @@ class _Row:
     def __init__(self, batch: pa.RecordBatch) -> None:
         self.batch = batch
         self.n_rows = batch.num_rows
-        # One pass over the columns: a name lookup per field was most of the decoding time.
+        # One pass over the columns: a name lookup per field would be most of the decoding time.
         self.columns = dict(zip(batch.schema.names, batch.columns))
         self.names = self.columns.keys()
 
@@ -1061,8 +1061,8 @@ _AP_FLOAT64 = tuple(name for name, t in _AP_COLUMNS if t == pa.float64())
 
 def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, pa.Array]:
     # The numeric fields of every segment in one array per type (row j: the j-th such field), each
-    # column a view of its row: two conversions per payload instead of one per field (the encoding
-    # was most of the cost of spilling a segment).
+    # column a view of its row: two conversions per payload instead of one per field (a conversion
+    # per field would be most of the cost of spilling a segment).
     n = len(segments)
     numeric = {name: row for names, dtype in ((_AP_INT64, np.int64), (_AP_FLOAT64, np.float64))
                for name, row in zip(names, np.array([[getattr(s, f) for s in segments] for f in names],

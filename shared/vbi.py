@@ -96,7 +96,7 @@ def simulate_vbi(
         M[nv:, nv:] = Mb
 
         # Contact rows of every coupled sample at once (one vectorised evaluation instead of one
-        # per sample and contact: building them was 60 % of a pass).
+        # per sample and contact, which would dominate a pass's cost).
         rows_N, rows_Nx = _contact_rows(beam, xloc[k1 : k2 + 1])
 
         def coupled(k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

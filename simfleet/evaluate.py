@@ -27,7 +27,7 @@ def band_pass(x: np.ndarray, spacing_m: float, lo_m: float = 0.5, hi_m: float = 
 
 
 def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0, fit_frame: bool = False) -> ProfileScore:
-    """Profile error as the issues define it: both band-passed to 0.5–50 m, ends trimmed.
+    """Profile error as the project's accuracy targets define it: both band-passed to 0.5–50 m, ends trimmed.
 
     ``fit_frame``: first map the truth into the estimate's chainage frame by one global shift and
     stretch. With per-pass GNSS bias and odometry scale errors and no surveyed reference, the fleet's

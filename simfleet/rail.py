@@ -18,9 +18,9 @@ property of the span (as built, as corroded): it is drawn **once per bridge** (p
 seed) and every state, the healthy one included, has it; the seven states differ only by the global
 factor, E·I_state = (1 − loss)·E·I_healthy element by element. So each state's true damage level
 relative to the healthy state — what D1/D2 of eq. 3.24 measure against the healthy batch — is its
-nominal loss exactly. (Drawn afresh per state, as an earlier version did, the scatter itself changes
-the span between states: p1 state 2 then lost 16 % by its static line, not 13 %, and no method could
-be scored against the nominal level.) ``truth.json`` keeps the realised E·I per element and the
+nominal loss exactly. (Drawn afresh per state, the scatter itself would change the span between
+states — a state's static line can lose several points more or less than its nominal loss — and no
+method could be scored against the nominal level.) ``truth.json`` keeps the realised E·I per element and the
 healthy span's, so the loss against the design drawings (the "effective" level) is reported too.
 
 Each state's batch is a different set of journeys (``RailScenario.batch``: other run properties and
@@ -161,7 +161,8 @@ def draw_runs(scenario: RailScenario, n: int, seed: int) -> list[dict[str, float
 
 
 def _batch_key(scenario: RailScenario, seed: int, *key: int) -> list[int]:
-    """Seed of what differs between journeys (run properties, noise); batch 0 keeps the old keys."""
+    """Seed of what differs between journeys (run properties, noise); batch 0's key has no batch entry,
+    so a scenario without batches draws the same journeys as its batch 0."""
     return [seed, *key[:1], *([scenario.batch] if scenario.batch else []), *key[1:]]
 
 

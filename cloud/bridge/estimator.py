@@ -52,7 +52,7 @@ class BridgeSettings:
     warm-started at the last level; each pass's correction is cached per level);
     ``baseline_passes``: learn the MR-IL baseline from the first passes (None: the design MR-IL).
     ``assess``: run the damage hypotheses and the alarm — by default not on a rough deck, where they
-    are not yet validated (measured: a false crack alarm on a healthy rough deck from 30 passes).
+    are not validated (a healthy rough deck raises a false crack alarm within 30 passes).
     """
 
     deck: str = "smooth"
@@ -72,7 +72,7 @@ class BridgeSettings:
     #: log-sd of every calibration quantity of a pass added without its own
     #: (:meth:`BridgeEstimator.add_segments`): the calibration error integrated out of the likelihood
     #: (:mod:`cloud.bridge.vehicle_error`). The default is the error fleet self-calibration leaves
-    #: (measured, 30 quarter-cars at 2 % noise: rms log errors 0.5–3.7 % per quantity, c/M the
+    #: (30 quarter-cars at 2 % noise leave rms log errors of 0.5–3.7 % per quantity, c/M the
     #: worst); None: parameters taken as exact.
     calibration_log_sd: float | None = 0.04
     #: prior of the calibration error every pass of the vehicle class shares (the fleet-common mode
@@ -87,7 +87,7 @@ class BridgeSettings:
     #: class-mean load (:func:`~cloud.bridge.passdata.road_load_factor`), recomputed as the fleet grows
     #: (:data:`LOAD_FACTOR_REFRESH`); "own" — over the pass's own AP (:func:`~cloud.bridge.passdata.extract_pass`),
     #: which carries the pass's noise into the regressor the same noise is fitted with (errors in
-    #: variables; see :meth:`BridgeEstimator._load_factor` for what it measured).
+    #: variables; see :meth:`BridgeEstimator._load_factor`).
     load_factor: str = "road"
 
 
@@ -244,7 +244,7 @@ class BridgeEstimator:
         ref = Reference.of([e.data for e in entries])
         # The calibration error is linearised at the class-mean load and the design influence line, or
         # for bearings at the last estimate: the bearings' prior mean (Krot 1e8, nearly pinned) is far
-        # from a stiff bearing's line, and linearising there read bearing-1e10 as 1e11.3 (H4).
+        # from a stiff bearing's line, and linearising there reads a stiff bearing stiffer still.
         load = self.model.a(self._linearise_at if self._linearise_at is not None else self.model.prior_mean())
         for e in entries:
             self._load_factor(e, ref, load)
@@ -277,7 +277,7 @@ class BridgeEstimator:
         # per unit wheel load, the bridge's vibration and the vehicles' dynamic loads modelled out).
         # The thesis's reading — each pass's deflection over its load, averaged — is kept as
         # ``mril_passes``: at 2 % noise its per-pass drift control leaves errors of tens of per cent
-        # in its area (measured: D2 = −14 % on the healthy bridge, −68 % at a 10 % loss, 30 passes).
+        # in its area.
         mril = MrIl(self.setup.basis.x, self.model.influence(post.params), len(entries))
         pass_deflections = self._pass_deflections(entries, wps, ref, post, deltas)
         mril_passes = mril_single_axle(pass_deflections.x_m, pass_deflections.deflection_m, pass_deflections.loads_n)
@@ -293,27 +293,19 @@ class BridgeEstimator:
         (:func:`~cloud.bridge.static.driven_road`) and, on a smooth deck's span (where that road is
         taken flat), its own deflection under the class-mean wheel load ``W̄·J`` at the linearisation
         load term ``load`` (a rough deck's consensus holds the fleet-mean deflection already). It
-        holds none of the pass's own noise. Measured against noise-free twins (same passes, healthy,
-        2 % noise, true vehicle parameters): φ̂ from the pass's own AP is off by 0.014 % of the wheel
-        load rms on the span (φ itself 0.95 %), almost all of it at 2–10 Hz where it is the pass's AP
-        noise; the road's φ by 0.021 % — less in that band (0.004 vs 0.009 % at 5–10 Hz) and more
-        below 2 Hz (the vehicle's own weight and the bridge's vibration are not in it), but none of it
-        correlated with the noise its pass is fitted against. Measured (healthy, 300 passes, main's
-        noise model): the fits read ~0.1 point stiffer throughout (φ̂'s noise read the bridge soft);
-        free gain from the truth / largest element error, seeds 0/1/2: 33.3/17.7/10.6 → 28.0/17.3/11.2
-        nats, 3.52/2.77/3.02 → 3.27/2.74/3.04 points (the noise-free twins' φ on seed 0's older data:
-        −4.0 nats); two re-noised draws of seed 0: +0.9 / −0.2 nats. bridge-global10 at 30 passes, 10
-        seeds: the mean moves +0.06…+0.15 point on eight (−0.65 / +0.70 on two), its sd over seeds
-        0.92 → 0.82 points (the effective ratio's 0.81 → 0.86: no change in efficiency).
+        holds none of the pass's own noise. A φ̂ read from the pass's own AP errs mostly at 2–10 Hz,
+        where its error is the pass's AP noise — the noise the pass is then fitted against, which reads
+        the bridge soft. The road's φ errs a little more in total (less in that band, more below 2 Hz,
+        where the vehicle's own weight and the bridge's vibration are not in it), but none of its error is
+        correlated with the pass's noise.
 
         Recomputed when the passes behind the consensus have grown by :data:`LOAD_FACTOR_REFRESH`
         (then only the load columns of :func:`~cloud.bridge.static.model_columns` are redone: the μ
         and step columns do not depend on φ, and the calibration sensitivities of the load columns
         and the cached dynamic excess move by ~Δφ ≈ 10⁻⁴ of themselves, far below their own
-        uncertainty, so they are kept). Measured, global10 seed 0 passed in live one by one from 3 to
-        30: 117 φ computations took 0.9 s of the 38 s of estimates; the final estimate is the batch
-        one's within 0.05 point per element (φ within 4·10⁻⁶ of the wheel load rms); a refresh costs
-        14 ms per pass (φ and its load columns).
+        uncertainty, so they are kept). Passed in live one by one, the final estimate is the batch one's
+        to a small fraction of a point per element, and the refreshes are a small part of the estimates'
+        cost.
         """
         if self.settings.load_factor == "road":
             n = int(ref.count.max())

@@ -296,7 +296,7 @@ def largest_error(F: np.ndarray | Information, prior_precision: np.ndarray, boun
                   draws: int = 20000, rng: np.random.Generator | None = None) -> LargestError:
     """The largest element error of an efficient estimator with the prior ``prior_precision`` (Q),
     given the elements' information ``F`` (an :class:`Information`: its :meth:`~Information.marginal`),
-    by Monte Carlo (``draws`` draws of the error vector from A·F·A; ``bound_pts``: the issue's
+    by Monte Carlo (``draws`` draws of the error vector from A·F·A; ``bound_pts``: a required
     bound, e.g. ±3 points, for P(every element within it)).
 
     Why A·F·A and not the Bayesian sd (diag A, :meth:`Information.element_sd` with a prior): the

@@ -18,8 +18,8 @@ Model of one pass p (vehicle v, speed v_p) over the window, in AP units (m, up p
 * ``s_p(x)`` — on a smooth deck (where the consensus is taken as 0 on the span) the consensus'
   drift-control trend shows as a step of up to millimetres at the supports; it differs between
   passes by a few per cent, so each pass has its own cubic on the span (``{1, ξ, ξ², ξ³}``,
-  values and slopes at both supports), projected out of its likelihood. A quadratic leaves an
-  antisymmetric error that reads as a stiffness gradient along the span (measured: ±6 %).
+  values and slopes at both supports), projected out of its likelihood. A quadratic would leave an
+  antisymmetric error that reads as a stiffness gradient along the span (of about ±6 %).
 * ``μ(x)`` — on a rough deck the consensus holds the fleet-mean deflection: a common unknown
   shape on the span (basis ``{ψ_j}``), estimated with the rest.
 * the fleet-common calibration error δ_c (:mod:`cloud.bridge.vehicle_error`): one coefficient per
@@ -35,8 +35,8 @@ annihilates offsets, slopes and (to O(ω²)) the drift-control trend. The result
 to ``BAND_HZ`` and decimated (the model is trusted, and the deflection's information lives,
 below ~10 Hz), then prewhitened by an AR model of the pass's own residual on the approach, whose
 level — read in the band of the pass's element directions, as they would see it on new data —
-gives the pass's noise sd. Measured at 2 % sensor noise: one pass pins the global compliance to
-≈ 27 % (1σ), so the information grows as 27 %/√passes.
+gives the pass's noise sd. At 2 % sensor noise one pass pins the global compliance to ≈ 27 % (1σ),
+so the information grows as 27 %/√passes.
 
 Inference: the weights enter linearly given J, so they are integrated out analytically, vehicle by
 vehicle (a pass shares W_v with the vehicle's other passes). What remains is a smooth
@@ -66,24 +66,21 @@ from cloud.bridge.vehicle_error import FD_STEP, CalibrationMarginal, perturbed_p
 #: the approach before it, after a burn-in of the forward model.
 LEAD_M = 5.0
 TAIL_M = 25.0  # and ends this far after the second support (or at the end of the pass)
-#: The burn-in (m). The approach's noise is not yet settled there: measured against noise-free twins
-#: (bridge-healthy, 300 passes, records starting 40 m before the window), its power below 3 Hz in the
-#: measured channel is 10–30× the span's over the window's first 15 m, 3.5× at 20 m, 1.3× by 30 m
-#: (tied to the position along the record, not to the forward model's start). The AR fitted on it
-#: over-models the low band; the level no longer comes from there (:func:`element_band_sigma`), so
-#: what is left is a likelihood conservative below ~3 Hz. Starting at 30 m (shape right, 60–80
-#: points instead of ~135) read the element band as well (whitened noise variance 1.05–1.08 vs
-#: 0.99–1.00 here), but on fleet-calibrated passes the low band it gives more weight to brought in a
-#: systematic error: healthy-300 largest element error, seeds 0/1/2, 2.87/3.75/3.99 against
-#: 2.78/2.34/3.58 from 8 m (true-parameter passes: the 30 m start was the better, 3.77/1.96/2.45 →
-#: 2.90/2.46/1.00 vs the old level) — something calibration-related lives there, unmodelled.
+#: The burn-in (m). The approach's noise is not settled at the start of a record: below 3 Hz the
+#: measured channel holds many times the span's noise power over the first tens of metres (tied to
+#: the position along the record, not to the forward model's start), so the AR fitted after this
+#: burn-in over-models the low band and the likelihood is conservative below ~3 Hz. The noise level
+#: is read where the element directions are (:func:`element_band_sigma`), not from this band. A longer
+#: burn-in fits the low band better, but on fleet-calibrated passes the band it then weighs more
+#: carries an unmodelled, calibration-related error and the element estimates get worse
+#: (docs/results.md).
 BURN_IN_M = 8.0
 DECKS = ("smooth", "rough")
 AR_ORDER = 8  # order of the per-pass autoregressive prewhitener of the measured-channel residual
 AR_ORDER_DECIMATED = 3  # the same after band limiting and decimation
-BAND_HZ = {"smooth": 20.0, "rough": 8.0}  # band limit of the likelihood per deck model, Hz (measured:
-# on a rough deck the 8–20 Hz band carries mostly the consensus' roughness mismatch, and with it
-# 30 passes read a healthy bridge 17 % soft; at 8 Hz they read it within 3 %)
+BAND_HZ = {"smooth": 20.0, "rough": 8.0}  # band limit of the likelihood per deck model, Hz: on a
+# rough deck the 8–20 Hz band carries mostly the consensus' roughness mismatch, which reads as a
+# softer bridge
 
 
 def ar_prewhitener(x: np.ndarray, order: int = AR_ORDER) -> np.ndarray:
@@ -371,11 +368,8 @@ def driven_road(p: PassData, ref: Reference, deck: str = "smooth", leave_out: bo
     calibration error's columns (the forward model annihilates offsets and slopes). Taken as 0 on
     the span (:func:`~cloud.bridge.passdata.consensus_used`) it becomes a step at each support
     instead, whose response to the calibration error rings on into the span, where the columns then
-    hold a ringing the data do not. Measured, crack10-10m at 300 passes (consensus 0.4 mm below the
-    deck at the entrance support, 0.9 mm at the exit): the first five elements read 5–7 points stiff
-    (+15 to +20 before the recentring on the dynamic level, with the common error at its true value,
-    all of it from the first 7 m of the span); bridged, −1 to +4. The right-end elements' soft
-    reading (−7) does not come from here.
+    hold a ringing the data do not, and the first elements read several points stiff. Bridged, the
+    road the vehicle is modelled to have driven over has no step at the supports and no ringing.
     """
     road = consensus_used(p, ref, smooth_deck=(deck == "smooth"), leave_out=leave_out)
     ok = np.isfinite(road)
@@ -421,10 +415,9 @@ def whiten_pass(p: PassData, ref: Reference, basis: SpanBasis, deck: str = "smoo
     the edge's inverse damps high frequencies, the band limit shapes it): an AR(p) model of it on
     the approach (after a burn-in, :data:`BURN_IN_M`) prewhitens data and model alike. Its level
     is read where the pass's element directions are (:func:`element_band_sigma`) and scaled to new
-    data (:func:`out_of_sample_factor`). Measured on 300 healthy passes against noise-free twins
-    (true parameters, three noise draws), the whitened noise's variance along the element
-    directions (expected 1, +~0.04 from the per-pass estimate's own scatter, E[1/σ̂²] > 1/σ²):
-    1.19 with the level read from the whole band (median absolute deviation); 0.99–1.00 now.
+    data (:func:`out_of_sample_factor`), so the whitened noise's variance along the element
+    directions is 1 (plus ~0.04 from the per-pass estimate's own scatter, E[1/σ̂²] > 1/σ²); a level
+    read from the whole band would be too low there.
     ``columns``: the pass's :func:`model_columns`, if cached. If the pass carries calibration
     uncertainty, its error is integrated out (:mod:`cloud.bridge.vehicle_error`), linearised at the
     load-term coefficients ``load`` and the static wheel load ``weight_n`` (N); without them the
@@ -707,10 +700,8 @@ def marginal_loglik_batch(S: Stacked, a: np.ndarray, delta_scale: np.ndarray | N
 
 #: sd of log τ in the hyperprior of the departure scale (:attr:`StiffnessPrior.scale_sd`): the design
 #: guess τ = 1 is right within a factor 2 (1σ). Not flat on the grid: at 30 passes the evidence
-#: hardly tells the scales apart (0.3–2.7 log units across the grid, healthy seeds 0–3 and global10
-#: seeds 0–9; 300 passes: healthy 1.6–5.4, cracks 15–20), and a flat hyperprior then gives the
-#: loose scales — which let the barely seen end elements swing — a third of the weight: measured,
-#: bridge-global10 seed 5 read its element mean 1.55 points stiff (τ = 1: 1.18; factor-2 prior: 1.41).
+#: hardly tells the scales apart, and a flat hyperprior would give the loose scales — which let the
+#: barely seen end elements swing — a third of the weight.
 SCALE_SD: float | None = math.log(2.0)
 
 
@@ -724,17 +715,13 @@ class StiffnessPrior:
     η_z from that level; ``step_sd``: sd of the difference between neighbouring elements
     (smoothness).
 
-    Why a common level: the passes fix the span's level sharply (through its dynamics: 0.3 % at
-    300 passes) but barely see the end elements (the deflection hardly depends on them). Anchored
-    on the design value alone (level_sd 0.3, the earlier prior), an end element was its
-    neighbour's value drifting towards the design: bridge-global10 seed 5 read both ends 8 points
-    stiff after 30 passes (element mean 3.0 points off while the level was right to 0.1), and a
-    healthy span read its right end 8 points soft after 300. Drawn towards the span's level those
-    read 3 and 4; every healthy and global10 case at 30 passes (seeds 0–3, 0–9) is within 3.1
-    points per element. ``level_sd`` 0.1 leaves a crack's 18 % peak element loss at ~2σ: cracks
+    Why a common level: the passes fix the span's level sharply (through its dynamics) but barely
+    see the end elements (the deflection hardly depends on them). Anchored on the design value
+    alone, an end element is its neighbour's value drifting towards the design, so the ends of a
+    span whose level is off the design read points away from the rest; drawn towards the span's
+    level, they follow it. ``level_sd`` 0.1 leaves a crack's 18 % peak element loss at ~2σ: cracks
     are read from the damage hypotheses, which do not use this prior. The Laplace evidence hardly
-    tells level_sd 0.03–0.2 apart on healthy spans (< 1 unit); on the 300-pass cracks it prefers
-    the looser ones by ~3 units.
+    tells level_sd 0.03–0.2 apart on healthy spans; on cracks it prefers the looser ones.
     """
 
     level_sd: float = 0.1
@@ -742,13 +729,10 @@ class StiffnessPrior:
     common_sd: float | None = 0.3
     #: Empirical Bayes over the departure scale τ (``level_sd`` and ``step_sd`` both times τ): the
     #: posterior is integrated over these τ, each weighted by its Laplace evidence times the
-    #: hyperprior (log τ ~ N(0, ``scale_sd``²)); empty: τ = 1 only. A fixed scale was a guess, too
-    #: loose for a healthy span and too tight for a crack. Measured (300 passes, posterior mean τ;
-    #: largest element error, points, τ = 1 → learnt): healthy seeds 0/1/2 τ 0.62/0.75/0.78,
-    #: 4.3 → 2.6, 3.2 → 3.0, 4.1 → 3.5; cracks at 10 m/14 m τ 2.05/1.82, the field's weakest element
-    #: (still at the crack) 11.9 → 13.5 % and 12.6 → 14.8 % loss (truth 18.1), but seed 0's barely
-    #: seen right end swings with the looser field (largest error 6.2 → 10.9, 9.3 → 10.5); at 30
-    #: passes the evidence hardly tells the scales apart (τ 0.77–1.01). The grid spans level_sd
+    #: hyperprior (log τ ~ N(0, ``scale_sd``²)); empty: τ = 1 only. A fixed scale is too loose for a
+    #: healthy span and too tight for a crack: learnt, a healthy span's field tightens and a crack's
+    #: loosens (its weakest element comes closer to the crack's loss, while the barely seen ends swing
+    #: more); at 30 passes the evidence hardly tells the scales apart. The grid spans level_sd
     #: 0.025–0.4. A fit costs milliseconds (the data are per-vehicle statistics), so the grid costs
     #: little beside the dynamics — except with bearings, where τ stays 1 (:meth:`Setup.model`).
     scales: tuple[float, ...] = tuple(float(v) for v in 2.0 ** np.arange(-2.0, 2.01, 0.5))
@@ -827,7 +811,7 @@ class LinearisedDynamicModel(ElementModel):
     :func:`~cloud.bridge.dynamic.dynamic_sensitivities`). The load term stays linear in an extended
     coefficient vector ``[a(θ), θ − θ₀]`` over the columns ``[Ψ_p, D_p]``
     (:func:`~cloud.bridge.dynamic.extended_passes`), so the weights are integrated out and the data
-    reduce to per-vehicle statistics exactly as before — only the per-pass columns differ, since the
+    reduce to per-vehicle statistics exactly as in :class:`ElementModel` — only the per-pass columns differ, since the
     dynamics depend on the pass's speed. :meth:`a` gives the extended vector; :meth:`influence`
     the influence line."""
 
@@ -1209,16 +1193,13 @@ class Setup:
         if self.bridge.supports == "rotational_springs":
             k0 = 8.0 if self.bridge.krot_nm_per_rad is None else math.log10(max(self.bridge.krot_nm_per_rad, 1.0))
             # The departure scale is not learnt here: each of the bearing model's fits costs a finite-
-            # difference Jacobian (n + 2 FE solves) per Newton step, and the grid multiplied that by
-            # nine (measured, bearing-1e9 at 30 passes, loaded machine: 98 s → 362 s per estimate)
-            # for the same Krot (8.96) and mean stiffness (98.9 → 98.8 %).
+            # difference Jacobian (n + 2 FE solves) per Newton step, and the grid would multiply that by
+            # nine for the same Krot and mean stiffness.
             return BearingElementModel(self.basis, self.bridge, dataclasses.replace(prior, scales=()), (k0, 2.5))
         if self.deck == "rough":
             # Nor on a rough deck: what of the deck profile the weights' spread leaves unseparated is
-            # smooth along the span, reads as departures, and the evidence then loosens the prior
-            # (measured, `reproduce bridge --large` seed 0: largest element error at 100 / 300 passes,
-            # healthy 2.3 / 1.8 → 5.1 / 4.8 points, global10 2.1 / 1.7 → 5.6 / 4.0, the same bump at
-            # elements 12–16 in both).
+            # smooth along the span, reads as departures, and the evidence would loosen the prior until
+            # the bump is fitted as stiffness.
             prior = dataclasses.replace(prior, scales=())
         return ElementModel.of(self.basis, self.beam, prior)
 

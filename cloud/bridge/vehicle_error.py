@@ -12,14 +12,12 @@ class-mean wheel load, and integrated out exactly: the pass's noise covariance b
 ``I + C Σ Cᵀ`` (C: whitened sensitivity columns, rows × K), and every whitened column is mapped by
 ``(I + C Σ Cᵀ)^(-1/2)`` (a rank-K correction).
 
-Measured (30 fleet-calibrated passes, 2 % noise, smooth deck; ``driveby reproduce bridge`` cases):
-the largest element error falls from 10.5–10.8 to 8.5–8.7 points (healthy, global5, global10)
-and the global estimates do not move (< 0.2 points).
+Integrated out, it lowers the largest element error on fleet-calibrated passes and leaves the
+global estimate where it is (docs/results.md).
 
 **The fleet-common part.** Fleet self-calibration fixes the vehicles relative to each other; their
-common mode is pinned only by the class prior, so the fleet-mean error is as large as the
-calibration error itself (measured on 8 cached cases, seeds 0–3: the rms log error per quantity
-is 0.3–3.7 %, and almost all of it is the fleet mean, e.g. c/M −2.2 to −3.7 %). Every pass then
+common mode is pinned only by the class prior, so the fleet-mean error is about as large as the
+calibration error itself: almost all of a quantity's rms log error is the fleet mean. Every pass then
 mis-inverts the road in the same way, the consensus carries the same error, and the difference
 between them is the AP error ringing on past the bridge entrance into the span — where a smooth
 deck's consensus is known to be flat — with the same sign in every pass: it does not average out.
@@ -31,17 +29,11 @@ marginalised jointly with the stiffness (exact: the columns join the state; the 
 same marginal likelihood). Its columns are ``u_p − 1_off·ū`` in the AP domain
 (:func:`~cloud.bridge.static.common_calibration_columns`): the pass's AP distortion
 (:func:`ap_distortion`) less the consensus' (the fleet mean, where the consensus is used).
-Measured on the cached 30-pass cases (seeds 0–3, edge anti-aliasing off): healthy seed 1, which
-raised a false crack alarm with an element 27 points off, reads within 0.9 points and reads the
-common error itself (c/M 2.2 %, truth 2.2 %); healthy max element error 2.9/0.9/5.7/3.6 points
-(was 7.6/27/5.7/3.0), no alarm on any; global10's element mean within 1.4 points on all four
-(was 4.2 on seed 1); over 10 seeds of global10 the mean ratio's rmse is 1.6 points (was 2.9).
-It needs alias-free APs (the edge's ``EdgeConfig.antialias``): linearly gridded, the inverse's noise
-up to 250 Hz folds into the band, ~10× the sensor noise in the measured channel at γ = 0.6 (~5× at
-0.8), coloured like the vehicle's transfer, and the common columns fit it (8 passes,
-``tests/test_bridge_common_calibration.py``, seeds 1–6 at γ = 0.6: effective ratio z-scores rms 1.5,
-mean +1.1, seed 1 at 1.22 ± 0.085; alias-free, seeds 1–12: rms 1.0, mean +0.15, no alarm, and
-without the common nuisance a false crack alarm on all 12).
+Carried, it removes false crack alarms on healthy spans and reads the common error itself
+(docs/results.md). It needs alias-free APs (the edge's ``EdgeConfig.antialias``): linearly
+gridded, the inverse's noise up to 250 Hz folds into the band, several times the sensor noise in
+the measured channel, coloured like the vehicle's transfer, and the common columns fit it
+(``tests/test_bridge_common_calibration.py``).
 
 A vehicle's passes share its δ; treating them as independent discards a little of the information
 that repeated passes of one vehicle carry about its own δ (none with one pass each).

@@ -10,7 +10,7 @@ index is keyed random access with updates and deletes, and its page cache is bou
 
 A key gets its row when its value first leaves memory, not when it is written: until the resident
 bound is reached the map costs what a dict costs (the cloud's ingest writes three maps per
-segment; a row per write was a third of its CPU), and after that each write of a new key costs
+segment; a row per write would be a large share of its CPU), and after that each write of a new key costs
 one indexed lookup (is it a spilled key?) plus the one spill it causes.
 
 Semantics are a ``dict``'s: iteration follows first insertion (a write to an existing key keeps

@@ -1,6 +1,7 @@
 """J⁰, the span's fundamental influence line, from a bogie's two wheels by the matrix method (thesis
-§3.5.2, eq. 3.16–3.23; issue #6 item 6): the batch's time-synchronous AP difference of the leading
-bogie's two wheels, g_k = J⁰_k − J⁰_(k−c) per unit wheel load (c = the wheelbase in grid steps),
+§3.5.2, eq. 3.16–3.23, for the bogie half-car of App. A.3): the batch's time-synchronous AP
+difference of the leading bogie's two wheels, g_k = J⁰_k − J⁰_(k−c) per unit wheel load (c = the
+wheelbase in grid steps),
 inverted with J⁰ = 0 off the span. What :mod:`cloud.rail.bridge` reads the bogie half-car's D1/D2 from.
 
 Why J⁰ in a smooth basis (:func:`smooth_operator`), not grid point by grid point. With J⁰ free at
@@ -8,17 +9,14 @@ every grid point (the thesis's least squares, :func:`difference_pinv`) the equat
 independent chains, one per residue class mod c (J⁰_r, J⁰_(r+c), …: ~4 unknowns on a 10 m span with
 a 2.5 m wheelbase), and J⁰ along each is a running sum of g, so each chain carries its own random walk
 of g's noise. The low-pass afterwards smooths J⁰ across the chains but keeps its mean, so D2 (the area,
-a sum of those sums) collects every chain's walk in full: on the blind test the area's sd was about
-twice the mid-span ordinate's (D2 1.5–3.3 points against D1 0.8–1.6). A static deflection line under
+a sum of those sums) collects every chain's walk in full, so the area's sd is about twice the
+mid-span ordinate's. A static deflection line under
 a unit load is smooth (a 10 m span's has nothing below ~5 m even with the 5 % per-element E·I scatter),
 so J⁰ is taken as its first :data:`FUNDAMENTAL_MODES` sine modes on the span (both support conditions
 built in) and fitted to g by least squares: the chains must agree, and g's noise averages across them.
-Measured on the blind test's half-car reading (``simfleet.reproduce_rail.reading_spread``: 12 bootstrap +
-12 calibration draws; seeds 0–4 × profiles 1/2 × states 1–6, rms over the 60 cells): sd of D1/D2 1.25/2.22
-points with the grid-point least squares, 0.56/0.70 with 10 modes (6 modes: 0.56/0.68), the mean error over
-the cells unchanged (seeds 0–2: D1/D2 −0.38/−0.68 → +0.01/+0.04). What is left of the errors is a common
-scale per profile (errors ∝ D, the pooled healthy J⁰'s area 0.73–1.16 of the truth's), not this
-estimator's noise: after that scale the cells scatter by 0.1–0.45 points, within their sd.
+On the blind test this halves or better the sd of the half-car's D1 and D2 without moving their mean;
+what is left of the errors is a common scale per profile (errors ∝ D), not this estimator's noise
+(docs/results.md).
 
 Pure functions on arrays.
 """
@@ -34,9 +32,7 @@ from cloud.bridge.mril import MrIl
 
 #: The wheels' difference is taken relative to the line through its means over this much track
 #: beyond each end (both wheels off the span), m, not through its two end samples: the end samples'
-#: noise tilts the line, which the matrix method turns into an error of J⁰'s area (blind test, bogie
-#: half-car, largest error on seeds 0/1/2 profile 1: 2.1/2.7/4.9 points from the end samples, 1.7/2.5/3.4
-#: with 2.5 m; 1 m: 1.9/2.3/3.8).
+#: noise tilts the line, which the matrix method turns into an error of J⁰'s area.
 DIFFERENCE_CHORD_WINDOW_M = 2.5
 #: Sine modes J⁰ is fitted in (:func:`smooth_operator`); ``None`` in :func:`difference_mril`: the
 #: thesis's grid-point least squares (:func:`difference_pinv`). 10 on a 10.2 m span: the shortest mode's
@@ -44,9 +40,8 @@ DIFFERENCE_CHORD_WINDOW_M = 2.5
 #: the low-pass imposes anyway. Noise-free, on FE beams with 5 % element scatter, the area (mid-span)
 #: against the low-passed line: 3 modes +3.0 % (+2.6–2.9 %), 6 modes +0.3 % (0.0 %), 10 modes −0.5 %
 #: (−0.4 %), 14 −0.6 % (the rest is the low-pass's ends, not truncation) — and a relative bias common to
-#: every batch cancels in D (global damage scales J⁰). 6 and 10 read the same sd on the blind test (above);
-#: 10 for the argument from the low-pass (its errors on seeds 0–2 were also a little smaller: rms D2 1.27
-#: against 1.37 points).
+#: every batch cancels in D (global damage scales J⁰). 6 and 10 read the same sd on the blind test; 10
+#: for the argument from the low-pass.
 FUNDAMENTAL_MODES = 10
 
 

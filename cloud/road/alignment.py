@@ -15,7 +15,7 @@ compared with the consensus of the *other* passes, band-passed:
    calibration changes the AP's gain but hardly its phase — free of the windows' sub-sample peak
    bias and of the vehicle's phase error.
 
-The cost is a few dozen small FFTs per pass (~10 ms; 40 ms measured on the shared, loaded machine)
+The cost is a few dozen small FFTs per pass (~10 ms of one core)
 instead of a correlation per trial stretch. The fleet's biases
 average to zero, so the daemon centres the estimated shifts across passes: the consensus frame is
 the fleet's mean frame, not the first pass's.
@@ -35,13 +35,13 @@ from shared.schema import ApSegment
 BAND_M = (1.0, 30.0)  # coarse: wide, so a window's correlation peak is unique over the search range
 # Fine: short waves only. Between body bounce and wheel hop the AP barely depends on the vehicle's
 # parameters, while near body bounce (~10–20 m at road speeds) a calibration error turns into a
-# phase error, i.e. a false shift of several cm (measured: 5 cm sd with class-mean parameters in
+# phase error, i.e. a false shift of several cm (5 cm sd with class-mean parameters in
 # 1–30 m, 3 cm in 0.5–5 m, 1.5 cm with the true parameters in either).
 FINE_BAND_M = (0.5, 5.0)
 # Last, least squares in a band above every car's wheel hop (0.34–0.5 m is 40–60 Hz at 20 m/s, past
 # ~10–15 Hz): there the inverse under wrong parameters errs in gain, hardly in phase (its transfer
 # tends to the real k/m ratio), so a pass is placed where its road is, not where its vehicle's phase
-# error puts it (measured, class-mean parameters, against the true profile: 0.3 cm sd per pass here,
+# error puts it (with class-mean parameters, against the true profile: 0.3 cm sd per pass here,
 # 2.2 cm in 0.5–5 m; a calibration learning from 3 cm misplaced passes is biased by tens of %). The
 # edge's alias-free gridding keeps wavelengths down to 0.33 m. Local only: the fine stage must be
 # within a quarter wave (~8 cm).

@@ -24,18 +24,16 @@ The fleet-common mode (every vehicle's ratio off by the same factor) *is* identi
 not only by the class prior: vehicles at different speeds (and with different resonances) see a
 common change of a ratio at different wavelengths, which no single profile absorbs. The Fisher
 information of the common log-offset of each ratio, the profile marginalised under its random-walk
-prior, road-qc seed 0 (30 passes, 15–22 m/s, 2 % noise; Whittle approximation), gives a data-only
-sd of 0.01–0.03 % (c/M 0.02 %) against the class prior's 2.6 % (14 % / √30), and the same with the
-road's spectrum left free at every frequency (so from the passes' disagreement alone). A common
-error that stays is therefore a *model* bias every vehicle shares: the edge's inverse and the
-vehicle step at Newmark γ = 0.8 and 2 ms add numerical damping that, against the continuous
-physics, moves a quarter-car's fit by c/M −4.4 %, m/M +4.7 %, k/M +6.8 % (noise-free, true
-profile) — road-qc seed 0's c/M −3.4 % ± 0.7 % came from there, not from the prior. At the edge's
-γ = 0.6 it was still k/M +1.9 %, c/M −1.3 %, m/M +1.1 %; quarter-car rounds therefore run on
-continuous-time APs (the cloud corrects each pass, cloud.daemon.node.CONTINUOUS_APS; the step reconstructs
-and predicts at γ ½: ≤ 0.25 %, tests/test_discretisation.py). Road-qc seed 0, k/M median/max
-2.0/3.6 % → 1.0/2.3 %; what common error remains (k/M +1 %, c/M −1.3 %, m/M −0.8 %) is not the
-step's model.
+prior (Whittle approximation), is far larger than the class prior's: for a fleet like road-qc's
+(30 passes, 15–22 m/s, 2 % noise) the data alone pin it to a few hundredths of a per cent against
+the prior's 2.6 % (14 % / √30), even with the road's spectrum left free at every frequency (so from
+the passes' disagreement alone). A common error that stays is therefore a *model* bias every
+vehicle shares: a discrete inverse and vehicle step add numerical damping that, against the
+continuous physics, moves a quarter-car's fit by several per cent at Newmark γ = 0.8 and 2 ms
+(c/M −4.4 %, m/M +4.7 %, k/M +6.8 %, noise-free, true profile) and by one to two per cent at the
+edge's γ = 0.6. So quarter-car rounds run on continuous-time APs (the cloud corrects each pass,
+cloud.daemon.node.CONTINUOUS_APS; the step reconstructs and predicts at γ ½, unbiased to 0.25 %,
+tests/test_discretisation.py); the common error that remains is not the step's model.
 """
 
 from __future__ import annotations
@@ -64,33 +62,26 @@ TREND_ROUNDS = 24  # refinements remembered for the common-mode trend
 REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle round (≈ 16 %)
 #: Models calibrated per vehicle in acceleration space against the leave-one-out consensus (sensor
 #: noise is white there). For a quarter-car fleet at 2 % noise that is more accurate than the joint
-#: AP-space step (measured on road-qc, 30 vehicles: k/M median/max 2.3/4.4 % against 4.5/12 %;
-#: also as a start for it, 3.0/7.9 % after 12 rounds), whose AP misfit the inverse's noise
-#: amplification at short wavelengths weighs wrongly. Half-cars too (road-hc, 6 vehicles, 1 % noise,
-#: seeds 0/1: profile 14.3/15.7 % against the joint step's 46 % (seed 0), coverage 1.00/0.99 against
-#: 0.62, ratios' medians ≤ 4.7/4.4 %, max 7.1/7.6 %, against medians up to 72 %; see
+#: AP-space step, whose AP misfit the inverse's noise amplification at short wavelengths weighs
+#: wrongly; for half-cars, whose AP is mostly that amplified noise, far more so (see
 #: :data:`cloud.road.calibration.REMAP_SETTINGS` and :data:`CONTINUOUS_CONSENSUS`).
 PER_VEHICLE = frozenset({"quarter_car", "half_car"})
 #: Per-vehicle models whose fleet-common change is over-relaxed (:meth:`FleetCalibrator._common_relaxation`).
-#: Not half-cars: on road-hc the common change then grew round on round (±0.1 in log by round 8,
-#: every round at the 0.15 step limit; profile 21 % against 15 % without; measured before the
-#: prediction kept the edge's γ, seed 0).
+#: Not half-cars: their common change then grows round on round, every round at the step limit,
+#: and the profile gets worse.
 OVER_RELAXED = frozenset({"quarter_car"})
 #: Per-vehicle models whose vehicle step runs against a consensus of continuous-time APs
 #: (:func:`cloud.road.calibration.continuous_ap_resampled`: the edge inverse's discretisation undone per pass under
 #: the vehicle's own parameters, in a copy of the profile estimator) and predicts with continuous
 #: physics (``RemapSettings.predict_gamma`` ½). The edge's γ = 0.8 distorts each half-car's AP at
 #: the wheel hop by its own parameters and speed (2–4 % of the road in 1.5 c/m – 30 m, noise-free);
-#: against a blend of the others' distortions road-hc seed 1 ended with Cs1/ms median/max
-#: 16.7/24.0 %; with it (and :data:`COMMON_GAIN`) 4.4/7.6 %.
+#: against a blend of the others' distortions each vehicle's fit absorbs their difference.
 CONTINUOUS_CONSENSUS = frozenset({"half_car"})
 #: Per model not over-relaxed: the fraction of the fleet-common change a refinement applies. And
 #: per-vehicle models whose refinement steps are halved at each reversal (as the joint step's).
-#: Half-cars, road-hc seeds 0/1 (6 vehicles, 1 % noise) with the continuous consensus: the full
-#: common change swung ±0.11 in Kt1/ms round on round, never settled in 12 rounds (worst ratio
-#: 15.0/14.4 %); 0.5 or 0.3 of it alone: 10.8/10.8, 11.7/8.1 %, still unsettled; 0.3 with the
-#: reversal halving: settled in 10/9 rounds, worst 7.1/7.6 %, profile 14.3/15.7 %; the full change
-#: with the halving: worst 7.7/15.6 %, profile 15.9/24.3 %.
+#: Half-cars: with the full common change applied, the fleet swings round on round and does not
+#: settle within the round budget; a fraction of it, with the reversal halving, settles and gives
+#: the best ratios and profile (docs/results.md).
 COMMON_GAIN = {"half_car": 0.3}
 REVERSAL_DAMPED = frozenset({"half_car"})
 
@@ -133,7 +124,7 @@ class FleetCalibrator:
         #: daemon sets this before a round, as it sets ``estimator``); a pass not here was a 500 Hz log's.
         self.sample_intervals: dict[tuple[str, str], float] = {}
 
-    # -- durable state (cloud/durable.py journals it after every round) ---------------------------
+    # -- durable state (cloud/daemon/durable.py journals it after every round) --------------------
     def state(self) -> dict:
         """Everything a round depends on, as JSON-able data: a restarted cloud resumes mid-calibration."""
         def arr(x):
@@ -334,7 +325,7 @@ class FleetCalibrator:
     def _start_round(self, model: str, vids: list[str], pass_ids: set[str]) -> None:
         """Before a refinement on ``pass_ids``: when they are new (a larger epoch), the common-mode
         trend begins afresh (:meth:`_trend`) and, for :data:`REVERSAL_DAMPED` models, so do the
-        vehicles' step halvings — they were for straddling the old passes' optimum; kept, a daemon
+        vehicles' step halvings — they served to straddle the old passes' optimum; kept, a daemon
         that gets passes for months would move its half-cars ever more slowly."""
         if not self._trend(model, pass_ids) and model in REVERSAL_DAMPED:
             for vid in vids:
@@ -346,12 +337,9 @@ class FleetCalibrator:
 
         The trend is a line through the rounds' common changes against the common steps taken, and
         its target (where the change vanishes) belongs to the passes of the rounds: when the daemon
-        moves to a larger epoch the target moves (road-qc seed 0, alias-free AP: the 16-pass epoch's
-        first round asked for m/M +3.5 % more than the 8-pass epoch had settled on). A line through
-        both epochs' rounds then reads no contraction, and the common mode was frozen where the first
-        epoch had left it, near the class prior: that run ended with every vehicle's m/M and c/M
-        −3.1 % off (medians 3.4/3.2 %), the class mean's own offset from this fleet's (−3.4/−3.3 %).
-        On each epoch's own trend: medians 0.7/1.6 %.
+        moves to a larger epoch the target moves by a few per cent. A line through both epochs' rounds
+        would read no contraction and freeze the common mode where the first epoch left it, near the class
+        prior, so every vehicle would keep the class mean's own offset from the fleet.
         """
         key = hashlib.sha1("\n".join(sorted(pass_ids)).encode()).hexdigest()
         if self.trend_passes.get(model) != key:
@@ -371,8 +359,7 @@ class FleetCalibrator:
         alternation cannot follow the common mode (lanes of a 3-D carpet make the passes disagree;
         each vehicle's fit against the others' consensus then loses gain, which the consensus amplifies, round after
         round): that quantity's common part is frozen where the first rounds left it, near the class
-        prior. (Scaling by the measured ``1/g`` instead settled road-qc worse: k/M, c/M medians
-        3.9/4.5 % against 2.3/3.3 %.)
+        prior. (Scaling by the measured ``1/g`` instead settles worse.)
         """
         hist = self.common_trend.setdefault(model, [])
         if hist and len(hist[-1][1]) != common.size:
@@ -430,7 +417,7 @@ class FleetCalibrator:
             new = []
             for ss in passes.values():
                 lo, vals = pass_values(ss, n_axles)
-                try:  # (the first, resampled correction: what the half-car's settings were tuned on)
+                try:  # (the resampled correction: the one the half-car's settings are tuned for)
                     fixed = continuous_ap_resampled(model, st.params, PassAp(lo, ss[0].spacing_m, vals,
                                                                              ss[0].speed_mps, self._dt(ss[0])))
                 except (ValueError, np.linalg.LinAlgError) as e:

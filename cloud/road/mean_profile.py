@@ -1,8 +1,10 @@
-"""First profile estimator: precision-weighted mean of all passes per grid point.
+"""The plain profile estimator: precision-weighted mean of all passes per grid point.
 
 Exact to add and retract (sums only), order-independent. Its band combines each pass's stated
 error with the scatter between passes, so it stays honest when calibration errors dominate.
-The Bayesian GMRF estimator replaces it for roads; this one keeps the spine running.
+Roads are estimated by the Bayesian GMRF (:mod:`.gmrf_profile`); this is the data-only
+consensus the vehicle step compares against (no prior smoothing to bias the shortest waves), and
+its snapshot type is the one every profile estimator returns.
 """
 
 from __future__ import annotations
