@@ -7,6 +7,7 @@ module (in ``shared``) depends on none of the process packages at import time.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 
@@ -69,7 +70,7 @@ def _cmd_demo(args) -> int:
     return demo(args.out, seed=args.seed, passes=args.passes)
 
 
-DAEMONS = {"edge": "edge", "cloud": "cloud", "fleet": "simfleet"}  # subcommand → package with node.main
+DAEMONS = {"edge": "edge.node", "cloud": "cloud.daemon.node", "fleet": "simfleet.node"}  # subcommand → module with main
 BLAS_DAEMONS = ("edge", "cloud")  # long-running, sharing the machine: single-threaded BLAS by default
 
 
@@ -79,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         # Daemons own their whole command line (Zenoh options, ...): hand it over untouched.
         if argv[0] in BLAS_DAEMONS:
             single_threaded_blas()
-        node = __import__(f"{DAEMONS[argv[0]]}.node", fromlist=["main"])
+        node = importlib.import_module(DAEMONS[argv[0]])
         try:
             return node.main(argv[1:])
         except KeyboardInterrupt:
