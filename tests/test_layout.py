@@ -2,7 +2,9 @@
 
 Every ``import`` and ``from ... import`` statement counts, those inside functions included (a lazy import
 hides a circle from start-up, not from the reader); only ``if TYPE_CHECKING:`` blocks are skipped, since
-they never run.  Each rule is its own test and names the offending modules and lines.
+they never run.  ``from p import m`` is an import of the submodule ``p.m`` when there is one, else of the
+package ``p`` (its ``__init__`` and what it re-exports); ``import a.b.c`` is an import of ``a.b.c``, not of
+the packages on its way.  Each rule is its own test and names the offending modules and lines.
 """
 
 from __future__ import annotations
