@@ -14,8 +14,8 @@ Nor is the effective stiffness itself always determined. A nearly clamped span (
 4.6× the pinned span's area, first mode 9.5 Hz, outside the band the vehicles feel) deflects so
 little that 30 passes only bound it from below: at g = 0 the dynamic log-likelihood is within 2 of
 its best everywhere from κ = 10 to 13 (effective 2.2–4.7×), and falls by 12 at κ = 9. Reading the
-effective level first and then walking along its iso-effective line (the previous search) turned
-that flat likelihood into a sharp, wrong κ = 10.0 ± 0.1. So κ is read where the tolerance prior
+effective level first and then walking along its iso-effective line turns that flat likelihood into
+a sharp, wrong κ = 10.0 ± 0.1. So κ is read where the tolerance prior
 puts the beam, not along a ridge: at each κ node the dynamic log-likelihood at g = 0, ±2σ (a
 parabola in g; one more level where the likelihood pulls the beam outside that range), integrated
 over g against the tolerance prior, on a grid of one log10 Krot shared by both supports (the data

@@ -36,8 +36,8 @@ from cloud.bridge.static import (ElementPosterior, LinearisedDynamicModel, Setup
 
 #: The per-element fit keeps an earlier linearisation level while ĝ is within this (log ratio) of it:
 #: the linearised ε follows the level itself to second order, and computing every pass's ∂ε afresh
-#: at each step of ĝ on the level grid would cost ~4× the excess. Measured (300-pass healthy seed 0):
-#: linearised 0.95 % below / above ĝ, no element moved by more than 0.08 / 0.13 points.
+#: at each step of ĝ on the level grid would cost ~4× the excess, while linearising that far off ĝ moves
+#: no element by more than a small fraction of its sd.
 LINEARISATION_TOL = 0.01
 
 
@@ -186,9 +186,8 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
     it is fitted with ε fixed at ĝ and recentred on ĝ (:func:`recentre`). ``model``: an
     :class:`~cloud.bridge.static.ElementModel` (default, simply supported) or a
     :class:`~cloud.bridge.static.BearingElementModel` (ε at the level only, :mod:`cloud.bridge.bearings`);
-    the departure scales are weighted by the linearised fits' own evidence (by the fixed-ε fits'
-    instead, measured: the 30-pass ends calmer — bridge-global10 seed 5 element mean 2.4 → 1.6 points —
-    but 300-pass healthy seed 2 read 3.3, not 3.0). ``cache``: see :func:`dynamic_deltas`; ``linearise_at``: the uniform level (log ratio) of an
+    the departure scales are weighted by the linearised fits' own evidence (the model the estimate comes
+    from). ``cache``: see :func:`dynamic_deltas`; ``linearise_at``: the uniform level (log ratio) of an
     earlier fit's linearisation, kept while within :data:`LINEARISATION_TOL` of ĝ (a live estimator's
     cache then holds every earlier pass's ∂ε there). ``iterations``/``tol`` bound the bearings' alternation
     between level and Krot. ``deltas`` of the result are ε at ĝ (what the hypotheses use).

@@ -36,10 +36,8 @@ value at the truth for K_t × 3, m_u × 0.1), whatever the road says. Cut at 1 m
 hop at these speeds) the objective at the truth is 7× its noise-free value, and moving off the
 truth raises it: K_t × 1.3, m_u × 0.7, I_s × 0.9, D × 0.95 or K_s1 × 1.1 by 6–13×, a damper × 1.2
 by 1.9×, K_t2 × 1.1 by 1.4×; cut at 0.5 m it is still 240× its noise-free value and still lower for
-stiffer tyres (road-hc seed-0 logs). Over the whole search (``driveby reproduce road``, seed 0,
-stopping after two injections): averaged median error 85.6 % → 8.5 % at 1 % noise, 10.2 → 8.6 %
-noise-free; through all six injections (``min_injections=6``, as the report runs it) 5.4 % and 5.2 %
-(the thesis's, noise-free: 6.8 %). ``lowpass_m=None`` is eq. (2.32) on raw APs.
+stiffer tyres (road-hc seed-0 logs). ``lowpass_m=None`` is eq. (2.32) on raw APs; what the search
+reaches with and without the cut is in ``docs/results.md`` (``driveby reproduce road``).
 
 Only ratios are identifiable (divide the equations of motion by the body mass): the objective is
 flat along each vehicle's mass scale, so absolute values wander while ratios converge — exactly

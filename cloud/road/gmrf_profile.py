@@ -526,8 +526,8 @@ class GmrfProfile:
             blocks.append(_Block(a, e, cb, mean, S, precision=ab))
             if m > self.order:
                 # Sums, not np.dot: a long BLAS dot runs multi-threaded, and on a loaded machine its
-                # thread hand-off cost ~10 ms per call whatever the length (measured; it made the
-                # snapshot look superlinear in the route length).
+                # thread hand-off costs milliseconds per call whatever the length, which makes the
+                # snapshot superlinear in the route length.
                 d = np.diff(mean, n=self.order)
                 tr = float((A[0] * S[0]).sum()) + 2.0 * sum(float((A[k] * S[k]).sum()) for k in range(1, self.order + 1))
                 stat += float((d * d).sum()) + tr

@@ -39,8 +39,8 @@ from that small banded system and the chunks:
 * draws: ``β`` from the reduced system, then ``R = A_RR⁻¹ b_R − A_RR⁻¹ A_Rβ β + L⁻ᵀ z``.
 
 Cost per snapshot, for P points and n passes at a point: O(P · n) for the chunk solves and
-O(P · n²) for the band, O(knots · n³) per ``s²`` tried: linear in the route length (the earlier
-dense elimination was O(P · K) in memory and O(P · K²) in time with K all knots of all passes).
+O(P · n²) for the band, O(knots · n³) per ``s²`` tried: linear in the route length (eliminating
+the profile against all K knots of all passes at once would be O(P · K) in memory and O(P · K²) in time).
 Segment updates and retractions do not touch any of it.
 """
 
