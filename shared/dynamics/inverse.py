@@ -199,13 +199,6 @@ class Realisation(NamedTuple):
         """(nd, p, q): realisations with equal structure can share one bank kernel."""
         return self.Ad.shape[0], self.A2.shape[0], self.A1.shape[0]
 
-    def run(self, s0: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """The outputs y (K, n_out) of the recursion from the state ``s0`` (the original coordinates
-        s, (n_keep,)) over the inputs ``z`` (K, n_in), by the kernel :class:`InverseStream` runs."""
-        y = np.empty((len(z), self.C.shape[0]))
-        _run_blocks(self.Ad, self.A2, self.A1, self.B, self.C, self.D, self.Tinv @ s0, z, y)
-        return y
-
 
 def dense_realisation(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray) -> Realisation:
     """The recursion as it is: one dense block, T = I."""
