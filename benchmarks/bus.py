@@ -122,12 +122,12 @@ class Deployment:
         common = ["--connect", endpoint, "--net", NET, "--site", str(site)]
         # The cloud trusts the edges' calibration: fleet self-calibration would re-publish passes mid-run
         # and measure itself, not the bus. The edge cold-starts every vehicle from the class mean.
-        self.procs = {"cloud": _spawn([sys.executable, "-m", "cloud", *common, "--id", CLOUD_ID,
+        self.procs = {"cloud": spawn_daemon([sys.executable, "-m", "cloud", *common, "--id", CLOUD_ID,
                                        "--calibration", "nominal"], workdir / "cloud.log")}
         self.edge_ids = [EDGE_ID if edges == 1 else f"{EDGE_ID}{i}" for i in range(edges)]
         for i, edge_id in enumerate(self.edge_ids):
             shard = ["--shard", f"{i}/{edges}"]
-            self.procs[edge_id] = _spawn([sys.executable, "-m", "edge", *common, "--id", edge_id, *shard],
+            self.procs[edge_id] = spawn_daemon([sys.executable, "-m", "edge", *common, "--id", edge_id, *shard],
                                          workdir / f"{edge_id}.log")
         self._lock = threading.Lock()
         self._acks: dict[tuple[str, str], tuple[float, int]] = {}  # (vehicle, pass) → (monotonic s, segments)
@@ -208,7 +208,7 @@ class Deployment:
         for s in self._subs:
             s.undeclare()
         self.session.close()
-        _stop(list(self.procs.values()))
+        stop_daemons(list(self.procs.values()))
 
 
 def control_query(session: zenoh.Session, node: str, verb: str, params: str = "", net: str = NET) -> dict:
@@ -221,13 +221,15 @@ def control_query(session: zenoh.Session, node: str, verb: str, params: str = ""
     raise BenchError(f"{node} did not answer {verb}")
 
 
-def _spawn(cmd: list[str], log_path: Path, **kw) -> subprocess.Popen:
+def spawn_daemon(cmd: list[str], log_path: Path, **kw) -> subprocess.Popen:
+    """Start ``cmd`` unbuffered, its output (stdout and stderr) to ``log_path``, no stdin."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     return subprocess.Popen(cmd, env=env, stdout=open(log_path, "wb"), stderr=subprocess.STDOUT,
                             stdin=subprocess.DEVNULL, **kw)
 
 
-def _stop(procs: list[subprocess.Popen]) -> None:
+def stop_daemons(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM every process, then wait for each (SIGKILL after 15 s)."""
     for p in procs:
         if p.poll() is None:
             p.terminate()
@@ -322,7 +324,7 @@ class _Worker:
     def close(self) -> None:
         with contextlib.suppress(OSError):
             self.proc.stdin.close()
-        _stop([self.proc])
+        stop_daemons([self.proc])
 
 
 def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, batch: bool = True) -> Iterator[dict]:

@@ -423,12 +423,12 @@ def literal_seconds_per_iteration(problem) -> float:
     """CPU seconds one iteration of the thesis's chain costs done literally: every profile proposal
     (P per sweep) re-simulates every vehicle (timed: one simulation of each, its model and geometry
     built beforehand, the best of 5)."""
-    from cloud.reference.mcmc import _Vehicle
+    from cloud.reference.mcmc import VehiclePass
 
     p = problem
     vehicles = []
     for z, v, prm in zip(p.channels, p.speeds, p.params):
-        veh = _Vehicle(p.model, np.asarray(z).reshape(len(z), -1), v, 0.0, p.dt, p.grid)
+        veh = VehiclePass(p.model, np.asarray(z).reshape(len(z), -1), v, 0.0, p.dt, p.grid)
         veh.set_params(prm)
         vehicles.append(veh)
     R = np.zeros(p.grid.size)

@@ -68,12 +68,12 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from benchmarks.bus import BenchError, _spawn, _stop, control_query, watch_alive
+from benchmarks.bus import BenchError, control_query, spawn_daemon, stop_daemons, watch_alive
 from cloud.daemon.node import TRACE
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log, write_drive_log
 from shared.schema import decode_ack
-from shared.transport import _start_router, _stop as _stop_router, free_port, zenoh_config
+from shared.transport import free_port, start_router, stop_router, zenoh_config
 from simfleet.replay import ImuPublishers, chunks_of
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
@@ -181,27 +181,27 @@ class Soak:
         self.work = work
         self.routers: dict[str, object] = {}
         a = f"tcp/127.0.0.1:{free_port()}"
-        proc, err = _start_router(a, None, 30.0)
+        proc, err = start_router(a, None, 30.0)
         if err is not None:
             raise BenchError(f"router A: {err}")
         self.routers["router-a"] = proc
         b = f"tcp/127.0.0.1:{free_port()}"
-        proc, err = _start_router(b, None, 30.0, ["--connect", a])
+        proc, err = start_router(b, None, 30.0, ["--connect", a])
         if err is not None:
-            _stop_router(self.routers["router-a"])
+            stop_router(self.routers["router-a"])
             raise BenchError(f"router B: {err}")
         self.routers["router-b"] = proc
         common = ["--net", NET, "--site", str(site)]
         self.procs = {}
         for cid, route, ep in (("cloud-1", "R1", a), ("cloud-2", "R2", b)):
-            self.procs[cid] = _spawn([sys.executable, "-m", "cloud", "--connect", ep, *common, "--id", cid,
+            self.procs[cid] = spawn_daemon([sys.executable, "-m", "cloud", "--connect", ep, *common, "--id", cid,
                                       "--routes", route, "--calibration", "nominal",
                                       "--state", str(work / f"{cid}-state"),
                                       "--max-resident-segments", str(CLOUD_RESIDENT_SEGMENTS),
                                       "--max-resident-passes", str(CLOUD_RESIDENT_PASSES)], work / f"{cid}.log")
         for i, ep in enumerate((a, b)):
             eid = f"edge-{i + 1}"
-            self.procs[eid] = _spawn([sys.executable, "-m", "edge", "--connect", ep, *common, "--id", eid,
+            self.procs[eid] = spawn_daemon([sys.executable, "-m", "edge", "--connect", ep, *common, "--id", eid,
                                       "--calibration", "nominal", "--shard", f"{i}/2",
                                       "--spool", str(work / f"{eid}-spool"), "--raw-spool-mb", str(EDGE_RAW_SPOOL_MB)],
                                      work / f"{eid}.log")
@@ -248,9 +248,9 @@ class Soak:
             s.undeclare()
         self.publish.close()
         self.session.close()
-        _stop(list(self.procs.values()))
+        stop_daemons(list(self.procs.values()))
         for p in self.routers.values():
-            _stop_router(p)
+            stop_router(p)
 
 
 def soak(duration_s: float = DURATION_S, vehicles: int = VEHICLES, passes_per_s: float = PASSES_PER_S,

@@ -211,7 +211,7 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
     return index.size
 
 
-class _AxleGrid:
+class AxleGrid:
     """The AP of one axle on the global grid, growing as the pass advances.
 
     The grid lives in arrays of doubling capacity, so appending a chunk's points costs amortised
@@ -233,7 +233,7 @@ class _AxleGrid:
         self._last: tuple[float, float, float, bool] | None = None  # (chainage, ap, t, reliable)
         self.antialias = antialias
         if antialias and not (dt > 0 and min_speed > 0):
-            raise ValueError("_AxleGrid: anti-alias needs the sample interval dt and min_speed > 0")
+            raise ValueError("AxleGrid: anti-alias needs the sample interval dt and min_speed > 0")
         self._dt, self._min_speed = dt, min_speed
         self._smooth = np.zeros(0)  # anti-aliased values
         self._speed = np.zeros(0)  # chainage speed at each point (m/s; 0 in gaps)
@@ -376,7 +376,7 @@ class PassProcessor:
         self.inverse = InverseStream(model)
         self.tracker = ChainageTracker(model.constants.dt)
         # (points slower than min_speed are not filtered; the floor bounds the samples a grid keeps)
-        self.grids = [_AxleGrid(config.antialias, model.constants.dt, max(config.min_speed_mps, 0.1))
+        self.grids = [AxleGrid(config.antialias, model.constants.dt, max(config.min_speed_mps, 0.1))
                       for _ in range(self.system.n_contacts)]
         self.channel_names = [ch.name for ch in self.system.channels]
         self.next_tile: int | None = None

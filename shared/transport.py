@@ -158,7 +158,7 @@ def run_router(
         extra = [] if security is None else ["--security", os.fspath(security), "--net", net, "--id", router_id]
         for other in connect:  # join other routers: one Zenoh network across router processes
             extra += ["--connect", other]
-        proc, error = _start_router(endpoint, config_file, timeout_s, extra)
+        proc, error = start_router(endpoint, config_file, timeout_s, extra)
         if error is None:
             break
         if attempt == attempts - 1:
@@ -167,13 +167,18 @@ def run_router(
     try:
         yield endpoint
     finally:
-        _stop(proc)
+        stop_router(proc)
 
 
-def _start_router(
+def start_router(
     endpoint: str, config_file: str | os.PathLike[str] | None, timeout_s: float, extra: Sequence[str] = ()
 ) -> tuple[subprocess.Popen, str | None]:
-    """Start the router subprocess; returns it and None once ready, or its error (stopped)."""
+    """Start a router subprocess listening on ``endpoint``; returns it and None once it is ready, or
+    it (stopped) and its error output if it is not ready within ``timeout_s``.
+
+    The lower-level half of :func:`run_router`, for callers that stop and restart a router
+    themselves (:func:`stop_router`). ``extra``: more ``python -m shared.transport router`` options.
+    """
     cmd = [sys.executable, "-m", "shared.transport", "router", "--listen", endpoint, "--exit-on-stdin-eof", *extra]
     if config_file is not None:
         cmd += ["--config", os.fspath(config_file)]
@@ -185,12 +190,13 @@ def _start_router(
         if got_first.wait(timeout_s) and first and first[0].startswith(READY):
             log.debug("zenoh router %s up on %s", first[0].split()[-1], endpoint)
             return proc, None
-        _stop(proc)
+        stop_router(proc)
         errors.seek(0)
         return proc, errors.read()[-2000:].strip() or "no output"
 
 
-def _stop(proc: subprocess.Popen, timeout_s: float = 5.0) -> None:
+def stop_router(proc: subprocess.Popen, timeout_s: float = 5.0) -> None:
+    """Stop a router subprocess of :func:`start_router`: SIGTERM, then SIGKILL after ``timeout_s``."""
     if proc.poll() is None:
         proc.terminate()
         try:

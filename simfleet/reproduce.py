@@ -204,7 +204,7 @@ def write_sprung_mass_fleet(out_dir: Path, seed: int = 0, noise_pct: float = 0.0
     and spread.
     """
     from .scenarios import SCENARIOS
-    from .sim import PassPlan, _surfaces, _truth, _write_site, simulate_pass
+    from .sim import PassPlan, build_truth, simulate_pass, surfaces, write_site
 
     scenario = dataclasses.replace(SCENARIOS["road-qc"], name="road-sm", description="Table 2.2 sprung masses",
                                    vehicle_model="sprung_mass", n_vehicles=6, route_length_m=100.0,
@@ -217,15 +217,15 @@ def write_sprung_mass_fleet(out_dir: Path, seed: int = 0, noise_pct: float = 0.0
     mean = {p: float(np.mean([v[p] for v in fleet])) for p in ("m", "k")}
     std = {p: float(np.std([v[p] for v in fleet], ddof=1)) for p in ("m", "k")}
     ids = [f"veh-{i + 1:04d}" for i in range(len(fleet))]
-    lanes, _ = _surfaces(scenario, seed)
+    lanes, _ = surfaces(scenario, seed)
     rng = np.random.default_rng([seed, 1])
     records = []
     for i, params in enumerate(fleet):
         plan = PassPlan(i, ids[i], params, float(rng.uniform(*scenario.speed_range_mps)), None,
                         int(rng.integers(2**31)))
         records.append(simulate_pass(scenario, plan, lanes[0], None, noise_pct, out_dir, dict(mean)))
-    _write_site(scenario, out_dir / "site.toml", mean, std)
-    truth = _truth(scenario, seed, lanes, fleet, ids, records, None, noise_pct)
+    write_site(scenario, out_dir / "site.toml", mean, std)
+    truth = build_truth(scenario, seed, lanes, fleet, ids, records, None, noise_pct)
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth
 

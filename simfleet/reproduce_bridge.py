@@ -256,7 +256,7 @@ def case_information(case: Case, sample: int = 6, noise_pct: float = 2.0):
     from cloud.bridge.estimator import BridgeSettings
     from cloud.bridge.vehicle_error import class_log_sd
 
-    from .sim import _deck_window, _surfaces
+    from .sim import deck_window, surfaces
 
     sc = SCENARIOS[case.name]
     beam = bridge_beam(sc)
@@ -264,8 +264,8 @@ def case_information(case: Case, sample: int = 6, noise_pct: float = 2.0):
         beam = design_beam(case.site.bridges[0])
     # The calibration error is a nuisance of the bound too (cloud.bridge.information): its columns
     # need the road the passes drove (the simulation's, read here on the truth side only).
-    surface = _surfaces(sc, case.seed)[0][0]
-    road = lambda x: surface.at(sc.bridge.start_m + x) * _deck_window(sc, sc.bridge.start_m + x)  # noqa: E731
+    surface = surfaces(sc, case.seed)[0][0]
+    road = lambda x: surface.at(sc.bridge.start_m + x) * deck_window(sc, sc.bridge.start_m + x)  # noqa: E731
     spread = class_log_sd(case.site, "quarter_car")
     names = sorted(spread)
     records = {r["pass_id"]: r for r in case.truth["passes"]}
@@ -512,7 +512,7 @@ def _report(r: dict) -> str:
                  f"({c['crack_sd_300'][0]:.2f}, {c['crack_sd_300'][1]:.3f}, {c['crack_sd_300'][2]:.3f})")
         L.append(f"| {n} | {100 * c['global_sd']:.2f} | {100 * c['global_sd_300']:.2f} | {100 * ours:.2f} | "
                  f"{100 * min(c['element_sd_gmrf']):.1f}–{100 * max(c['element_sd_gmrf']):.1f} | {crack} |")
-    L += _largest_error_report(r)
+    L += largest_error_report(r)
     sp = r["seeds_global10"]
     crb = r["crb"].get("bridge-global10", r["crb"].get("bridge-healthy"))
     if not sp or crb is None:
@@ -537,7 +537,7 @@ def _report(r: dict) -> str:
     return "\n".join(L) + "\n"
 
 
-def _largest_error_report(r: dict) -> list[str]:
+def largest_error_report(r: dict) -> list[str]:
     """bridge-healthy's "every element within ±b": what an estimator at the bound achieves, and ours."""
     le = r["crb"].get("bridge-healthy", {}).get("largest_error")
     if not le:
@@ -592,14 +592,15 @@ def _large_report(large: dict) -> list[str]:
                      f"{_f(100 * (1 - s['effective_true']))} | {_f(100 * float(np.mean(err)))} | "
                      f"{_f(s['element_err_max_pts'])} | {crack} | {loss} | {rep[0]} | {rep[1]} | "
                      f"{s.get('best', '–')} | {loc} | "
-                     f"{s.get('alarm', '–')} | {_f(s.get('estimate_s'), 0)} | {_bound_cell(s.get('bound'))} |")
+                     f"{s.get('alarm', '–')} | {_f(s.get('estimate_s'), 0)} | {bound_cell(s.get('bound'))} |")
     if any("bound" in s for by_n in large.values() for s in by_n.values()):
         L += ["", "Bound column (bridge-healthy): an estimator at the information bound with the estimator's GMRF "
               "prior, on the first 30 passes' information scaled to the row's passes (see the Cramér–Rao section)."]
     return L
 
 
-def _bound_cell(b: dict | None) -> str:
+def bound_cell(b: dict | None) -> str:
+    """A report cell for a :func:`largest_error_entry` ``b``: median (90th percentile) and P(within the bound)."""
     if not b:
         return "–"
     return f"{b['median_pts']:.2f} ({b['p90_pts']:.2f}), P(≤ ±{b['bound_pts']:.0f}) = {b['p_within']:.2f}"

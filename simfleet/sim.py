@@ -56,7 +56,7 @@ def bridge_beam(scenario: Scenario) -> Beam | None:
                 krot_nm_per_rad=krot, ei_factor=factor, depth_m=spec.depth_m)
 
 
-def _surfaces(scenario: Scenario, seed: int) -> tuple[list[RoadProfile], np.ndarray | None]:
+def surfaces(scenario: Scenario, seed: int) -> tuple[list[RoadProfile], np.ndarray | None]:
     """The surface(s) vehicles drive on: one profile, or the carpet's lanes and lane weights."""
     margin = RUN_IN_M + 20.0
     length = scenario.route_length_m + 2 * margin
@@ -72,7 +72,7 @@ def _shift(p: RoadProfile, start_m: float) -> RoadProfile:
     return RoadProfile(start_m=start_m, spacing_m=p.spacing_m, elevation_m=p.elevation_m - p.elevation_m.mean())
 
 
-def _deck_window(scenario: Scenario, x: np.ndarray) -> np.ndarray:
+def deck_window(scenario: Scenario, x: np.ndarray) -> np.ndarray:
     """1 on the road, 0 on a smooth deck, with 5 m cosine ramps just outside the span."""
     spec = scenario.bridge
     if spec is None or scenario.rough_deck:
@@ -92,7 +92,7 @@ def simulate_pass(scenario: Scenario, plan: PassPlan, surface: RoadProfile, beam
     dt = 1.0 / (fs * SUBSTEPS)
 
     def elevation(x):
-        return surface.at(x) * _deck_window(scenario, x)
+        return surface.at(x) * deck_window(scenario, x)
 
     def slope(x):
         h = 1e-3  # the window's ramp makes a central difference the simplest exact-enough slope
@@ -182,7 +182,7 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
     fleet = draw_fleet(scenario, n_veh, rng)
     ids = [f"veh-{i + 1:04d}" for i in range(n_veh)]
     mean, std = fleet_class(scenario)
-    lanes, _ = _surfaces(scenario, seed)
+    lanes, _ = surfaces(scenario, seed)
     beam = bridge_beam(scenario)
     plans = []
     lane_rng = np.random.default_rng([seed, 1])
@@ -209,13 +209,14 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
                 records.append(_run_one(job))
                 bar.advance()
 
-    _write_site(scenario, out_dir / "site.toml", mean, std)
-    truth = _truth(scenario, seed, lanes, fleet, ids, records, beam, noise)
+    write_site(scenario, out_dir / "site.toml", mean, std)
+    truth = build_truth(scenario, seed, lanes, fleet, ids, records, beam, noise)
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=1))
     return truth
 
 
-def _write_site(scenario: Scenario, path: Path, mean: dict, std: dict) -> None:
+def write_site(scenario: Scenario, path: Path, mean: dict, std: dict) -> None:
+    """The scenario's site registry (its route, its bridge if any, the vehicle class ``mean``/``std``) to ``path``."""
     bridges = []
     spec = scenario.bridge
     if spec is not None:
@@ -229,9 +230,11 @@ def _write_site(scenario: Scenario, path: Path, mean: dict, std: dict) -> None:
     dump_site(site, path)
 
 
-def _truth(scenario, seed, lanes, fleet, ids, records, beam, noise) -> dict:
+def build_truth(scenario, seed, lanes, fleet, ids, records, beam, noise) -> dict:
+    """What ``truth.json`` holds: the fleet-mean surface the passes drove on (``lanes`` weighted by the
+    passes' ``records``), each vehicle's parameters (``fleet`` by ``ids``), the passes and the bridge."""
     grid = np.arange(0.0, scenario.route_length_m + 1e-9, TRUTH_SPACING_M)
-    window = _deck_window(scenario, grid)
+    window = deck_window(scenario, grid)
     lane_profiles = [p.at(grid) * window for p in lanes]
     if scenario.carpet:
         counts = np.bincount([r["lane"] for r in records], minlength=len(lanes)).astype(float)

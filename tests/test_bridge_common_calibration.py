@@ -40,12 +40,12 @@ def _simulate(d) -> None:
     from simfleet.scenarios import SCENARIOS
 
     sc = SCENARIOS["bridge-healthy"]
-    surface = sim._surfaces(sc, 1)[0][0]
+    surface = sim.surfaces(sc, 1)[0][0]
     beam = sim.bridge_beam(sc)
     system = QuarterCar(**QC).system()
 
     def elev(x):
-        return surface.at(x) * sim._deck_window(sc, x)
+        return surface.at(x) * sim.deck_window(sc, x)
 
     def slope(x):
         return (elev(x + 1e-3) - elev(x - 1e-3)) / 2e-3

@@ -13,7 +13,7 @@ from cloud.bridge.static import Setup, WeightPrior, whiten_all
 from shared.fe.beam import Beam, influence_line, moving_load_deflection
 from shared.vbi import simulate_vbi
 from shared.vehicles import QuarterCar
-from tests.test_bridge_passdata import BRIDGE, QC, _pass
+from tests.test_bridge_passdata import BRIDGE, QC, edge_pass
 
 
 def flat(x):
@@ -48,7 +48,7 @@ def test_dynamic_model_removes_the_quasi_static_bias():
     edge = EdgeSettings()
     pds = []
     for i, v in enumerate(np.linspace(15.0, 22.0, 6)):
-        segs, _, _ = _pass(float(v))
+        segs, _, _ = edge_pass(float(v))
         p = extract_pass(segs, setup.window, "quarter_car", QC, edge=edge)
         pds.append(dataclasses.replace(p, vehicle_id=f"v{i}", pass_id=f"p{i}"))
     W = float(QuarterCar(**QC).system().static_contact_forces()[0])
@@ -98,7 +98,7 @@ def test_uncalibrated_vehicles_give_no_false_alarm_and_a_band_that_knows_it(tmp_
 def test_excess_sensitivities_match_finite_differences():
     """∂ε_p/∂θ_z by forward mode through the Newmark solve (Rayleigh damping moving with K and its
     anchor frequencies) against central differences of the excess itself, on a non-uniform beam."""
-    from cloud.bridge.dynamic import dynamic_excess, excess_sensitivity
+    from cloud.bridge.excess import dynamic_excess, excess_sensitivity
     from cloud.bridge.passdata import PassData, Window
     from cloud.bridge.static import design_beam
 
@@ -131,7 +131,7 @@ def test_dynamic_sensitivities_read_a_soft_end_better():
     setup = Setup.of(BRIDGE)
     pds = []
     for i, v in enumerate(np.linspace(15.0, 22.0, 6)):
-        segs, _, _ = _pass(float(v), ei_factor=tuple(factor))
+        segs, _, _ = edge_pass(float(v), ei_factor=tuple(factor))
         p = extract_pass(segs, setup.window, "quarter_car", QC, edge=EdgeSettings())
         pds.append(dataclasses.replace(p, vehicle_id=f"v{i}", pass_id=f"p{i}"))
     W = float(QuarterCar(**QC).system().static_contact_forces()[0])

@@ -69,14 +69,14 @@ def _response(speed: float, seed: int = 1, ei_factor: tuple | None = None):
     """One noise-free coupled pass of the bridge-healthy world: chainage (m), body acceleration (m/s²)
     and the true AP (surface + deflection under the wheel, m) at the edge's 500 Hz."""
     sc = SCENARIOS["bridge-healthy"]
-    surface = sim._surfaces(sc, seed)[0][0]
+    surface = sim.surfaces(sc, seed)[0][0]
     beam = sim.bridge_beam(sc)
     if ei_factor is not None:
         beam = dataclasses.replace(beam, ei_factor=np.asarray(ei_factor, dtype=float))
     system = QuarterCar(**QC).system()
 
     def elev(x):
-        return surface.at(x) * sim._deck_window(sc, x)
+        return surface.at(x) * sim.deck_window(sc, x)
 
     def slope(x):
         return (elev(x + 1e-3) - elev(x - 1e-3)) / 2e-3
@@ -92,8 +92,8 @@ def _response(speed: float, seed: int = 1, ei_factor: tuple | None = None):
 
 
 @functools.lru_cache(maxsize=None)
-def _pass(speed: float, seed: int = 1, gamma: float = edge_gamma("quarter_car"), ei_factor: tuple | None = None,
-          noise_pct: float = 0.0, noise_seed: int = 0):
+def edge_pass(speed: float, seed: int = 1, gamma: float = edge_gamma("quarter_car"), ei_factor: tuple | None = None,
+              noise_pct: float = 0.0, noise_seed: int = 0):
     """One pass of the bridge-healthy world through the real edge pipeline (its inverse at Newmark
     ``gamma``), with truth; ``ei_factor``: the span's per-element EI factors instead; ``noise_pct``:
     white sensor noise (% of the channel's sd, as simfleet's), drawn from ``noise_seed``."""
@@ -124,7 +124,7 @@ def test_correction_removes_the_discretisation_error_on_the_span(speed):
     """An edge inverse at Newmark γ = 0.8 (the thesis's; half-cars keep it) leaves tens of µm of error
     on the span behind the 9 mm ramp onto the smooth deck. Corrected to continuous physics it is gone
     (the simulator integrates with γ = ½ at 2 kHz: physics to well below the deflection)."""
-    segs, x, truth = _pass(speed, gamma=0.8)
+    segs, x, truth = edge_pass(speed, gamma=0.8)
     window = Window.of(BRIDGE)
     errors = {}
     edge = EdgeSettings(gamma=0.8)
@@ -210,7 +210,7 @@ def test_calibration_sensitivity_is_the_forward_models_change_with_the_quantity(
     from cloud.bridge.static import model_columns
     from cloud.bridge.vehicle_error import perturbed_params
 
-    segs, _, _ = _pass(21.0)
+    segs, _, _ = edge_pass(21.0)
     setup = Setup.of(BRIDGE)
     p = extract_pass(segs, setup.window, "quarter_car", QC, params_log_sd={"c/M": 0.04, "K/M": 0.04})
     assert perturbed_params(QC, "c/M", math.log(1.03))["c"] == pytest.approx(1.03 * QC["c"])
@@ -243,7 +243,7 @@ def test_the_estimators_wheel_load_factor_holds_none_of_the_passs_own_noise():
     on = setup.window.on_span
 
     def data(speed, noise_seed, name, noise_pct=2.0):
-        segs, _, _ = _pass(speed, noise_pct=noise_pct, noise_seed=noise_seed)
+        segs, _, _ = edge_pass(speed, noise_pct=noise_pct, noise_seed=noise_seed)
         p = extract_pass(segs, setup.window, "quarter_car", QC)
         return dataclasses.replace(p, vehicle_id=name, pass_id=name)
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from scipy.signal import welch
 
-from cloud.road.gmrf_profile import GmrfProfile, _accumulate_band, segment_band_information
+from cloud.road.gmrf_profile import GmrfProfile, segment_band_information
 from edge.drift import local_linear_trend
 from edge.error_model import band_symbol, channel_noise_sd, fit_error_band
 from edge.pipeline import EdgeConfig, PassProcessor
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.dynamics.inverse import build_inverse, edge_gamma
-from shared.schema import SIGMA_SCALE, ApSegment, InvalidMessage, SensorChunk, decode_ap
+from shared.schema import ApSegment, InvalidMessage, SensorChunk, decode_ap
 from shared.vehicles import vehicle_from_params
 from shared.vehicles.half_car import TABLE_2_1
 from simfleet.evaluate import band_pass, drift_controlled_truth
@@ -216,7 +216,7 @@ def test_banded_information_is_the_dense_one_and_retracts():
     rng = np.random.default_rng(1)
     sigma = np.full(300, 2e-4)
     sigma[:20] *= 100  # a flagged stretch
-    seg = _segment(rng, 300, 4, sigma=sigma)
+    seg = _segment(rng, 300, 4, start=50, sigma=sigma)
     D = np.diag(seg.error_model[0] * seg.sigma)
     c = seg.error_model[1:]
     T = sum(np.diag(np.full(300 - k, c[k]), -k) + (np.diag(np.full(300 - k, c[k]), k) if k else 0) for k in range(c.size))
@@ -225,13 +225,12 @@ def test_banded_information_is_the_dense_one_and_retracts():
     for d in range(c.size):
         assert np.allclose(band[d, : 300 - d], np.diag(Q, -d), rtol=1e-12)
     assert np.allclose(rhs, Q @ seg.values, rtol=1e-10)
-    q, b = np.zeros((5, 400)), np.zeros(400)
-    cover, passes = np.zeros(400, dtype=np.int64), np.zeros(400, dtype=np.int64)
-    args = (seg.values_q, seg.scale_m, seg.offset_m, seg.sigma_q, seg.sigma_ref_m, SIGMA_SCALE, seg.error_model)
-    _accumulate_band(q, b, cover, passes, 50, *args, 1.0, True)
-    assert np.allclose(q[:, 50:350], band, rtol=1e-12) and np.allclose(b[50:350], rhs, rtol=1e-12)
-    _accumulate_band(q, b, cover, passes, 50, *args, -1.0, True)
-    assert np.abs(q).max() <= 1e-9 * np.abs(band).max() and not cover.any() and not passes.any()
+    profile = GmrfProfile({"R1": 399 * SP}, SP, tau=1.0)  # 400 points; the segment on 50..349
+    route = profile.routes["R1"]
+    profile.update(seg)  # the compiled sums, decoding the wire codes point by point
+    assert np.allclose(route.q[:, 50:350], band, rtol=1e-12) and np.allclose(route.b[50:350], rhs, rtol=1e-12)
+    profile.retract(seg)
+    assert np.abs(route.q).max() <= 1e-9 * np.abs(band).max() and not route.cover.any() and not route.passes.any()
 
 
 def test_profile_with_banded_segments_is_order_independent_and_retracts():

@@ -19,7 +19,7 @@ from cloud.road.gmrf_profile import GmrfProfile, segment_information
 from cloud.road.mean_profile import MeanProfile
 from cloud.daemon.node import Cloud
 from edge.node import Edge, in_shard, parse_shard
-from edge.pipeline import EdgeConfig, PassProcessor, _AxleGrid
+from edge.pipeline import EdgeConfig, PassProcessor, AxleGrid
 from shared import keys, schema
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.dynamics.inverse import build_inverse, edge_gamma
@@ -303,7 +303,7 @@ def test_growable_grid_equals_concatenation(data):
     ap, t, rel = rng.normal(size=n), np.arange(n) * 0.002, rng.random(n) > 0.05
     cuts = np.sort(rng.choice(np.arange(1, n), size=min(n - 1, data.draw(st.integers(0, 40))), replace=False))
     chunks = [tuple(a[i:j] for a in (x, ap, t, rel)) for i, j in zip([0, *cuts], [*cuts, n])]
-    grid = _AxleGrid()
+    grid = AxleGrid()
     for chunk in chunks:
         grid.add(*chunk, 0.05)
     base, values, valid, times = _grid_by_concatenation(chunks, 0.05)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from edge.pipeline import ANTIALIAS_PASS_CPM, ANTIALIAS_STOP_CPM, _AxleGrid
+from edge.pipeline import ANTIALIAS_PASS_CPM, ANTIALIAS_STOP_CPM, AxleGrid
 
 DT = 0.002  # s: 500 Hz
 SPACING = 0.05  # m
@@ -30,7 +30,7 @@ def _grid(x, ap, antialias: bool, cuts=(), reliable=None):
     n = x.size
     t = np.arange(n) * DT
     rel = np.ones(n, dtype=bool) if reliable is None else reliable
-    g = _AxleGrid(antialias, DT, MIN_SPEED)
+    g = AxleGrid(antialias, DT, MIN_SPEED)
     for a, b in zip((0, *cuts), (*cuts, n)):
         g.add(x[a:b], ap[a:b], t[a:b], rel[a:b], SPACING)
     g.flush()
@@ -113,7 +113,7 @@ def test_points_become_final_only_once_the_window_is_in():
     x = _trajectory(16.0, 3.0)
     ap = np.sin(2 * np.pi * 1.3 * x)
     t = np.arange(x.size) * DT
-    g = _AxleGrid(True, DT, MIN_SPEED)
+    g = AxleGrid(True, DT, MIN_SPEED)
     snapshots = []
     for a in range(0, x.size, 50):
         g.add(x[a : a + 50], ap[a : a + 50], t[a : a + 50], np.ones(min(50, x.size - a), bool), SPACING)

@@ -234,19 +234,23 @@ def _hat_drift(n, knot_pts, beta):
     return beta[..., k] * (1.0 - w) + beta[..., k + 1] * w
 
 
+def _centred_mean(x, width):
+    """Mean of ``x`` over ``width`` (odd) points centred on each point; exact where the window fits."""
+    return np.convolve(x, np.ones(width) / width, mode="same")
+
+
 def test_drift_band_shares_are_the_hat_drifts_variance_per_band():
     """The long-wave term's model share of each band for the drift nuisance, against Monte Carlo
     drifts built from the hats directly and cut into bands as the passes' residuals are."""
-    from cloud.road.long_wave import _moving_average, drift_band_shares
+    from cloud.road.long_wave import drift_band_shares
 
     rng = np.random.default_rng(43)
     widths, knot_m = [11, 41, 201, 1001], 25.0
     n = 10001
     beta = rng.standard_normal((300, int(n * DX / knot_m) + 3))
     d = _hat_drift(n, knot_m / DX, beta)
-    every = np.ones(n, dtype=bool)
-    mas = [np.array([_moving_average(row, every, w) for row in d]) for w in widths]
-    inner = slice(1500, n - 1500)
+    mas = [np.array([_centred_mean(row, w) for row in d]) for w in widths]
+    inner = slice(1500, n - 1500)  # farther from the ends than the widest mean reaches
     mc = [np.mean((mas[j] - mas[j + 1] if j + 1 < len(widths) else mas[j])[:, inner] ** 2) for j in range(len(widths))]
     np.testing.assert_allclose(drift_band_shares(knot_m, DX, widths), mc, rtol=0.05)  # (measured within 1.2 %)
 
@@ -258,7 +262,7 @@ def test_the_passes_scatter_adds_only_the_drift_beyond_the_learnt_level():
     excess (a level learnt for the whole route cannot see it)."""
     from cloud.road.long_wave import band_error_variances, drift_of
     from shared.profiles.iso8608 import iso8608_profile
-    from tests.test_profile_coverage import _segments
+    from tests.test_profile_coverage import tile_segments
 
     rng = np.random.default_rng(44)
     n, knot_m, s, sigma = 6001, 25.0, 3e-4, 3e-4
@@ -270,7 +274,7 @@ def test_the_passes_scatter_adds_only_the_drift_beyond_the_learnt_level():
         segs = []
         for p in range(12):
             d = _hat_drift(n, knot_m / DX, rng.normal(0.0, s, int(n * DX / knot_m) + 3)) * scale
-            segs += _segments(road + d + rng.normal(0.0, sigma, n), sigma, f"p{p}")
+            segs += tile_segments(road + d + rng.normal(0.0, sigma, n), sigma, f"p{p}")
         g = GmrfProfile({"R1": (n - 1) * DX}, drift_knot_m=knot_m)
         for seg in segs:
             g.update(seg)

@@ -26,7 +26,9 @@ DX = 0.05
 H = 3000  # the edge's ±150 m drift control at 0.05 m
 
 
-def _segments(values, sigma, pass_id, tile=1000):
+def tile_segments(values, sigma, pass_id, tile=1000):
+    """One pass's ``values`` on route R1 (from grid point 0, spacing :data:`DX`) as axle-1 segments of
+    ``tile`` points, each point with error sd ``sigma``."""
     out = []
     for t, lo in enumerate(range(0, values.size, tile)):
         v = values[lo : lo + tile]
@@ -36,7 +38,8 @@ def _segments(values, sigma, pass_id, tile=1000):
     return out
 
 
-def _detrend(x):
+def detrend(x):
+    """``x`` less its local linear trend over the edge's drift-control window (:data:`H`)."""
     return x - local_linear_trend(x, np.ones(x.size, dtype=np.bool_), H)
 
 
@@ -46,7 +49,7 @@ def _road(rng, n):
 
 def _drift(rng, n, level):
     """A pass's integration drift: white noise integrated twice (per metre), drift-controlled."""
-    return _detrend(np.cumsum(np.cumsum(rng.normal(0.0, level, n))))
+    return detrend(np.cumsum(np.cumsum(rng.normal(0.0, level, n))))
 
 
 def _fuse(segments, n, **kw):
@@ -91,11 +94,11 @@ def test_estimand_is_the_average_of_what_the_passes_measure():
     count = np.zeros(n, dtype=np.int64)
     total = np.zeros(n)
     for a in (0, 60, 200, 200):  # warm-up ends at different points; two passes share an extent
-        total[a:] += _detrend(road[a:])
+        total[a:] += detrend(road[a:])
         count[a:] += 1
     np.testing.assert_allclose(drift_controlled_truth(road, count), total / count, atol=1e-12)
     # It is not the road less one trend over everything covered, which no pass measured.
-    assert np.abs(drift_controlled_truth(road, count) - _detrend(road)).max() > 1e-5
+    assert np.abs(drift_controlled_truth(road, count) - detrend(road)).max() > 1e-5
 
 
 def test_edge_drift_control_is_the_local_linear_trend_it_approximates():
@@ -123,12 +126,12 @@ def test_band_covers_per_pass_drift_the_white_likelihood_misses():
     rng = np.random.default_rng(3)
     n = 20001
     road = _road(rng, n)
-    estimand = _detrend(road)
+    estimand = detrend(road)
     segs = []
     for p in range(12):
         sigma = rng.uniform(2e-4, 4e-4)
         y = estimand + _drift(rng, n, rng.uniform(2e-8, 4e-8)) + rng.normal(0.0, sigma, n)
-        segs += _segments(y, sigma, f"p{p}")
+        segs += tile_segments(y, sigma, f"p{p}")
     snap = _fuse(segs, n)
     assert _coverage(snap, estimand) < 0.8
     cov = _coverage(with_pass_error_band(snap, segs), estimand)
@@ -149,10 +152,10 @@ def test_white_errors_add_nothing_and_the_band_follows_the_error():
     half = []
     for p in range(10):
         e = rng.normal(0.0, 3e-4, n)
-        white += _segments(road + e, 3e-4, f"p{p}")
+        white += tile_segments(road + e, 3e-4, f"p{p}")
         d = _drift(rng, n, 3e-8)
         d[: n // 2] = 0.0
-        half += _segments(road + e + d, 3e-4, f"p{p}")
+        half += tile_segments(road + e + d, 3e-4, f"p{p}")
     snap = _fuse(white, n)
     post_var = ((snap.hi95_m - snap.lo95_m) / (2 * 1.96)) ** 2
     assert np.mean(pass_error_variance(snap, white)) < 0.1 * np.mean(post_var)

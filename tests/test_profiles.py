@@ -20,7 +20,7 @@ from shared.profiles import (
     lane_probabilities,
     tyre_filter,
 )
-from shared.profiles.carpet import _lateral_correlation
+from shared.profiles.carpet import lateral_correlation
 
 CLASSES = tuple("ABCDE")
 SPACING = 0.01  # m, the default grid
@@ -300,7 +300,7 @@ def test_lateral_correlation_is_that_of_an_isotropic_surface():
     a = 2 * np.pi * n
     cross, _ = integrate.quad(lambda k: (a * a + k * k) ** -1.5, 0, np.inf, weight="cos", wvar=0.05)
     expected = cross / (1.0 / a**2)
-    r = _lateral_correlation(np.array([n]), d)[0]
+    r = lateral_correlation(np.array([n]), d)[0]
     assert r[0, 1] == pytest.approx(expected, rel=1e-6)
     assert r[0, 0] == pytest.approx(1.0)
     x = 2 * np.pi * n * 0.05

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cloud.bridge.mril import damage_indicators
-from cloud.rail.bridge import (MODELS, _difference_shift, bogie_influence, damage_from_batch_means, influence_of_aps,
+from cloud.rail.bridge import (MODELS, difference_shift, bogie_influence, damage_from_batch_means, influence_of_aps,
                                 pooled_healthy, run_aps)
 from cloud.rail.calibration import calibrate_batch
 from simfleet.rail import RailBridgeSpec
@@ -115,7 +115,7 @@ def test_batches_are_registered_on_the_wheels_difference(healthy_batch):
         fit_moved = dataclasses.replace(fit, runs=[dataclasses.replace(e, mean={**e.mean, "v": e.mean["v"] * (1 + stretch)})
                                                    for e in fit.runs])
         b = influences_of(moved, fit_moved, cls, bridge)
-        found = {m: _difference_shift(a[m].difference_line, b[m].difference_line, span, a[m].wheelbase_m)
+        found = {m: difference_shift(a[m].difference_line, b[m].difference_line, span, a[m].wheelbase_m)
                  for m in ("carriage", "bogie_half_car")}
         # b(x) = a(x − shift − stretch·(x − x0 − offset)): with current(x − δ) ≈ healthy(x), δ ≈ −(that).
         expected = -(shift + stretch * mid)

@@ -296,10 +296,10 @@ def test_blind_test_states_differ_only_by_the_global_loss_and_the_journeys():
 
 def test_batched_inverse_is_the_reference_inverse():
     """carriage_aps_runs (all trials of all runs in one compiled call) gives the AP of the per-trial
-    reference inverse (cloud.reference.cross_entropy.population_aps) exactly, runs of different
+    reference inverse (shared.dynamics.population.population_aps) exactly, runs of different
     lengths and steps included."""
     from cloud.rail.calibration import INVERSE_GAMMA, INVERSE_NAMES, carriage_aps_runs
-    from cloud.reference.cross_entropy import population_aps
+    from shared.dynamics.population import population_aps
     from shared.vehicles.carriage import TABLE_3_1
 
     rng = np.random.default_rng(1)
@@ -397,30 +397,30 @@ def test_lowpass_is_scipys_zero_phase_filter():
     starts) on the closed-form Butterworth sections, to rounding, short records included."""
     from scipy.signal import butter, sosfiltfilt
 
-    from cloud.rail.calibration import _butter4_sos, _sosfiltfilt, _sosfiltfilt_rows
+    from cloud.rail.calibration import butter4_sos, sosfiltfilt_columns, sosfiltfilt_rows
 
     rng = np.random.default_rng(3)
     for wn in (0.01, 0.06, 0.3):
-        sos = _butter4_sos(wn)
+        sos = butter4_sos(wn)
         np.testing.assert_allclose(sos, butter(4, wn, output="sos"), rtol=1e-10, atol=1e-15)
         for n in (16, 100, 2600):
             x = np.cumsum(rng.standard_normal((n, 4)), axis=0) + 5.0
             want = sosfiltfilt(sos, x, axis=0)
-            assert np.abs(_sosfiltfilt(sos, x) - want).max() <= 1e-12 * np.abs(want).max(), (wn, n)
+            assert np.abs(sosfiltfilt_columns(sos, x) - want).max() <= 1e-12 * np.abs(want).max(), (wn, n)
     # along rows (the mapper's), in blocks: more rows than a block, and fewer
     for rows in (3, 70):
         x = np.cumsum(rng.standard_normal((rows, 500)), axis=1)
         want = sosfiltfilt(sos, x, axis=1)
-        assert np.abs(_sosfiltfilt_rows(sos, x) - want).max() <= 1e-12 * np.abs(want).max(), rows
+        assert np.abs(sosfiltfilt_rows(sos, x) - want).max() <= 1e-12 * np.abs(want).max(), rows
 
 
 def test_noise_information_is_the_profiled_jacobians_quadratic_form():
-    """The sandwich's meat (cloud.rail.calibration._noise_information, from per-run spectra) is
+    """The sandwich's meat (cloud.rail.calibration.noise_information, from per-run spectra) is
     Jᵀ Σ J of the dense profiled-consensus Jacobian (each run's rows, less the mean of all rows) with
     Σ block-diagonal over runs, each block the four wheels' block-Toeplitz cross-covariances that the
     residual shows (biased estimates, pooled over runs): a residual correlated along the track and
     between wheels, inactive local coordinates left out."""
-    from cloud.rail.calibration import _noise_information
+    from cloud.rail.calibration import noise_information
 
     rng = np.random.default_rng(0)
     n, L, n_g, K = 3, 5, 2, 17
@@ -441,7 +441,7 @@ def test_noise_information_is_the_profiled_jacobians_quadratic_form():
             c = sum(np.correlate(e[r, w], e[r, v], mode="full") for r in range(n)) / (n * K)  # lags −(K−1)…K−1
             C[w * K:(w + 1) * K, v * K:(v + 1) * K] = c[lag + K - 1]
     want = sum(J[r].T @ C @ J[r] for r in range(n))
-    got = _noise_information(e, D, L, active)
+    got = noise_information(e, D, L, active)
     assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
     inactive = [r * L + j for r in range(n) for j in range(L) if j not in active]
     assert not got[inactive].any() and not got[:, inactive].any()

@@ -32,7 +32,7 @@ def test_the_report_shows_the_efficient_estimators_largest_error_beside_ours():
     row shows its own entry."""
     from cloud.bridge.information import Information
     from cloud.bridge.static import StiffnessPrior
-    from simfleet.reproduce_bridge import _bound_cell, _largest_error_report, healthy_bound_pts, largest_error_entry
+    from simfleet.reproduce_bridge import bound_cell, healthy_bound_pts, largest_error_entry, largest_error_report
 
     rng = np.random.default_rng(2)
     X = rng.standard_normal((80, 20)) * np.sin(np.linspace(0.1, np.pi - 0.1, 20)) * 60.0  # ends barely seen
@@ -44,10 +44,10 @@ def test_the_report_shows_the_efficient_estimators_largest_error_beside_ours():
     assert loose["p_within"] > le["300"]["p_within"] and loose["median_pts"] == le["300"]["median_pts"]
     r = {"crb": {"bridge-healthy": {"largest_error": le}}, "scenarios": {"bridge-healthy": {"element_err_max_pts": 2.5}},
          "large": {"bridge-healthy": {"300": {"element_err_max_pts": 3.25}}}}
-    rows = [line for line in _largest_error_report(r) if line.startswith("| 30 ") or line.startswith("| 300 ")]
+    rows = [line for line in largest_error_report(r) if line.startswith("| 30 ") or line.startswith("| 300 ")]
     assert len(rows) == 2
     for row, k, ours in zip(rows, ("30", "300"), ("2.50", "3.25")):
         cells = [c.strip() for c in row.strip("|").split("|")]
         assert cells[4].startswith(f"{le[k]['median_pts']:.2f}") and cells[5] == f"{le[k]['p_within']:.2f}"
         assert cells[6] == ours
-    assert f"= {le['300']['p_within']:.2f}" in _bound_cell(le["300"]) and _bound_cell(None) == "–"
+    assert f"= {le['300']['p_within']:.2f}" in bound_cell(le["300"]) and bound_cell(None) == "–"

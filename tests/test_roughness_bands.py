@@ -15,7 +15,7 @@ from cloud.road.long_wave import drift_of, pass_error_draws, pass_error_variance
 from cloud.export import profile_draws
 from shared.profiles.iso8608 import iso8608_profile
 from shared.roughness import iri_segments
-from tests.test_profile_coverage import DX, _detrend, _segments
+from tests.test_profile_coverage import DX, detrend, tile_segments
 
 
 def _moving_average(x, w):
@@ -32,9 +32,9 @@ def _iri_coverage(seed: int, length_m=300.0, n_passes=8, gain_sd=0.03, sigma=3e-
     band = _moving_average(road, 21) - _moving_average(road, 601)  # 1–30 m
     segs = []
     for p in range(n_passes):
-        drift = _detrend(np.cumsum(np.cumsum(rng.normal(0.0, drift_level, n))))
+        drift = detrend(np.cumsum(np.cumsum(rng.normal(0.0, drift_level, n))))
         y = road + gain_sd * rng.standard_normal() * band + drift + rng.normal(0.0, sigma, n)
-        segs += _segments(y, sigma, f"p{p}")
+        segs += tile_segments(y, sigma, f"p{p}")
     g = GmrfProfile({"R1": (n - 1) * DX}, drift_knot_m=25.0)
     for s in segs:
         g.update(s)

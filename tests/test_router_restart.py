@@ -36,7 +36,7 @@ import zenoh
 import simfleet.run
 from shared import keys
 from shared.schema import decode_ack, decode_pass_done, decode_sensor_chunk
-from shared.transport import _start_router, _stop, free_port, zenoh_config
+from shared.transport import free_port, start_router as _start_router, stop_router as _stop, zenoh_config
 from simfleet.replay import chunks_of
 from simfleet.run import run
 from simfleet.scenarios import SCENARIOS

@@ -372,7 +372,7 @@ def test_raw_chunks_lost_in_a_secured_router_restart_are_recovered_under_access_
     the secured router was down are fetched from the vehicle's cache (queries by wildcard, replies on
     its own keys), the pass completes, and the router refuses nothing."""
     from edge.node import Edge, serve
-    from shared.transport import _start_router, _stop, free_port
+    from shared.transport import free_port, start_router as _start_router, stop_router as _stop
     from simfleet.replay import ImuPublishers, chunks_of
 
     issue(pki, "edge-1", "edge")

@@ -14,8 +14,8 @@ Nor is the effective stiffness itself always determined. A nearly clamped span (
 4.6× the pinned span's area, first mode 9.5 Hz, outside the band the vehicles feel) deflects so
 little that 30 passes only bound it from below: at g = 0 the dynamic log-likelihood is within 2 of
 its best everywhere from κ = 10 to 13 (effective 2.2–4.7×), and falls by 12 at κ = 9. Reading the
-effective level first and then walking along its iso-effective line (the previous search) turned
-that flat likelihood into a sharp, wrong κ = 10.0 ± 0.1. So κ is read where the tolerance prior
+effective level first and then walking along its iso-effective line turns that flat likelihood into
+a sharp, wrong κ = 10.0 ± 0.1. So κ is read where the tolerance prior
 puts the beam, not along a ridge: at each κ node the dynamic log-likelihood at g = 0, ±2σ (a
 parabola in g; one more level where the likelihood pulls the beam outside that range), integrated
 over g against the tolerance prior, on a grid of one log10 Krot shared by both supports (the data
@@ -40,7 +40,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from cloud.bridge.static import Setup, Stacked, WeightPrior, WhitenedPass, fit_elements, marginal_loglik_batch, vehicle_stats
+from cloud.bridge.excess import LEVEL_GRID, dynamic_deltas
+from cloud.bridge.hypotheses import Kernels
+from cloud.bridge.static import (Setup, Stacked, WeightPrior, WhitenedPass, design_influence, marginal_loglik_batch,
+                                 vehicle_stats)
 
 #: as-built tolerance of the global stiffness (log sd) — HypothesisSettings.tolerance_sd
 AS_BUILT_SD = 0.02
@@ -126,8 +129,6 @@ def _log_area_table(setup: Setup, kappa: np.ndarray) -> np.ndarray:
     """log ∫J dx of the uniform design span with both springs at 10^κ (g = 0): the pinned span's J
     with the closed-form rank-2 restraint update (:meth:`~cloud.bridge.hypotheses.Kernels.bearings`)
     — one FE solve for the whole table instead of one per κ."""
-    from cloud.bridge.hypotheses import Kernels
-
     kern = Kernels.of(setup)
     return np.log(kern.bearings(np.ones_like(kappa), 10.0**kappa) @ setup.basis.integrals)
 
@@ -146,15 +147,13 @@ def _parabola_marginal(gs: Sequence[float], ys: Sequence[float], sd: float) -> t
 def krot_posterior(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: WeightPrior, model,
                   cache: dict | None = None, as_built_sd: float = AS_BUILT_SD) -> KrotPosterior:
     """The grid posterior of log10 Krot (shared by both supports) — see the module docstring."""
-    from cloud.bridge.dynamic import LEVEL_GRID, dynamic_deltas
-
     cache = {} if cache is None else cache
     ne = model.n_elements
     table_k = np.arange(min(KAPPA_NODES) - 4.0, max(KAPPA_NODES) + 4.0 + 1e-9, 0.05)
     table = _log_area_table(setup, table_k)
     log_area = lambda k: np.interp(k, table_k, table)  # noqa: E731 — monotone in κ
     slope = lambda k: np.interp(k, table_k, np.gradient(table, table_k))  # noqa: E731
-    log_area_d = math.log(float(model.basis.integrals @ model.basis.coefficients(_design_J(model))))
+    log_area_d = math.log(float(model.basis.integrals @ model.basis.coefficients(design_influence(model))))
 
     def log_eff(g, k):  # uniform beam: J(g, κ) = e^{−g}·J(0, κ − g/ln 10)
         return log_area_d - (-g + log_area(k - g / math.log(10.0)))
@@ -211,44 +210,3 @@ def krot_posterior(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: W
     e_sd = math.sqrt(float(p @ ((le - e_mean) ** 2 + within)))
     return KrotPosterior(kap, log_post, g_mean, e_mean, e_sd, le, ev, bool(near_top), bool(near_bottom),
                         dict(zip(KAPPA_NODES, marg.tolist())))
-
-
-def _design_J(model) -> np.ndarray:
-    from cloud.bridge.static import design_influence
-
-    return design_influence(model)
-
-
-def fit_bearings_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_prior: WeightPrior, model,
-                         cache: dict | None = None, start: float | None = None):
-    """The bearing model's dynamic fit (same contract as :func:`~cloud.bridge.dynamic.fit_elements_dynamic`):
-    the Krot grid posterior, the per-element fit linearised at its mode with Krot held there
-    (:data:`HOLD_SD`), recentred on the effective level there; Krot and the effective ratio
-    reported from the whole grid posterior (Krot one-sided where the data leave a limit open)."""
-    from cloud.bridge.dynamic import LEVEL_GRID, DynamicFit, GlobalLevel, dynamic_deltas, recentre
-
-    cache = {} if cache is None else cache
-    ne = model.n_elements
-    qs = fit_elements(vehicle_stats(passes), model, weight_prior)
-    kp = krot_posterior(passes, setup, weight_prior, model, cache=cache)  # (``start`` is not needed)
-    i = kp.mode
-    k_hat = float(kp.kappa[i])
-    mean, lo, hi = kp.summary()
-    lin = np.array(model.prior_mean(), dtype=float)
-    lin[:ne] = round(round(float(kp.g_mean[i]) / LEVEL_GRID) * LEVEL_GRID, 6)
-    lin[ne:] = k_hat
-    deltas = dynamic_deltas(passes, setup, lin, cache)
-    # Krot held at the mode (the fit is conditional on it; its uncertainty is the grid posterior's):
-    # a loose hold lets the two supports split and the elements absorb the difference.
-    held = dataclasses.replace(model, krot_prior=(k_hat, HOLD_SD))
-    post = fit_elements(vehicle_stats(passes, deltas), held, weight_prior, theta0=lin)
-    # Recentred on the effective level at the linearisation (the posterior's mean over κ would
-    # pull the elements towards a restraint they are not fitted with).
-    level = GlobalLevel(float(kp.effective_logs[i]), kp.effective_sd, {})
-    final = recentre(post, held, level)
-    # The effective stiffness and Krot are reported from the whole grid posterior (the elements are
-    # conditional on its mode): for a nearly clamped span the effective ratio is as uncertain as Krot.
-    eff = math.exp(kp.effective_log)
-    final = dataclasses.replace(final, krot=((mean, lo, hi),) * 2, effective_ratio=eff,
-                                effective_ratio_sd=eff * kp.effective_sd)
-    return DynamicFit(final, (qs, post), deltas, math.exp(float(lin[0])), lin, level)

@@ -129,7 +129,7 @@ def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float,
     """The run's AP under ``params`` (its calibrated properties), keyed in chainage with its
     calibrated speed and chainage shift (:attr:`~cloud.rail.calibration.RunEstimate.shift_m`), as replacements of its raw segments (same identities; each keeps the grid
     points from where it now starts to where the next one starts, as :func:`cloud.road.alignment.realign`)."""
-    from cloud.reference.cross_entropy import population_aps
+    from shared.dynamics.population import population_aps
 
     run = rebuilt.run
     aps, offs = population_aps(model, [params], run.channels, run.dt, gamma=GAMMA)

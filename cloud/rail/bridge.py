@@ -27,7 +27,7 @@ of the AP per unit load is not, and the profile is common to every batch on the 
 batch and only the scale from the healthy batch's slope. That change is only profile-free if the
 two batches' chainages agree to a millimetre or two: each batch's calibrated speeds share an error
 (~0.01 %, ~1 cm at the span), so the current batch is first registered to the healthy one on the
-wheels' time-synchronous difference beside the span (:func:`_difference_shift`). On the blind
+wheels' time-synchronous difference beside the span (:func:`difference_shift`). On the blind
 test (largest error over 12 states × D1/D2) this took the carriage's reading from 2.0 to 1.1 points
 and the half-car's J⁰ reading from 7.1 to 2.3 (seed 0; with the true shift, 0.9 and 2.2), and on a
 second set of journeys, tracks and spans (seed 1) from 2.3 to 2.4 and 26.9 to 3.7 (the true shift:
@@ -125,7 +125,7 @@ APPROACH_M = 10.0  # AP kept either side of the span, m
 #: (~14 Hz at 30 m/s: ~2 m) rides on the line; a 10 m span's static line has nothing below ~5 m.
 #: The thesis low-passes its mean MR-IL too (FIR, §3.5.3) before reading the mid-span ordinate.
 MIN_WAVELENGTH_M = 4.0
-#: Track used to register two batches' chainage on the wheels' difference (:func:`_difference_shift`),
+#: Track used to register two batches' chainage on the wheels' difference (:func:`difference_shift`),
 #: m before and after the span (less where a batch's runs do not cover it); the last
 #: ``REGISTER_EDGE_M`` of each end are left out (the filters' end effects), and waves longer than
 #: ``REGISTER_MAX_WAVELENGTH_M`` (the inverses' drift) are removed first.
@@ -496,7 +496,7 @@ def registered_runs(aps: Sequence[RunAp], start_m: float, span_m: float,
                     iterations: int = REGISTER_ITERATIONS, reference: MrIl | None = None) -> list[RunAp]:
     """``aps`` with each run's speed corrected so that its wheels' time-synchronous difference beside
     the span lines up with the batch's mean (the runs' mean shift at mid-span unchanged: registering
-    the batch as a whole is :func:`_difference_shift`'s).
+    the batch as a whole is :func:`difference_shift`'s).
 
     Why: a run's calibrated speed is off by ε_r (blind test: 0.003–0.02 % per run, ~0.03 % between
     two calibrations of the same batch), which puts its AP ε_r·(x − x_r) off in chainage at x (x_r:
@@ -508,7 +508,7 @@ def registered_runs(aps: Sequence[RunAp], start_m: float, span_m: float,
     wheels' difference over the registration window (:data:`REGISTER_BEFORE_M`/``AFTER_M``, the span
     and the wheelbase after it left out), where the body's force cannot move it: Gauss–Newton on
     c_r(x − ε_r·(x − x_r)) against the batch mean, the mean re-formed from the registered runs each
-    step (band as in :func:`_difference_shift`). ``reference``: another batch's
+    step (band as in :func:`difference_shift`). ``reference``: another batch's
     :attr:`BogieInfluence.difference_line` (the healthy batch's, registered) to register every run to
     instead, its mean shift included (so that the batch-to-batch registration has ~nothing left).
     Measured on the blind test's batches against the true speeds: chainage error at mid-span 11–16 mm
@@ -590,7 +590,7 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
     the deflection — about a point of D.)
 
     ``register``: first shift the current batch's chainage onto the healthy batch's
-    (:func:`_difference_shift`): each batch's calibrated speeds share an error of ~0.01 % (the
+    (:func:`difference_shift`): each batch's calibrated speeds share an error of ~0.01 % (the
     carriage's bogie spacing is known only so well), a few millimetres to a centimetre at the span,
     and the unloaded profile's slope times a centimetre is a few per cent of the deflection. The
     shift is read off the wheels' time-synchronous difference on the approaches, which the body's
@@ -611,7 +611,7 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
     if register:
         if None in lines or healthy.wheelbase_m is None:
             raise ValueError("damage_from_batch_means: registering needs both batches' difference lines")
-        delta = _difference_shift(*lines, float(healthy.mril.x_m[-1]), healthy.wheelbase_m)
+        delta = difference_shift(*lines, float(healthy.mril.x_m[-1]), healthy.wheelbase_m)
     if fundamental:
         if None in lines:
             c_J, h_J = current.difference_mean.J, healthy.difference_mean.J
@@ -699,7 +699,7 @@ def healthy_estimates(healthy: BogieInfluence, batches: Sequence[BogieInfluence]
     out = []
     for b in batches:
         w_b = float(np.mean(b.wheel_load_n))
-        delta = 0.0 if b is healthy else _difference_shift(healthy.difference_line, b.difference_line, span, wb)
+        delta = 0.0 if b is healthy else difference_shift(healthy.difference_line, b.difference_line, span, wb)
         J = (w_b * _on_span(b.mril, x, delta) - (_on_span(b.approach_line, x, delta) - h_J)) / w_h
         d0 = np.interp(xd - delta, b.difference.x_m, b.difference.J)
         J0 = (w_b * d0 - (registered_fundamental(b.difference_line, delta, span, wb, grid_m=GRID_M, min_wavelength_m=MIN_WAVELENGTH_M) - h_0)) / w_h
@@ -744,7 +744,7 @@ def _lowpassed(line: MrIl) -> np.ndarray:
     return sosfiltfilt(butter(4, h / (0.5 * MIN_WAVELENGTH_M), output="sos"), line.J)
 
 
-def _difference_shift(healthy: MrIl, current: MrIl, span_m: float, wheelbase_m: float) -> float:
+def difference_shift(healthy: MrIl, current: MrIl, span_m: float, wheelbase_m: float) -> float:
     """The chainage shift δ (m) at mid-span of ``current``'s batch-mean wheel difference against
     ``healthy``'s (``current(x − δ) ≈ healthy(x)``), from the track either side of the span: where
     neither wheel is on the span, the difference is the unloaded profile's p(x) − p(x − 2·Lb) plus

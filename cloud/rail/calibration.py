@@ -48,7 +48,7 @@ profiled consensus has a closed form from per-run blocks, :func:`calibrate_batch
 decreasing shortest wavelength; σ² is re-estimated from the residual with its along-track
 correlation; the 95 % intervals are the Gauss–Newton sandwich at the optimum, H⁻¹ (JᵀΣJ/σ⁴ + prior)
 H⁻¹ with Σ the noise's covariance along the track and between a run's wheels as the residual shows
-it (:func:`_noise_information`; the Hessian alone took the noise as white), with the global
+it (:func:`noise_information`; the Hessian alone took the noise as white), with the global
 properties' uncertainty marginalised.
 
 Cost (the thesis's CE needs thousands of batch evaluations; this needs tens): the early stages see
@@ -61,7 +61,7 @@ rest), the speed's and shift's columns finite differences of the mapping alone; 
 accepted step, with chord steps (1 inverse per run) in between; samples past what the window needs
 are not inverted; every trial of every run is one compiled inverse call (:func:`carriage_aps_runs`)
 and one interpolation (:meth:`_Mapper.map_runs`); the stage's low-pass is a compiled zero-phase
-filter of the mapped rows in space (:func:`_sosfiltfilt_rows`; on the channels before the inverse it
+filter of the mapped rows in space (:func:`sosfiltfilt_rows`; on the channels before the inverse it
 biased the masses, :class:`_Mapper`). Measured on the benchmark's 50-run batch (``python -m
 benchmarks rail``, one BLAS thread, shared machine): 0.22–0.31 s CPU (0.25–0.42 s with the
 low-pass on the channels, which took more iterations), against 0.73 s with finite differences;
@@ -102,7 +102,7 @@ SAMPLES_PER_CUTOFF = 20
 #: A decimated stage's channels are low-passed (against aliasing) at its shortest wavelength ÷ this:
 #: the decimated rate's Nyquist is at ÷ 10 and the stage's own low-pass is in space (:class:`_Mapper`).
 ANTIALIAS_FACTOR = 4.0
-#: :func:`_sosfiltfilt_rows` transposes this many rows at a time into a work array that stays in cache.
+#: :func:`sosfiltfilt_rows` transposes this many rows at a time into a work array that stays in cache.
 FILTER_BLOCK_ROWS = 32
 MAX_WAVELENGTH_M = 60.0
 GRID_M = 0.1  # finest comparison grid spacing, m
@@ -122,7 +122,7 @@ JACOBIAN_CHUNK_RUNS = 8
 #: the exact Jacobian together.
 LAPLACE_REUSE_LOG = 0.01
 Z95 = 1.959963984540054
-#: :func:`_noise_information` keeps the wavenumbers up to the last where the residual's power times
+#: :func:`noise_information` keeps the wavenumbers up to the last where the residual's power times
 #: the Jacobian's is above this fraction of its peak: beyond the stage's low-pass both are down at
 #: the leakage floor of their ends, and the products' cost is in proportion to the bins kept.
 NOISE_BAND_FLOOR = 1e-6
@@ -193,12 +193,12 @@ def _lowpass(run: RailRun, min_wavelength_m: float = 2.0) -> np.ndarray:
     nyq = 0.5 / run.dt
     fc = run.speed_mps / min_wavelength_m
     if fc < 0.9 * nyq:
-        z = _sosfiltfilt(_butter4_sos(fc / nyq), np.ascontiguousarray(z))
+        z = sosfiltfilt_columns(butter4_sos(fc / nyq), np.ascontiguousarray(z))
     return z
 
 
 @njit(cache=True)
-def _sosfiltfilt(sos, x):
+def sosfiltfilt_columns(sos, x):
     """``scipy.signal.sosfiltfilt(sos, x, axis=0)`` with its defaults (odd extension of 3·(2·sections
     + 1) samples, each pass started in the steady state of its first sample), for sections without
     zero coefficients: the same arithmetic, to rounding. scipy's ~0.35 ms a call, mostly Python,
@@ -206,7 +206,7 @@ def _sosfiltfilt(sos, x):
     n, nch = x.shape
     edge = 3 * (2 * sos.shape[0] + 1)
     if n <= edge:
-        raise ValueError("_sosfiltfilt: the record is shorter than the filter's padding")
+        raise ValueError("sosfiltfilt_columns: the record is shorter than the filter's padding")
     ext = np.empty((n + 2 * edge, nch))  # channels side by side: independent recursions interleave
     ext[edge:edge + n] = x
     _filtfilt_extended(sos, ext, edge)
@@ -214,14 +214,14 @@ def _sosfiltfilt(sos, x):
 
 
 @njit(cache=True)
-def _sosfiltfilt_rows(sos, x):
-    """:func:`_sosfiltfilt` along the last axis of ``x`` (rows, n): the same numbers. The mapper
+def sosfiltfilt_rows(sos, x):
+    """:func:`sosfiltfilt_columns` along the last axis of ``x`` (rows, n): the same numbers. The mapper
     filters ~200–300 mapped rows a call; a block of rows at a time is transposed into a work array
-    that stays in cache (2–3x faster than numpy's transposes around :func:`_sosfiltfilt`)."""
+    that stays in cache (2–3x faster than numpy's transposes around :func:`sosfiltfilt_columns`)."""
     nch, n = x.shape
     edge = 3 * (2 * sos.shape[0] + 1)
     if n <= edge:
-        raise ValueError("_sosfiltfilt_rows: the record is shorter than the filter's padding")
+        raise ValueError("sosfiltfilt_rows: the record is shorter than the filter's padding")
     out = np.empty_like(x)
     for c0 in range(0, nch, FILTER_BLOCK_ROWS):
         c1 = min(nch, c0 + FILTER_BLOCK_ROWS)
@@ -285,7 +285,7 @@ def _filtfilt_extended(sos, ext, edge):
                     row[ch] = out
 
 
-def _butter4_sos(wn: float) -> np.ndarray:
+def butter4_sos(wn: float) -> np.ndarray:
     """``scipy.signal.butter(4, wn, output="sos")`` in closed form (same sections, same order, to
     ~1e-13 relative): the bilinear transform of the prewarped analog poles. scipy's design took
     ~0.3 ms a call — 6 % of a production batch calibration, which designs one per run and stage."""
@@ -336,13 +336,13 @@ class _Mapper:
         X = np.stack([((grid - grid.mean()) / np.ptp(grid)) ** k for k in range(4)], axis=1)
         self.basis, _ = np.linalg.qr(X)
         wn = 2.0 * (grid[1] - grid[0]) / min_wavelength_m if min_wavelength_m else 1.0
-        self.sos = _butter4_sos(wn) if wn < 0.9 else None
+        self.sos = butter4_sos(wn) if wn < 0.9 else None
 
     def lowpass(self, a: np.ndarray) -> np.ndarray:
         """``a`` (..., K) without wavelengths shorter than the mapper's (zero phase, along the grid)."""
         if self.sos is None:
             return a
-        return _sosfiltfilt_rows(self.sos, np.ascontiguousarray(a).reshape(-1, a.shape[-1])).reshape(a.shape)
+        return sosfiltfilt_rows(self.sos, np.ascontiguousarray(a).reshape(-1, a.shape[-1])).reshape(a.shape)
 
     def detrend(self, a: np.ndarray) -> np.ndarray:
         return a - (a @ self.basis) @ self.basis.T
@@ -437,7 +437,7 @@ def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: floa
                       body0: np.ndarray | None = None) -> np.ndarray:
     """APs (T, N, 4) under T parameter sets ``theta`` (T, 8) in :data:`INVERSE_NAMES` order, trial t
     on run ``run_of[t]``'s channels ``z`` (R, N, 4) (the first ``lengths[r]`` samples, step
-    ``dts[r]``; the rest of its AP is zero). Same result as :func:`cloud.reference.cross_entropy.
+    ``dts[r]``; the rest of its AP is zero). Same result as :func:`shared.dynamics.population.
     population_aps` per run; the carriage's matrices are assembled in array form — M, C, K are
     linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`) — and the whole
     batch is one compiled call (:func:`_inverse_kernel` without derivatives), instead of a
@@ -834,7 +834,7 @@ def _re_products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.concatenate([a.real, -a.imag], axis=-2).swapaxes(-1, -2) @ np.concatenate([b.real, b.imag], axis=-2)
 
 
-def _noise_information(e: np.ndarray, D: np.ndarray, L: int, active: np.ndarray) -> np.ndarray:
+def noise_information(e: np.ndarray, D: np.ndarray, L: int, active: np.ndarray) -> np.ndarray:
     """Jᵀ Σ J (n·L + n_g square) of the profiled consensus residual — J as ``normal_equations`` of
     :func:`calibrate_batch` has it, ∂e_rw/∂x = D_rw − D̄ with D̄ the mean of every run's and wheel's
     rows — and Σ the noise's covariance as the residual ``e`` shows it (:func:`_residual_cross_spectrum`):
@@ -1145,13 +1145,13 @@ def calibrate_batch(
     JtJ, _ = normal_equations(e, D)
     H = JtJ / sigma2 + np.diag(P) + Q
     # The sandwich H⁻¹ (JᵀΣJ/σ⁴ + prior) H⁻¹, Σ the noise's covariance as the residual shows it
-    # (:func:`_noise_information`). H⁻¹ alone takes the noise as white with σ² scaled by the
+    # (:func:`noise_information`). H⁻¹ alone takes the noise as white with σ² scaled by the
     # residual's correlation factor: right on average over the grid, not for each coordinate, whose
     # signature sits where the (integrated, red) noise is stronger or weaker than that average.
     # Monte Carlo over the noise (10 × the benchmark's 50 runs, per-run errors about the batch's
     # mean over the intervals' own per-run sd): mv/Iv z rms 0.87/0.58 → 1.15/0.92 on clean starts,
     # 1.46/1.50 → 1.29/1.35 on records cut mid-motion.
-    meat = _noise_information(e, D, L, active) / sigma2**2 + np.diag(P) + Q
+    meat = noise_information(e, D, L, active) / sigma2**2 + np.diag(P) + Q
     H_inv = np.linalg.inv(H)
     cov = H_inv @ meat @ H_inv
     if held_globals_cov is not None:

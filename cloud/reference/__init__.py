@@ -5,11 +5,14 @@
   plus the exact Gaussian posterior of the same model for fixed vehicles, and the bridge's element
   second moments of area with the vehicles' weights (§4.5.4).
 
-They are deliberately faithful rather than fast; the production estimators live in
-``cloud/estimators`` and ``cloud/calibration.py``. Nothing in the daemons imports this package.
+They are deliberately faithful rather than fast; the production estimators live in ``cloud/road``,
+``cloud/bridge`` and ``cloud/rail``. Nothing in the daemons imports this package: what the two share
+(the inverse for a population of parameter sets, :func:`population_aps`) lives in ``shared``.
 """
 
-from cloud.reference.cross_entropy import cross_entropy_fleet, fleet_aps, fleet_objective, objective, population_aps
+from shared.dynamics.population import population_aps
+
+from cloud.reference.cross_entropy import cross_entropy_fleet, fleet_aps, fleet_objective, objective
 from cloud.reference.mcmc import (THESIS_PROPOSAL_SD, BridgeMcmcResult, McmcResult, ProfilePosterior, exact_profile_posterior, forward_channels,
                    mcmc_bridge_elements, mcmc_profile_and_vehicles, response_matrix)
 

@@ -36,17 +36,15 @@ value at the truth for K_t × 3, m_u × 0.1), whatever the road says. Cut at 1 m
 hop at these speeds) the objective at the truth is 7× its noise-free value, and moving off the
 truth raises it: K_t × 1.3, m_u × 0.7, I_s × 0.9, D × 0.95 or K_s1 × 1.1 by 6–13×, a damper × 1.2
 by 1.9×, K_t2 × 1.1 by 1.4×; cut at 0.5 m it is still 240× its noise-free value and still lower for
-stiffer tyres (road-hc seed-0 logs). Over the whole search (``driveby reproduce road``, seed 0,
-stopping after two injections): averaged median error 85.6 % → 8.5 % at 1 % noise, 10.2 → 8.6 %
-noise-free; through all six injections (``min_injections=6``, as the report runs it) 5.4 % and 5.2 %
-(the thesis's, noise-free: 6.8 %). ``lowpass_m=None`` is eq. (2.32) on raw APs.
+stiffer tyres (road-hc seed-0 logs). ``lowpass_m=None`` is eq. (2.32) on raw APs; what the search
+reaches with and without the cut is in ``docs/results.md`` (``driveby reproduce road``).
 
 Only ratios are identifiable (divide the equations of motion by the body mass): the objective is
 flat along each vehicle's mass scale, so absolute values wander while ratios converge — exactly
 what the thesis reports (Tables 2.3, 2.5, 2.6).
 
 Evaluating a trial runs the inverse of every vehicle under new parameters;
-:func:`shared.dynamics.batched_inverse.inverse_runs` runs the readable inverse step of
+:func:`shared.dynamics.population.population_aps` runs the readable inverse step of
 :mod:`shared.dynamics.inverse` for a whole population in one compiled call, without compiling a
 state-space model per trial.
 """
@@ -61,10 +59,8 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from shared.dynamics.newmark import newmark_constants
+from shared.dynamics.population import population_aps
 from shared.vehicles import MODELS, vehicle_from_params
-
-from shared.dynamics.batched_inverse import inverse_runs
 
 log = logging.getLogger(__name__)
 
@@ -72,38 +68,6 @@ ELITE_FRACTION = 0.10  # thesis §2.4: "the 10% best of the trial vehicle proper
 #: Shortest wavelength compared (m): above every wheel hop at road speeds, below which the inverse's
 #: noise gain (∝ f²) swamps the road at 1 % noise (module docstring).
 LOWPASS_M = 1.0
-
-
-# ---------------------------------------------------------------------------------------------
-# The inverse for a population of parameter sets
-
-
-def population_aps(model: str, trials: Sequence[dict[str, float]], channels: np.ndarray, dt: float,
-                   gamma: float = 0.8, beta: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """APs (T, n_samples, n_contacts) of one vehicle's ``channels`` under each trial parameter set.
-
-    Also returns the contact offsets (T, n_contacts) ahead of the centre of gravity, m.
-    """
-    c = newmark_constants(dt, gamma, beta)
-    systems = [vehicle_from_params(model, p).system() for p in trials]
-    s0 = systems[0]
-    measured = [ch.dof for ch in s0.channels]
-    free = np.array([i for i in range(s0.n_dof) if i not in measured], dtype=np.int64)
-    M = np.stack([s.M for s in systems])
-    C = np.stack([s.C for s in systems])
-    K = np.stack([s.K for s in systems])
-    G = np.stack([s.G for s in systems])
-    S = np.concatenate([M[:, :, free] + c.gamma * dt * C[:, :, free] + c.beta * dt * dt * K[:, :, free], -G], axis=2)
-    Sinv = np.ascontiguousarray(np.linalg.inv(S))
-    kc = np.stack([s.kc for s in systems])
-    cc = np.stack([s.cc for s in systems])
-    dof = np.array(measured, dtype=np.int64)
-    is_acc = np.array([ch.kind == "acc" for ch in s0.channels])
-    z = np.ascontiguousarray(channels, dtype=np.float64).reshape(1, len(channels), -1)  # one run
-    out = np.empty((len(systems), s0.n_contacts, z.shape[1]))
-    inverse_runs(Sinv, M, C, K, kc, cc, dof, is_acc, free, np.zeros(len(systems), dtype=np.int64), z,
-                 np.array([z.shape[1]], dtype=np.int64), np.array([float(dt)]), c.gamma, c.beta, out)
-    return out.transpose(0, 2, 1), np.stack([s.offsets_m for s in systems])
 
 
 # ---------------------------------------------------------------------------------------------

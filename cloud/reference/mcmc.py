@@ -356,8 +356,10 @@ def _gram_by_lags(idx, w, gk, g0, wq, z, M, D0, b):
             b[idx[c, k] + 1] += w[c, k] * y
 
 
-class _Vehicle:
-    """One vehicle's data and its current linear structure (rebuilt when its parameters change)."""
+class VehiclePass:
+    """One vehicle's pass as the sampler sees it: its channels ``data`` (n_samples, n_channels), driven
+    at ``speed`` from chainage ``x0`` and sampled every ``dt``, over the profile ``grid``; and its current
+    linear structure (rebuilt by :meth:`set_params` when its parameters change)."""
 
     def __init__(self, model: str, data: np.ndarray, speed: float, x0: float, dt: float, grid: np.ndarray):
         self.model, self.data, self.speed, self.x0, self.dt, self.grid = model, data, speed, x0, dt, grid
@@ -386,7 +388,7 @@ class _Vehicle:
 def forward_channels(model: str, params: dict[str, float], grid: np.ndarray, R: np.ndarray, speed: float,
                      x0: float, n_samples: int, dt: float) -> np.ndarray:
     """The model's channels (n_samples, n_channels) for a pass over the linear interpolant of R on grid."""
-    v = _Vehicle(model, np.zeros((n_samples, 1)), speed, x0, dt, np.asarray(grid, float))
+    v = VehiclePass(model, np.zeros((n_samples, 1)), speed, x0, dt, np.asarray(grid, float))
     return v.forward(np.asarray(R, float), params)
 
 
@@ -394,7 +396,7 @@ def response_matrix(model: str, params: dict[str, float], grid: np.ndarray, spee
                     n_samples: int, dt: float) -> np.ndarray:
     """H (n_samples, n_channels, P) with channels = H·R exactly (the linearity the sampler uses)."""
     grid = np.asarray(grid, float)
-    v = _Vehicle(model, np.zeros((n_samples, 1)), speed, x0, dt, grid)
+    v = VehiclePass(model, np.zeros((n_samples, 1)), speed, x0, dt, grid)
     v.set_params(params)
     nch = len(v.system.channels)
     cols = np.zeros((grid.size, n_samples, nch))
@@ -423,7 +425,7 @@ def _inv_sigma2(sigma2, nch: int) -> np.ndarray:
     return 1.0 / s
 
 
-def _data_normal_equations(veh: _Vehicle, z: np.ndarray, w: np.ndarray, buffer: np.ndarray
+def _data_normal_equations(veh: VehiclePass, z: np.ndarray, w: np.ndarray, buffer: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray]:
     """One vehicle's ``HᵀΛH`` (P, P) and ``HᵀΛz`` (P,), Λ = diag(w) per channel.
 
@@ -486,7 +488,7 @@ def exact_profile_posterior(
     zs = [np.asarray(z, float).reshape(len(z), -1) for z in channels_list]
     buffer = np.empty(grid.size * max(z.size for z in zs))
     for z, v, x, p in zip(zs, speeds, x0, params_list):
-        veh = _Vehicle(model, z, float(v), float(x), dt, grid)
+        veh = VehiclePass(model, z, float(v), float(x), dt, grid)
         veh.set_params(p)
         Qn, bn = _data_normal_equations(veh, z, _inv_sigma2(sigma2, z.shape[1]), buffer)
         Q += Qn
@@ -594,7 +596,7 @@ def mcmc_profile_and_vehicles(
 
     vehicles = []
     for z, v, x, p in zip(channels_list, speeds, x0, init_params):
-        veh = _Vehicle(model, np.asarray(z, float).reshape(len(z), -1), float(v), x, dt, grid)
+        veh = VehiclePass(model, np.asarray(z, float).reshape(len(z), -1), float(v), x, dt, grid)
         veh.set_params({n: p[n] for n in names})
         vehicles.append(veh)
     nch = vehicles[0].data.shape[1]

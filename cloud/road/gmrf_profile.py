@@ -61,6 +61,7 @@ from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from shared.schema import SIGMA_SCALE, ApSegment
 
+from cloud.road.banded import draw_into, selected_inverse
 from cloud.road.mean_profile import ProfileSnapshot
 from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
 
@@ -82,53 +83,6 @@ def iso8608_tau(spacing_m: float, gd0_m3: float = 64e-6, order: int = 1) -> floa
     """
     var = (2.0 if order == 1 else 4.0) * math.pi**2 * gd0_m3 * 0.1**2 * spacing_m
     return 1.0 / var
-
-
-# -- banded kernels ------------------------------------------------------------------------------
-
-
-@njit(**_FLAGS)
-def _selected_inverse(cb):
-    """Band of ``Σ = (L Lᵀ)⁻¹`` from the lower banded Cholesky factor ``cb[d, i] = L[i + d, i]``.
-
-    Takahashi recursion, from the last row up: ``Σ_ij = δ_ij / L_ii² − Σ_k L_ki Σ_kj / L_ii`` over
-    ``i < k ≤ i + b``. Returns ``S[d, i] = Σ[i, i + d]`` for ``d ≤ b``. O(n b²).
-    """
-    u1, n = cb.shape
-    b = u1 - 1
-    S = np.zeros((u1, n))
-    for i in range(n - 1, -1, -1):
-        lii = cb[0, i]
-        kmax = min(b, n - 1 - i)
-        for dj in range(kmax, -1, -1):
-            j = i + dj
-            s = 0.0
-            for dk in range(1, kmax + 1):
-                k = i + dk
-                v = S[j - k, k] if k <= j else S[k - j, j]
-                s += cb[dk, i] * v
-            if dj == 0:
-                S[0, i] = (1.0 / lii - s) / lii
-            else:
-                S[dj, i] = -s / lii
-    return S
-
-
-@njit(**_FLAGS)
-def _draw(cb, mean, z):
-    """Turn standard normal rows ``z`` (n_rhs, n) into ``mean + L⁻ᵀ z`` in place (back substitution)."""
-    u1, n = cb.shape
-    b = u1 - 1
-    n_rhs = z.shape[0]
-    inv = 1.0 / cb[0]  # a multiply, not a division, on the recurrence's critical path
-    for r in range(n_rhs):
-        for i in range(n - 1, -1, -1):
-            acc = z[r, i]
-            for d in range(1, min(b, n - 1 - i) + 1):
-                acc -= cb[d, i] * z[r, i + d]
-            z[r, i] = acc * inv[i]
-        for i in range(n):
-            z[r, i] += mean[i]
 
 
 def difference_precision(n: int, order: int) -> np.ndarray:
@@ -481,9 +435,9 @@ class GmrfProfile:
             for r in range(n):
                 rng.standard_normal(out=out[r, blk.start : blk.stop])
             if blk.drift is None:
-                _draw(blk.factor, blk.mean, out[:, blk.start : blk.stop])
+                draw_into(blk.factor, blk.mean, out[:, blk.start : blk.stop])
             else:  # R = A_RR⁻¹ b_R − W β + L⁻ᵀ z, β drawn from its marginal posterior
-                _draw(blk.factor, blk.mean0, out[:, blk.start : blk.stop])
+                draw_into(blk.factor, blk.mean0, out[:, blk.start : blk.stop])
                 out[:, blk.start : blk.stop] += blk.drift.draw_shift(rng.standard_normal((n, blk.drift.n_coefficients)))
             done = blk.stop
         out[:, done:] = np.nan
@@ -568,12 +522,12 @@ class GmrfProfile:
                 ab[d, : m - d] += route.q[d, a : e - d]
             cb = cholesky_banded(ab, lower=True, check_finite=False)
             mean = cho_solve_banded((cb, True), route.b[a:e], check_finite=False)
-            S = _selected_inverse(cb)
+            S = selected_inverse(cb)
             blocks.append(_Block(a, e, cb, mean, S, precision=ab))
             if m > self.order:
                 # Sums, not np.dot: a long BLAS dot runs multi-threaded, and on a loaded machine its
-                # thread hand-off cost ~10 ms per call whatever the length (measured; it made the
-                # snapshot look superlinear in the route length).
+                # thread hand-off costs milliseconds per call whatever the length, which makes the
+                # snapshot superlinear in the route length.
                 d = np.diff(mean, n=self.order)
                 tr = float((A[0] * S[0]).sum()) + 2.0 * sum(float((A[k] * S[k]).sum()) for k in range(1, self.order + 1))
                 stat += float((d * d).sum()) + tr

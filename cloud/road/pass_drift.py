@@ -39,8 +39,8 @@ from that small banded system and the chunks:
 * draws: ``β`` from the reduced system, then ``R = A_RR⁻¹ b_R − A_RR⁻¹ A_Rβ β + L⁻ᵀ z``.
 
 Cost per snapshot, for P points and n passes at a point: O(P · n) for the chunk solves and
-O(P · n²) for the band, O(knots · n³) per ``s²`` tried: linear in the route length (the earlier
-dense elimination was O(P · K) in memory and O(P · K²) in time with K all knots of all passes).
+O(P · n²) for the band, O(knots · n³) per ``s²`` tried: linear in the route length (eliminating
+the profile against all K knots of all passes at once would be O(P · K) in memory and O(P · K²) in time).
 Segment updates and retractions do not touch any of it.
 """
 
@@ -56,6 +56,8 @@ from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from scipy.optimize import minimize_scalar
 
 from shared.schema import ApSegment
+
+from cloud.road.banded import band_cholesky, band_solve, draw_into, selected_inverse
 
 #: Range the drift sd is learnt within (m); below the lower end the drift is taken as absent.
 DRIFT_SD_BOUNDS_M = (1e-7, 1e-2)
@@ -262,52 +264,6 @@ def _chunk_rhs(ab, indptr, indices, data, b, i0, i1, around, betas):
     return out
 
 
-@njit(cache=True)
-def _band_cholesky(ab):
-    """Lower banded Cholesky factor (``cb[d, j] = L[j + d, j]``) of the lower banded ``ab``."""
-    u1, n = ab.shape
-    cb = ab.copy()
-    for j in range(n):
-        s = cb[0, j]
-        for k in range(max(0, j - u1 + 1), j):
-            s -= cb[j - k, k] * cb[j - k, k]
-        if not s > 0.0:
-            raise ValueError("matrix not positive definite")
-        ljj = math.sqrt(s)
-        cb[0, j] = ljj
-        for d in range(1, min(u1, n - j)):
-            i = j + d
-            t = cb[d, j]
-            for k in range(max(0, i - u1 + 1), j):
-                t -= cb[i - k, k] * cb[j - k, k]
-            cb[d, j] = t / ljj
-    return cb
-
-
-@njit(cache=True)
-def _band_solve(cb, M):
-    """``M ← (L Lᵀ)⁻¹ M`` in place for the banded factor ``cb`` and right-hand sides ``M`` (n, r)."""
-    u1, n = cb.shape
-    r = M.shape[1]
-    for i in range(n):  # L y = M
-        for d in range(1, min(u1, i + 1)):
-            l = cb[d, i - d]
-            for c in range(r):
-                M[i, c] -= l * M[i - d, c]
-        inv = 1.0 / cb[0, i]
-        for c in range(r):
-            M[i, c] *= inv
-    for i in range(n - 1, -1, -1):  # Lᵀ x = y
-        for d in range(1, min(u1, n - i)):
-            l = cb[d, i]
-            for c in range(r):
-                M[i, c] -= l * M[i + d, c]
-        inv = 1.0 / cb[0, i]
-        for c in range(r):
-            M[i, c] *= inv
-    return M
-
-
 @dataclass
 class _Chunk:
     start: int  # interior points [start, stop) of the block
@@ -373,11 +329,9 @@ class DriftPosterior:
         ``(E[βᵀβ] / s2 − K) / (2 s2)``, zero where ``s2 = E[βᵀβ] / K`` (the EM fixed point)."""
         if self.n_beta == 0:
             return 0.0
-        from cloud.road.gmrf_profile import _selected_inverse
-
         cb = self._factor(s2)
         mb = cho_solve_banded((cb, True), self.b_red, check_finite=False)[self.beta_idx]
-        return float(mb @ mb) + float(_selected_inverse(cb)[0, self.beta_idx].sum())
+        return float(mb @ mb) + float(selected_inverse(cb)[0, self.beta_idx].sum())
 
     def set_level(self, s2: float) -> None:
         """Fix the drift variance (m²): factorise the reduced system and take its mean and band."""
@@ -407,9 +361,7 @@ class DriftPosterior:
         out = np.zeros(self.size)
         if self.s2 <= 0.0:
             return out
-        from cloud.road.gmrf_profile import _selected_inverse  # (gmrf_profile imports this module)
-
-        cov = _selected_inverse(self.factor_red)
+        cov = selected_inverse(self.factor_red)
         out[self.sep_points] = cov[0, self.sep_red] - self.cov0[0, np.arange(self.sep_points.size)]
         for ch in self.chunks:
             G = self._chunk_solve(ch)[:, :-1]
@@ -424,15 +376,13 @@ class DriftPosterior:
         normals ``z`` (n, :attr:`n_coefficients`): the reduced system is drawn whole, β taken from it."""
         if self.s2 <= 0.0:
             return np.zeros((z.shape[0], self.size))
-        from cloud.road.gmrf_profile import _draw
-
         x = np.array(z, dtype=np.float64, order="C")
-        _draw(self.factor_red, self.mean_red, x)
+        draw_into(self.factor_red, self.mean_red, x)
         return self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
 
     def _chunk_solve(self, ch: _Chunk) -> np.ndarray:
         """``A_II⁻¹ [A_IS, A_Iβ, b_I]`` of one chunk (its last column the information's)."""
-        return _band_solve(ch.factor, self._chunk_rhs(ch))
+        return band_solve(ch.factor, self._chunk_rhs(ch))
 
     def _chunk_rhs(self, ch: _Chunk) -> np.ndarray:
         A = self.A_Rb
@@ -508,11 +458,11 @@ def eliminate(ab: np.ndarray, cb: np.ndarray, b: np.ndarray, system: DriftSystem
         around = np.array([j for j in range(i0 - u, i0) if j >= 0] + [j for j in range(i1, i1 + u) if j < P],
                           dtype=np.int64)
         betas = np.unique(system.A_Rb.indices[system.A_Rb.indptr[i0] : system.A_Rb.indptr[i1]])
-        ch = _Chunk(i0, i1, _band_cholesky(ab[:, i0:i1]), around, betas,
+        ch = _Chunk(i0, i1, band_cholesky(ab[:, i0:i1]), around, betas,
                     np.concatenate([point_red[around], beta_idx[betas]]), sep_pos0[around])
         post.chunks.append(ch)
         M = post._chunk_rhs(ch)
-        X = _band_solve(ch.factor, M.copy())
+        X = band_solve(ch.factor, M.copy())
         nJ = ch.J.size
         add(ch.J, ch.J, -(M[:, :nJ].T @ X[:, :nJ]))
         np.subtract.at(b_red, ch.J, M[:, :nJ].T @ X[:, nJ])
@@ -520,8 +470,6 @@ def eliminate(ab: np.ndarray, cb: np.ndarray, b: np.ndarray, system: DriftSystem
     post.red = _to_band(r, c, v, n)
     post.b_red, post.beta_idx, post.sep_red, post.sep_points = b_red, beta_idx, sep_red, sep_points
     if sep_points.size:  # the same system without β: the evidence's reference and the drift-free band
-        from cloud.road.gmrf_profile import _selected_inverse
-
         keep = (r < n) & np.isin(r, sep_red) & np.isin(c, sep_red)
         to0 = np.full(n, -1, dtype=np.int64)
         to0[sep_red] = np.arange(sep_red.size)  # sep_red is increasing: positions keep their order
@@ -530,7 +478,7 @@ def eliminate(ab: np.ndarray, cb: np.ndarray, b: np.ndarray, system: DriftSystem
         x0 = cho_solve_banded((cb0, True), b_red[sep_red], check_finite=False)
         post.quad0 = float(b_red[sep_red] @ x0)
         post.logdet0 = 2.0 * float(np.sum(np.log(cb0[0])))
-        post.cov0 = _selected_inverse(cb0)
+        post.cov0 = selected_inverse(cb0)
     return post
 
 

@@ -36,11 +36,11 @@ from numpy.typing import ArrayLike
 from .iso8608 import (
     TYRE_WINDOW_M,
     RoadProfile,
-    _finite_float,
-    _harmonic_grid,
-    _moving_average,
-    _positive_float,
-    _synthesise,
+    finite_float,
+    harmonic_grid,
+    positive_float,
+    synthesise,
+    tyre_average,
 )
 
 N_LANES = 11
@@ -84,8 +84,8 @@ class Carpet:
     elevation_m: np.ndarray
 
     def __post_init__(self) -> None:
-        start = _finite_float(self.start_m, "start_m")
-        spacing = _positive_float(self.spacing_m, "spacing_m")
+        start = finite_float(self.start_m, "start_m")
+        spacing = positive_float(self.spacing_m, "spacing_m")
         offsets = np.array(self.offsets_m, dtype=np.float64)
         y = np.array(self.elevation_m, dtype=np.float64)
         if offsets.ndim != 1 or offsets.size < 1:
@@ -146,7 +146,7 @@ class Carpet:
 
     def tyre_filtered(self, window_m: float = TYRE_WINDOW_M) -> Carpet:
         """Every lane put through :func:`~shared.profiles.iso8608.tyre_filter` (same grid)."""
-        y = _moving_average(self.elevation_m, self.spacing_m, window_m)
+        y = tyre_average(self.elevation_m, self.spacing_m, window_m)
         return Carpet(self.start_m, self.spacing_m, self.offsets_m, y)
 
 
@@ -179,9 +179,9 @@ def carpet_profile(
     Carpet
         Starting at chainage 0, offsets ``(i − (n_lanes − 1) / 2) · lane_spacing_m``.
     """
-    grid = _harmonic_grid(length_m, spacing_m, n_min, n_max, road_class)
+    grid = harmonic_grid(length_m, spacing_m, n_min, n_max, road_class)
     n_lanes = _lane_count(n_lanes)
-    offsets = (np.arange(n_lanes) - 0.5 * (n_lanes - 1)) * _positive_float(
+    offsets = (np.arange(n_lanes) - 0.5 * (n_lanes - 1)) * positive_float(
         lane_spacing_m, "lane_spacing_m"
     )
     rng = np.random.default_rng(seed)
@@ -190,11 +190,11 @@ def carpet_profile(
     separation = np.abs(offsets[:, None] - offsets[None, :])
     for lo in range(0, grid.wavenumber.size, _BATCH):
         batch = slice(lo, lo + _BATCH)
-        chol = np.linalg.cholesky(_lateral_correlation(grid.wavenumber[batch], separation))
+        chol = np.linalg.cholesky(lateral_correlation(grid.wavenumber[batch], separation))
         z[batch] = (chol @ xi[batch, :, None])[..., 0]
     magnitude = np.abs(z)
     phasor = np.where(magnitude > 0, z / np.where(magnitude > 0, magnitude, 1.0), 1.0)
-    y = _synthesise(grid, phasor.T)
+    y = synthesise(grid, phasor.T)
     return Carpet(0.0, grid.spacing_m, offsets, y)
 
 
@@ -206,7 +206,7 @@ def lane_probabilities(n_lanes: int = N_LANES, sd_lanes: float = SD_LANES) -> np
     nearest one to ``u``. Hence ``P(i) ∝ Φ((i + ½ − c)/sd) − Φ((i − ½ − c)/sd)``.
     """
     n = _lane_count(n_lanes)
-    sd = _positive_float(sd_lanes, "sd_lanes")
+    sd = positive_float(sd_lanes, "sd_lanes")
     centre = 0.5 * (n - 1)
     edges = (np.arange(n + 1) - 0.5 - centre) / (sd * math.sqrt(2.0))
     cdf = 0.5 * np.array([math.erf(e) for e in edges])
@@ -231,7 +231,7 @@ def draw_lane(
     return int(lane) if size is None else lane
 
 
-def _lateral_correlation(wavenumber: np.ndarray, separation: np.ndarray) -> np.ndarray:
+def lateral_correlation(wavenumber: np.ndarray, separation: np.ndarray) -> np.ndarray:
     """Matérn-1 lateral correlation ``x K₁(x)``, ``x = 2π n Δy``: (harmonics, lanes, lanes)."""
     from scipy.special import k1  # lazy: keeps scipy out of the import of the package
 

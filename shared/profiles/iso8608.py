@@ -51,8 +51,8 @@ class RoadProfile:
     elevation_m: np.ndarray
 
     def __post_init__(self) -> None:
-        start = _finite_float(self.start_m, "start_m")
-        spacing = _positive_float(self.spacing_m, "spacing_m")
+        start = finite_float(self.start_m, "start_m")
+        spacing = positive_float(self.spacing_m, "spacing_m")
         y = np.array(self.elevation_m, dtype=np.float64)
         if y.ndim != 1:
             raise ValueError(f"elevation_m must be 1-D, got shape {y.shape}")
@@ -117,7 +117,7 @@ class RoadProfile:
         The new grid stops at the last point not beyond ``end_m``. No anti-alias filtering is done:
         when coarsening, apply :func:`tyre_filter` (or another low-pass) first if that matters.
         """
-        spacing = _positive_float(spacing_m, "spacing_m")
+        spacing = positive_float(spacing_m, "spacing_m")
         n = int(math.floor((self.end_m - self.start_m) / spacing * (1.0 + _RANGE_RTOL))) + 1
         if n < 2:
             raise ValueError(
@@ -200,10 +200,10 @@ def iso8608_profile(
     RoadProfile
         Elevations (m) starting at chainage 0.
     """
-    grid = _harmonic_grid(length_m, spacing_m, n_min, n_max, road_class)
+    grid = harmonic_grid(length_m, spacing_m, n_min, n_max, road_class)
     rng = np.random.default_rng(seed)
     phase = rng.uniform(0.0, 2.0 * np.pi, grid.amplitude.size)
-    y = _synthesise(grid, np.exp(1j * phase))
+    y = synthesise(grid, np.exp(1j * phase))
     return RoadProfile(0.0, grid.spacing_m, y)
 
 
@@ -225,12 +225,12 @@ def tyre_filter(profile: RoadProfile, window_m: float = TYRE_WINDOW_M) -> RoadPr
     ValueError
         If the window is shorter than half a grid spacing, or longer than the profile.
     """
-    y = _moving_average(profile.elevation_m, profile.spacing_m, window_m)
+    y = tyre_average(profile.elevation_m, profile.spacing_m, window_m)
     return RoadProfile(profile.start_m, profile.spacing_m, y)
 
 
 @dataclasses.dataclass(frozen=True)
-class _HarmonicGrid:
+class HarmonicGrid:
     """Where the spectral synthesis puts its harmonics, and with what amplitude."""
 
     n_points: int  # samples returned
@@ -241,18 +241,18 @@ class _HarmonicGrid:
     amplitude: np.ndarray  # |rfft coefficient| for each, so irfft gives A_k cos(...)
 
 
-def _harmonic_grid(
+def harmonic_grid(
     length_m: float, spacing_m: float, n_min: float, n_max: float | None, road_class: str
-) -> _HarmonicGrid:
+) -> HarmonicGrid:
     """Validate the synthesis inputs and lay out the harmonics (amplitudes for ``road_class``)."""
     road_class = _road_class(road_class)
-    length = _positive_float(length_m, "length_m")
-    spacing = _positive_float(spacing_m, "spacing_m")
+    length = positive_float(length_m, "length_m")
+    spacing = positive_float(spacing_m, "spacing_m")
     if length < spacing:
         raise ValueError(f"length_m={length} must be at least spacing_m={spacing}")
     nyquist = 0.5 / spacing
-    lo = _positive_float(n_min, "n_min")
-    hi = nyquist if n_max is None else _positive_float(n_max, "n_max")
+    lo = positive_float(n_min, "n_min")
+    hi = nyquist if n_max is None else positive_float(n_max, "n_max")
     if hi > nyquist * (1.0 + _RANGE_RTOL):
         raise ValueError(f"n_max={hi} cycles/m exceeds the Nyquist frequency {nyquist} of the grid")
     if lo >= hi:
@@ -267,19 +267,19 @@ def _harmonic_grid(
     index, n = k[keep], n[keep]
     # irfft(c)[j] = (2/N) |c_k| cos(2π k j / N + arg c_k) for 0 < k < N/2, and A_k² = 2 Gd Δn.
     amplitude = n_fft * np.sqrt(0.5 * iso8608_psd(n, road_class) * dn)
-    return _HarmonicGrid(n_points, spacing, n_fft, index, n, amplitude)
+    return HarmonicGrid(n_points, spacing, n_fft, index, n, amplitude)
 
 
-def _synthesise(grid: _HarmonicGrid, phasor: np.ndarray) -> np.ndarray:
+def synthesise(grid: HarmonicGrid, phasor: np.ndarray) -> np.ndarray:
     """Sum the harmonics with unit ``phasor`` (…, n_harmonics); returns (…, n_points) elevations."""
     coeffs = np.zeros(phasor.shape[:-1] + (grid.n_fft // 2 + 1,), dtype=np.complex128)
     coeffs[..., grid.index] = grid.amplitude * phasor
     return np.fft.irfft(coeffs, n=grid.n_fft, axis=-1)[..., : grid.n_points]
 
 
-def _moving_average(y: np.ndarray, spacing_m: float, window_m: float) -> np.ndarray:
-    """Tyre filter of :func:`tyre_filter` along the last axis of ``y``."""
-    window = _positive_float(window_m, "window_m")
+def tyre_average(y: np.ndarray, spacing_m: float, window_m: float) -> np.ndarray:
+    """Tyre filter of :func:`tyre_filter` along the last axis of ``y`` (samples every ``spacing_m``)."""
+    window = positive_float(window_m, "window_m")
     k = int(round(window / spacing_m))
     if k < 1:
         raise ValueError(f"window_m={window} is shorter than the grid spacing {spacing_m} m")
@@ -311,7 +311,8 @@ def _road_class(road_class: str) -> str:
     return key
 
 
-def _finite_float(value: float, name: str) -> float:
+def finite_float(value: float, name: str) -> float:
+    """``value`` as a finite float, or ValueError naming the argument ``name``."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -321,8 +322,9 @@ def _finite_float(value: float, name: str) -> float:
     return v
 
 
-def _positive_float(value: float, name: str) -> float:
-    v = _finite_float(value, name)
+def positive_float(value: float, name: str) -> float:
+    """``value`` as a finite float > 0, or ValueError naming the argument ``name``."""
+    v = finite_float(value, name)
     if v <= 0.0:
         raise ValueError(f"{name} must be > 0, got {v}")
     return v
