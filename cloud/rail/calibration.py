@@ -80,8 +80,8 @@ from typing import Sequence
 
 import numpy as np
 import scipy.fft
-from numba import njit
 
+from shared.jit import kernel
 from shared.vehicles.carriage import Carriage
 
 RUN_NAMES = ("mv", "Iv", "v")
@@ -197,7 +197,7 @@ def _lowpass(run: RailRun, min_wavelength_m: float = 2.0) -> np.ndarray:
     return z
 
 
-@njit(cache=True)
+@kernel
 def _sosfiltfilt(sos, x):
     """``scipy.signal.sosfiltfilt(sos, x, axis=0)`` with its defaults (odd extension of 3·(2·sections
     + 1) samples, each pass started in the steady state of its first sample), for sections without
@@ -213,7 +213,7 @@ def _sosfiltfilt(sos, x):
     return ext[edge:edge + n].copy()
 
 
-@njit(cache=True)
+@kernel
 def _sosfiltfilt_rows(sos, x):
     """:func:`_sosfiltfilt` along the last axis of ``x`` (rows, n): the same numbers. The mapper
     filters ~200–300 mapped rows a call; a block of rows at a time is transposed into a work array
@@ -236,7 +236,7 @@ def _sosfiltfilt_rows(sos, x):
     return out
 
 
-@njit(cache=True)
+@kernel
 def _filtfilt_extended(sos, ext, edge):
     """In place on ``ext`` (n + 2·edge, nch), the record in the middle rows: the odd extensions,
     then the forward and backward passes of every section (scipy's sosfiltfilt arithmetic)."""
@@ -359,7 +359,7 @@ class _Mapper:
         return self.detrend(self.lowpass(out))
 
 
-@njit(cache=True)
+@kernel
 def _map_kernel(aps, dts, x0, speeds, lengths, offsets, grid, out):
     """out[r, t, s, i, k] = AP of run r, trial t, wheel i at chainage grid[k] at speed speeds[r, s]:
     linear interpolation between the bracketing samples, computed (the samples are uniform in time),
@@ -502,7 +502,7 @@ def _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, body0, nd, out) ->
                     np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta, out)
 
 
-@njit(cache=True)
+@kernel
 def _inverse_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, run_of, nd, z, lengths, dts, gamma, beta, out):
     """The carriage's inverse step (:func:`shared.dynamics.batched_inverse.inverse_runs` with the carriage's
     structure: DOFs 2–5 measured, accelerations and pitch rates alternately; 0–1 the body, free;

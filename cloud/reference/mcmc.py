@@ -61,10 +61,10 @@ import time
 from typing import NamedTuple, Sequence
 
 import numpy as np
-from numba import njit
 from scipy.linalg import solve_triangular
 
 from shared.dynamics.forward import measured_channels
+from shared.jit import kernel
 from shared.dynamics.newmark import integrate, newmark_constants
 from shared.vehicles import MODELS, vehicle_from_params
 
@@ -170,7 +170,7 @@ def _impulse_responses(system, n: int, dt: float) -> tuple[np.ndarray, np.ndarra
     return gk, g0
 
 
-@njit(cache=True)
+@kernel
 def _build_h(n_len, idx, w, ks, ke, gk, g0, j, h):
     """h[t] = response of the channels to a unit change of grid point j (rows ≥ the returned kmin)."""
     nc = idx.shape[0]
@@ -203,7 +203,7 @@ def _build_h(n_len, idx, w, ks, ke, gk, g0, j, h):
     return kmin
 
 
-@njit(cache=True)
+@kernel
 def _columns(n_len, idx, w, ks, ke, gk, g0, cols, kmin):
     """Every column of H (the response to a unit change of each grid point): cols (P, n, nch)."""
     P = cols.shape[0]
@@ -211,7 +211,7 @@ def _columns(n_len, idx, w, ks, ke, gk, g0, cols, kmin):
         kmin[j] = _build_h(n_len, idx, w, ks, ke, gk, g0, j, cols[j])
 
 
-@njit(cache=True)
+@kernel
 def _profile_sweep(R, grid, tau1, ridge, s_profile, inv_s2, n_len, cols, kmin, resid, normals, uniforms):
     """One Metropolis sweep over every profile point (eq. 4.16–4.19), residuals kept exact.
 
@@ -254,7 +254,7 @@ def _profile_sweep(R, grid, tau1, ridge, s_profile, inv_s2, n_len, cols, kmin, r
     return accepted
 
 
-@njit(cache=True)
+@kernel
 def _columns_by_sample(n_len, idx, w, gk, g0, cols):
     """Every column of H at once into ``cols`` (P, nch, n), zeroed: cols[j, q, t] = H[t, q, j].
 
@@ -285,7 +285,7 @@ def _columns_by_sample(n_len, idx, w, gk, g0, cols):
                             col[t] += wt * g[t - k]
 
 
-@njit(cache=True)
+@kernel
 def _gram_by_lags(idx, w, gk, g0, wq, z, M, D0, b):
     """HᵀΛH and HᵀΛz from the impulse responses in O(nc²·nch·n²) operations, never forming H.
 

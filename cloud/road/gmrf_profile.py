@@ -56,9 +56,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
+from shared.jit import kernel
 from shared.schema import SIGMA_SCALE, ApSegment
 
 from cloud.road.mean_profile import ProfileSnapshot
@@ -66,7 +66,6 @@ from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn
 
 log = logging.getLogger(__name__)
 
-_FLAGS = dict(cache=True)
 _Z95 = 1.959963984540054
 _DIFF = {1: np.array([-1.0, 1.0]), 2: np.array([1.0, -2.0, 1.0])}
 TAU_BOUNDS = (1.0, 1.0e16)
@@ -87,7 +86,7 @@ def iso8608_tau(spacing_m: float, gd0_m3: float = 64e-6, order: int = 1) -> floa
 # -- banded kernels ------------------------------------------------------------------------------
 
 
-@njit(**_FLAGS)
+@kernel
 def _selected_inverse(cb):
     """Band of ``Σ = (L Lᵀ)⁻¹`` from the lower banded Cholesky factor ``cb[d, i] = L[i + d, i]``.
 
@@ -114,7 +113,7 @@ def _selected_inverse(cb):
     return S
 
 
-@njit(**_FLAGS)
+@kernel
 def _draw(cb, mean, z):
     """Turn standard normal rows ``z`` (n_rhs, n) into ``mean + L⁻ᵀ z`` in place (back substitution)."""
     u1, n = cb.shape
@@ -168,7 +167,7 @@ def segment_information(values: np.ndarray, sigma: np.ndarray, rho: float
     return diag, off, rhs
 
 
-@njit(**_FLAGS)
+@kernel
 def _accumulate(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, rho, sign,
                 is_pass):
     """Add ``sign`` times a segment's :func:`segment_information` to the route's sums from index ``lo``.
@@ -271,7 +270,7 @@ def _model_shares(error_model: np.ndarray, widths: list[int]) -> np.ndarray:
     return np.array([error_model[0] ** 2 * np.trapezoid(g * g / sym, w) / math.pi for g in gains])
 
 
-@njit(**_FLAGS)
+@kernel
 def _accumulate_band(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, error_model,
                      sign, is_pass):
     """:func:`_accumulate` for a segment with its own error model (:func:`segment_band_information`):

@@ -20,7 +20,8 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from numba import njit
+
+from ..jit import kernel
 
 
 def inverse_runs(Sinv, M, C, K, kc, cc, dof, is_acc, free, run_of, z, lengths, dts, gamma, beta, out) -> None:
@@ -36,9 +37,9 @@ def inverse_runs(Sinv, M, C, K, kc, cc, dof, is_acc, free, run_of, z, lengths, d
     reads in one piece (beyond a run's length: untouched). The state starts at rest with the first
     measured values (a logger switched on while driving).
     """
-    kernel = _compiled(M.shape[1], tuple(int(i) for i in dof), tuple(bool(b) for b in is_acc),
-                       tuple(int(i) for i in free), kc.shape[1])
-    kernel(Sinv, M, C, K, kc, cc, run_of, z, lengths, dts, gamma, beta, out)
+    run = _compiled(M.shape[1], tuple(int(i) for i in dof), tuple(bool(b) for b in is_acc),
+                    tuple(int(i) for i in free), kc.shape[1])
+    run(Sinv, M, C, K, kc, cc, run_of, z, lengths, dts, gamma, beta, out)
 
 
 @functools.cache
@@ -53,8 +54,8 @@ def _compiled(n, dof, is_acc, free, nc):
     is_acc = np.array(is_acc, dtype=np.bool_)
     free = np.array(free, dtype=np.int64)
 
-    @njit(cache=True)
-    def kernel(Sinv, M, C, K, kc, cc, run_of, z, lengths, dts, gamma, beta, out):
+    @kernel
+    def run(Sinv, M, C, K, kc, cc, run_of, z, lengths, dts, gamma, beta, out):
         T = M.shape[0]
         u = np.zeros(n)
         v = np.zeros(n)
@@ -122,4 +123,4 @@ def _compiled(n, dof, is_acc, free, nc):
                             y[c] = ynew
                         out[t, c, k] = y[c]
 
-    return kernel
+    return run

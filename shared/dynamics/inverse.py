@@ -30,8 +30,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
+from ..jit import fma_kernel
 from ..vehicles.base import VehicleSystem
 from .newmark import NewmarkConstants, newmark_constants
 
@@ -431,12 +431,8 @@ def build_inverse(
     return InverseModel(A, B, C, D, keep, max(n_warmup, 1), system, c, realise(A, B, C, D, neutral_tol), contact_rule)
 
 
-# Only FMA contraction: no reassociation, so every sample is computed by the same operations in the
-# same order whatever the chunking, and the bank kernel matches the single-stream one bit for bit.
-_FLAGS = dict(cache=True, fastmath={"contract"})
-
-
-@njit(**_FLAGS)
+# FMA contraction only (no reassociation): the bank kernel matches the single-stream one bit for bit.
+@fma_kernel
 def _run_blocks(Ad, A2, A1, B, C, D, w, z, y):
     """y_k = C w + D z_k ; w' = A w + B z_k over all samples k, A block diagonal (see Realisation).
 
@@ -488,7 +484,7 @@ def _run_blocks(Ad, A2, A1, B, C, D, w, z, y):
             w[i] = acc
 
 
-@njit(**_FLAGS)
+@fma_kernel
 def _run_blocks_bank(Ad, A2, A1, B, C, D, w, z, y):
     """:func:`_run_blocks` for many streams, streams innermost (contiguous) so every loop vectorises.
 

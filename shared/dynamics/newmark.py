@@ -6,7 +6,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+
+from ..jit import kernel
 
 #: The thesis's choice: gamma > 1/2 adds numerical damping of spurious high-frequency modes,
 #: which is what keeps the *inverse* recursion stable; beta = (gamma + 1/2)^2 / 4.
@@ -84,7 +85,7 @@ def step(M, C, K, f_next, state: NewmarkState, c: NewmarkConstants, K_eff_inv=No
     return NewmarkState(u1, v1, a1)
 
 
-@njit(cache=True)
+@kernel
 def _integrate_kernel(K_eff_inv, M, C, f, u0, v0, a0_, k):
     n_steps, n = f.shape
     u = np.empty((n_steps, n))

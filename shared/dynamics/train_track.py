@@ -21,8 +21,8 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import numpy as np
-from numba import njit
 
+from ..jit import kernel
 from ..track.model import Track
 from ..vehicles.carriage import Carriage
 from .inverse import InverseState
@@ -153,7 +153,7 @@ def simulate_train_track(
     return TrainTrackResponse(t, x_cg, q, qd, qdd, channels, defl + r, defl, r, lam, probes, dt)
 
 
-@njit(cache=True)
+@kernel
 def _band_symv2(A, x, B, y, out):
     """out = A x + B y for A, B symmetric with one lower band storage shape ab[i − j, j]."""
     bw1, n = A.shape
@@ -167,7 +167,7 @@ def _band_symv2(A, x, B, y, out):
             out[j] += A[kk, j] * x[i] + B[kk, j] * y[i]
 
 
-@njit(cache=True)
+@kernel
 def _band_cho_solve_multi(L, X):
     """Solve (L Lᵀ) X = B in place for the columns of X (n, m), L the lower band Cholesky factor
     c[i − j, j] = L[i, j]. All right-hand sides in one sweep (the m values of a row are contiguous)."""
@@ -193,7 +193,7 @@ def _band_cho_solve_multi(L, X):
             X[i, c] *= d
 
 
-@njit(cache=True)
+@kernel
 def _run(coupled, path, u0, q0, lam0):
     """Newmark steps of the coupled system from the static start (u0, q0, λ0) along ``path``."""
     L, Mt, Ct, Mv, Cv, Kv_inv, E, P, k = coupled
