@@ -108,14 +108,19 @@ import math
 from typing import Sequence
 
 import numpy as np
+from scipy import linalg
 from scipy.signal import butter, sosfiltfilt
 
+from shared.dynamics.forward import ap_response, channels_from_ap, trapezoid_rate
 from shared.dynamics.inverse import InverseStream, build_inverse
+from shared.dynamics.newmark import newmark_constants
+from shared.fe.beam import contact_matrix, influence_line, stiffness_matrix
+from shared.fe.design import design_beam
 from shared.vehicles import GRAVITY
 from shared.vehicles.bogie import BogieHalfCar
 from shared.vehicles.carriage import Carriage
 
-from cloud.bridge.mril import MrIl
+from cloud.bridge.mril import MrIl, damage_indicators
 from cloud.rail.calibration import FIXED, INVERSE_GAMMA, BatchFit, RailRun
 from cloud.rail.fundamental import chord_windows, difference_mril, registered_fundamental
 
@@ -224,9 +229,6 @@ def leading_bogie_ap(car: Carriage, z: np.ndarray, dt: float, passes: int = LEAD
     trailing wheels reach the first sample's chainage (2·Lv/v) their AP is unknown and held at the
     leading wheels' first value: a body transient that decays over the approach (~2 s).
     """
-    from shared.dynamics.forward import measured_channels, trapezoid_rate
-    from shared.dynamics.newmark import integrate
-
     system = car.system()
     n = len(z)
     t = np.arange(n) * dt
@@ -243,10 +245,7 @@ def leading_bogie_ap(car: Carriage, z: np.ndarray, dt: float, passes: int = LEAD
         y[:, :2] = ap[:, :2]
         for j in (0, 1):
             y[:, 2 + j] = np.interp(t - lag, t, ap[:, j], left=ap[0, j])
-        force = (y * system.kc + trapezoid_rate(y, np.zeros(4), dt) * system.cc) @ system.G.T
-        state = integrate(system.M, system.C, system.K, force, c,
-                          u0=np.linalg.solve(system.K, system.G @ (system.kc * y[0])))
-        zz[:, 2:] = measured_channels(system, state)[:, 2:]
+        zz[:, 2:] = channels_from_ap(system, y, c)[:, 2:]
     return InverseStream(inverse).update(zz)[:, :2]
 
 
@@ -266,14 +265,10 @@ def dynamic_wheel_forces(car: Carriage, ap: np.ndarray, dt: float) -> np.ndarray
     low-passed (:data:`FORCE_MIN_WAVELENGTH_M` at the run's speed). The AP the carriage inverse found is
     the profile the measured body and bogies responded to, so this is the force the track felt
     (simulator's contact forces on the blind test: 43 N rms off, module docstring)."""
-    from shared.dynamics.forward import trapezoid_rate
-    from shared.dynamics.newmark import integrate, newmark_constants
-
     s = car.system()
     ap = np.asarray(ap, dtype=float)
-    ydot = trapezoid_rate(ap, np.zeros(ap.shape[1]), dt)
-    state = integrate(s.M, s.C, s.K, (ap * s.kc + ydot * s.cc) @ s.G.T, newmark_constants(dt, INVERSE_GAMMA),
-                      u0=np.linalg.solve(s.K, s.G @ (s.kc * ap[0])))
+    ydot = trapezoid_rate(ap, 0.0, dt)
+    state = ap_response(s, ap, newmark_constants(dt, INVERSE_GAMMA))
     yddot = np.gradient(np.gradient(ap, dt, axis=0), dt, axis=0)
     force = car.mw * yddot + s.kc * (ap - state.u @ s.G) + s.cc * (ydot - state.v @ s.G)
     cutoff_hz = car.v / FORCE_MIN_WAVELENGTH_M
@@ -602,8 +597,6 @@ def damage_from_batch_means(healthy: BogieInfluence, current: BogieInfluence, fu
     ``fundamental``: the same on the wheels' difference (J⁰, free of a force at the bogie centre):
     J⁰ of each batch mean by the matrix method from the registered difference line, the healthy
     batch's regression J⁰ for the scale."""
-    from cloud.bridge.mril import damage_indicators
-
     ref = healthy.difference if fundamental else healthy.mril
     w_h, w_c = float(np.mean(healthy.wheel_load_n)), float(np.mean(current.wheel_load_n))
     lines = (healthy.difference_line, current.difference_line)
@@ -720,16 +713,10 @@ def design_scale(bridge, healthy: BogieInfluence) -> BogieInfluence:
     module docstring); the drawings' is as good as the design is of the healthy span (on
     our simulated spans within ~0.5 %: their 5 % element scatter averages out; on a real bridge
     often 10–30 % off, which moves D by as many per cent of D). ``bridge``: :class:`shared.registry.Bridge`."""
-    from scipy import linalg
-
-    from shared.fe.beam import _stiffness, contact_matrix, influence_line
-
-    from cloud.bridge.mril import design_beam
-
     beam = design_beam(bridge)
     x, span, wb = healthy.approach_line.x_m, float(healthy.mril.x_m[-1]), float(healthy.wheelbase_m)
     n1, n2 = contact_matrix(beam, np.clip(x, 0.0, span)), contact_matrix(beam, np.clip(x - wb, 0.0, span))
-    J = np.einsum("ij,ji->i", n1, linalg.solve(_stiffness(beam), (n1 + n2).T, assume_a="pos"))
+    J = np.einsum("ij,ji->i", n1, linalg.solve(stiffness_matrix(beam), (n1 + n2).T, assume_a="pos"))
     J = _lowpassed(MrIl(x, J * ((x >= 0.0) & (x <= span)), 0))
     on = (x >= -1e-9) & (x <= span + 1e-9)
     xs, J = x[on], J[on]

@@ -81,6 +81,7 @@ from typing import Sequence
 import numpy as np
 import scipy.fft
 
+from shared.dynamics.newmark import newmark_constants
 from shared.jit import kernel
 from shared.vehicles.carriage import Carriage
 
@@ -488,8 +489,6 @@ def carriage_aps_sensitivities(theta: np.ndarray, Lb: float, Lv: float, z: np.nd
 def _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, body0, nd, out) -> None:
     """:func:`_inverse_kernel` on ``out`` (T, N, ≥ 1 + nd, 4) with the carriage's matrices of each
     trial; ``nd`` 0: the primal alone (the derivatives' inputs are None: compiled without them)."""
-    from shared.dynamics.newmark import newmark_constants
-
     dts = np.asarray(dts, dtype=float)
     M, C, K, G, sec, prim = _carriage_matrices(theta, Lb, Lv)
     c = newmark_constants(float(dts.min()), INVERSE_GAMMA)

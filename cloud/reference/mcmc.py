@@ -63,9 +63,9 @@ from typing import NamedTuple, Sequence
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from shared.dynamics.forward import measured_channels
+from shared.dynamics.forward import channels_from_ap
+from shared.dynamics.newmark import newmark_constants
 from shared.jit import kernel
-from shared.dynamics.newmark import integrate, newmark_constants
 from shared.vehicles import MODELS, vehicle_from_params
 
 log = logging.getLogger(__name__)
@@ -144,12 +144,9 @@ def _surface(geo: _Geometry, R: np.ndarray) -> np.ndarray:
 
 
 def _simulate(system, y: np.ndarray, dt: float) -> np.ndarray:
-    """Channels of ``system`` driven by surface ``y`` (n, nc), from static equilibrium at rest."""
-    c = newmark_constants(dt)
-    g = y * system.kc
-    force = g @ system.G.T
-    u0 = np.linalg.solve(system.K, system.G @ g[0])
-    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
+    """Channels of ``system`` driven by surface ``y`` (n, nc), from static equilibrium at rest (the
+    thesis's γ = 0.8)."""
+    return channels_from_ap(system, y, newmark_constants(dt))
 
 
 def _impulse_responses(system, n: int, dt: float) -> tuple[np.ndarray, np.ndarray]:

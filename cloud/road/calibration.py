@@ -46,21 +46,15 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
-from shared.dynamics.forward import measured_channels, trapezoid_rate
+from shared.dynamics.forward import channels_from_ap
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
-from shared.dynamics.newmark import integrate, newmark_constants
+from shared.dynamics.newmark import newmark_constants
+from shared.dynamics.transfer import continuous_transfer, newmark_transfer
 from shared.schema import ApSegment
-from shared.vehicles import MODELS, vehicle_from_params
+from shared.vehicles import vehicle_from_params
+from shared.vehicles.calibration import REFERENCE, calibration_names, class_prior, from_calibration, to_calibration
 
 log = logging.getLogger(__name__)
-
-#: model → (reference mass, absolute length parameters)
-REFERENCE = {
-    "sprung_mass": ("m", ()),
-    "quarter_car": ("M", ()),
-    "half_car": ("ms", ("D1", "D2")),
-    "bogie_half_car": ("ms", ("D1", "D2")),
-}
 
 #: s: the time grid of the remap where it is a free choice (continuous-time APs; the filter barely
 #: depends on it), and the edge's sample interval where a pass does not say (a 500 Hz logger's).
@@ -117,47 +111,6 @@ class RemapSettings:
 REMAP_SETTINGS = {"half_car": RemapSettings(lowpass_cpm=1.5, free_start=True, predict_gamma=0.5)}
 
 
-def calibration_names(model: str) -> list[str]:
-    """The identifiable quantities of a model, e.g. ``['m/M', 'K/M', 'k/M', 'c/M']``."""
-    ref, lengths = REFERENCE[model]
-    names = []
-    for p in MODELS[model].param_names():
-        if p == ref:
-            continue
-        names.append(p if p in lengths else f"{p}/{ref}")
-    return names
-
-
-def to_calibration(model: str, params: dict[str, float]) -> dict[str, float]:
-    ref, lengths = REFERENCE[model]
-    return {n: (params[n] if "/" not in n else params[n.split("/")[0]] / params[ref])
-            for n in calibration_names(model)}
-
-
-def from_calibration(model: str, cal: dict[str, float], ref_value: float) -> dict[str, float]:
-    ref, _ = REFERENCE[model]
-    params = {ref: ref_value}
-    for n, v in cal.items():
-        params[n.split("/")[0]] = v * ref_value if "/" in n else v
-    return params
-
-
-def class_prior(model: str, mean: dict[str, float], std: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Prior on the log of each calibration quantity (delta method from the class's mean/std)."""
-    ref, _ = REFERENCE[model]
-    mu, sd = [], []
-    for n in calibration_names(model):
-        if "/" in n:
-            p = n.split("/")[0]
-            mu.append(math.log(mean[p] / mean[ref]))
-            cv = math.hypot(std[p] / mean[p], std[ref] / mean[ref])
-        else:
-            mu.append(math.log(mean[n]))
-            cv = std[n] / mean[n]
-        sd.append(max(cv, 1e-3))
-    return np.array(mu), np.array(sd)
-
-
 @dataclasses.dataclass(frozen=True)
 class PassAp:
     """One pass's AP under known parameters, per contact, on the route grid (NaN: no data)."""
@@ -185,19 +138,6 @@ class VehicleFit:
 def _band(spacing_m: float):
     lo, hi = BAND_M
     return butter(2, [1.0 / hi, 1.0 / lo], btype="band", fs=1.0 / spacing_m, output="sos")
-
-
-def _forward_channels(system, ap_t: np.ndarray, dt: float, gamma: float, u0=None, v0=None) -> np.ndarray:
-    """The logger's channels of ``system`` driven by ``ap_t`` (n, n_contacts) from the state (u0, v0)
-    (default: static equilibrium on the first input), integrated with the Newmark constants the
-    edge's inverse uses (``gamma``: so the round trip is exact)."""
-    c = newmark_constants(dt, gamma)
-    force = (ap_t * system.kc) @ system.G.T
-    if np.any(system.cc):
-        force += (trapezoid_rate(ap_t, np.zeros(ap_t.shape[1]), dt) * system.cc) @ system.G.T
-    if u0 is None:
-        u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
-    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0, v0=v0))
 
 
 def _lowpass_grid(values: np.ndarray, spacing_m: float, cutoff_cpm: float) -> np.ndarray:
@@ -229,8 +169,8 @@ def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, s
         e = np.zeros(n_dof)
         e[d] = 1.0
         for u0, v0 in ((e, None), (np.zeros(n_dof), e)):
-            free = _forward_channels(system, zero, dt, edge_gamma(model) if gamma is None else gamma,
-                                     u0=u0, v0=v0)
+            free = channels_from_ap(system, zero, newmark_constants(dt, edge_gamma(model) if gamma is None else gamma),
+                                    u0=u0, v0=v0)
             cols.append((free[skip:] / scale).ravel())
     A = np.stack(cols, axis=1)
     q, _ = np.linalg.qr(A / np.maximum(np.linalg.norm(A, axis=0), 1e-300))
@@ -275,7 +215,7 @@ class PassChannels:
         self.x_cg = xc0 + ap.speed_mps * np.arange(0.0, (xc1 - xc0) / ap.speed_mps, dt)
         ap_t = np.stack([np.interp(self.x_cg + off0[i], x[ok[:, i]], values[ok[:, i], i])
                          for i in range(self.n_contacts)], axis=1)
-        self.z = _forward_channels(system0, ap_t, dt, edge_gamma(model))
+        self.z = channels_from_ap(system0, ap_t, newmark_constants(dt, edge_gamma(model)))
         # Free responses: displacement scale twice the AP's spread (lengths over the contacts'
         # lever arm for rotations), velocity scale that times the DOF's own natural frequency.
         amp = 2.0 * float(np.std(ap_t)) + 1e-6
@@ -289,8 +229,8 @@ class PassChannels:
             for kind in ("u", "v"):
                 e = np.zeros(n_dof)
                 e[d] = u_scale if kind == "u" else u_scale * omega
-                free = _forward_channels(system0, zero, dt, edge_gamma(model), u0=e if kind == "u" else np.zeros(n_dof),
-                                         v0=e if kind == "v" else None)
+                free = channels_from_ap(system0, zero, newmark_constants(dt, edge_gamma(model)),
+                                        u0=e if kind == "u" else np.zeros(n_dof), v0=e if kind == "v" else None)
                 self.free.append(free)
         # Holes inside the pass (refused segments): their neighbourhood is never compared.
         hole = np.zeros(self.n_points, bool)
@@ -563,16 +503,6 @@ def _autocorrelation_time(r: np.ndarray, max_lag: int = 200) -> float:
     return float(max(1.0, 1.0 + 2.0 * acf[1:k].sum()))
 
 
-def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray, gamma: float | None = None,
-                         dt: float = REMAP_DT) -> np.ndarray:
-    system = vehicle_from_params(model, params).system()
-    # default the edge's γ: the round trip is exact (at the edge's step ``dt``)
-    c = newmark_constants(dt, edge_gamma(model) if gamma is None else gamma)
-    force = (ap_t * system.kc) @ system.G.T
-    u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
-    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
-
-
 #: Hz: :func:`continuous_ap` corrects up to here, faded to identity by 1.5× it. The edge's AP is off by
 #: up to 3 % in gain (quarter-car, γ 0.6) and 20° in phase (half-car, γ 0.8) at 60 Hz, and 0.5 m (the
 #: shortest wavelength the profile is scored on) is 60 Hz at 30 m/s. Noise-free passes from finer
@@ -612,8 +542,6 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
     and 1.5× it; NaN stays NaN.
     A pass's ends (within the correction's memory, ~0.5 s, and a wheelbase) are approximate: what
     the other contacts would add there was not driven."""
-    from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
-
     system, values, ok = _correction_inputs(model, params, ap)
     n_points, n_contacts = values.shape
     h, v = ap.spacing_m, ap.speed_mps
@@ -691,8 +619,6 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
     The contacts are corrected together on the pass's time grid (constant speed), on their common
     extent (straight line removed, zero-padded FFT), faded to identity between ``cutoff_hz`` and 1.5×
     it; points outside that extent keep the edge's value, NaN stays NaN."""
-    from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
-
     system, values, ok = _correction_inputs(model, params, ap)
     n_points, n_contacts = values.shape
     h, v = ap.spacing_m, ap.speed_mps
@@ -841,7 +767,8 @@ class PassRemap:
             vals, cons = (_lowpass_grid(a, ap.spacing_m, self.settings.lowpass_cpm) for a in (ap.values, consensus))
         ap_t = np.stack([np.interp(xt + off[i], x, vals[:, i]) for i in range(n_contacts)], axis=1)
         self.profile_t = np.stack([np.interp(xt + off[i], x, cons[:, i]) for i in range(n_contacts)], axis=1)
-        self.z = _forward_channels_at(model, params0, ap_t, self.ap_gamma, self.dt)
+        self.z = channels_from_ap(vehicle_from_params(model, params0).system(), ap_t,
+                                  newmark_constants(self.dt, self.ap_gamma))
         self.skip = int(self.WARMUP_S / self.dt)
         self.n = max(self.z.shape[0] - self.skip, 0)
         self.scale = np.std(self.z[self.skip:], axis=0) + 1e-12  # channels in comparable units
@@ -850,7 +777,10 @@ class PassRemap:
                             if self.settings.free_start else None)
 
     def residual(self, params: dict) -> np.ndarray:
-        pred = _forward_channels_at(self.model, params, self.profile_t, self.predict_gamma, self.dt)
+        # (the edge's γ where none is set: the round trip is exact)
+        gamma = edge_gamma(self.model) if self.predict_gamma is None else self.predict_gamma
+        pred = channels_from_ap(vehicle_from_params(self.model, params).system(), self.profile_t,
+                                newmark_constants(self.dt, gamma))
         r = ((pred - self.z)[self.skip:] / self.scale).ravel()
         if self.start_basis is not None:  # the unknown start state, profiled out
             r = r - self.start_basis @ (self.start_basis.T @ r)

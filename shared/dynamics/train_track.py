@@ -21,6 +21,7 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import numpy as np
+from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from ..jit import kernel
 from ..track.model import Track
@@ -83,8 +84,6 @@ class _Path(NamedTuple):
 
 def _static_start(carriage: Carriage, track: Track, dofs0, vals0, r0):
     """Carriage resting on the track at its first position: track displacement, wheel AP, contact force."""
-    from scipy.linalg import cho_solve_banded, cholesky_banded
-
     s = carriage.system()
     P = carriage.axle_loads_n()
     # Contact-force response of the body/bogies to wheel displacements: λ = P + S·y.
@@ -136,8 +135,6 @@ def simulate_train_track(
     r = np.zeros((n, 4)) if irregularity is None else np.asarray(irregularity(xw.ravel()), float).reshape(n, 4)
     probe_x = np.zeros(0) if probe_x_m is None else np.atleast_1d(np.asarray(probe_x_m, float))
     pd, pv = track.contact_entries(probe_x) if len(probe_x) else (np.zeros((0, 4), np.int64), np.zeros((0, 4)))
-
-    from scipy.linalg import cholesky_banded
 
     K_eff = track.K + c.a0 * track.M + c.a1 * track.C
     L = np.ascontiguousarray(cholesky_banded(K_eff, lower=True))
