@@ -7,14 +7,14 @@ removed). This module turns a pass's segments into what the bridge estimators ne
 1. :func:`assemble_pass` — the pass's AP for one axle on the global grid, with a validity mask.
 2. :func:`correct_aps` — undo the edge inverse's time-discretisation error. The edge integrates with
    Newmark-β (γ > ½, first-order accurate: ``edge_gamma``); at the body's bounce frequency its AP is
-   off by ~1 % in amplitude and a few mrad in phase. That is negligible for a road, but not on a bridge: a
-   9 mm approach ramp then leaves 20–100 µm of error on the span, half the deflection (measured:
-   ``tests/test_bridge_passdata.py``). The AP the edge would have produced with a continuous-time
-   model is ``T⁻¹(ω) H(ω) · AP``, with ``H`` the edge's discrete Newmark forward transfer and
-   ``T`` the vehicle's continuous transfer (both closed form, :func:`newmark_transfer`,
-   :func:`continuous_transfer`), applied by FFT at the pass's speed.
-3. :class:`VehicleFilter` — the vehicle's continuous forward model on the chainage grid (Newmark
-   γ = ½, second-order). It maps a profile to the measured channel, which *whitens* AP errors
+   off in amplitude and phase by a little. That is negligible for a road, but not on a bridge: the
+   error an approach ramp leaves on the span is of the order of the deflection itself. The AP the
+   edge would have produced with a continuous-time model is ``T⁻¹(ω) H(ω) · AP``, with ``H`` the
+   edge's discrete Newmark forward transfer and ``T`` the vehicle's continuous transfer (both closed
+   form, :mod:`shared.dynamics.transfer`), applied by FFT at the pass's speed.
+3. :class:`VehicleFilter` — the vehicle's continuous forward model on the chainage grid
+   (:func:`shared.dynamics.forward.ap_response` at Newmark γ = ½, second-order). It maps a profile
+   to the measured channel, which *whitens* AP errors
    (sensor noise is white in the measured channel; the inverse colours it), annihilates offsets,
    slopes and the drift-control trend, and gives the dynamic wheel-load factor ``1 + φ(x)``
    (``φ`` = dynamic tyre force / static wheel load) from the AP and the calibrated ratios alone.
@@ -475,9 +475,9 @@ def consensus_end(p: PassData, ref: Reference, leave_out: bool = True) -> int:
     """The last window index of ``p`` at which its consensus still averages (nearly) the same passes
     as on the rest of ``p``: passes end at staggered points (the edge drops the last grid points a
     pass's anti-alias window cuts, a speed-dependent count), and where more than
-    :data:`CONSENSUS_DROPOUT` of them have ended the consensus is the mean of the longer ones only
-    (measured, global10-n30: a residual 2nd difference of 30.8 µm there vs 5.8 typical). One pass
-    that ends early does not cut the others (it moves the consensus by 1/n of its own drift)."""
+    :data:`CONSENSUS_DROPOUT` of them have ended the consensus is the mean of the longer ones only,
+    and its second difference jumps there. One pass that ends early does not cut the others (it
+    moves the consensus by 1/n of its own drift)."""
     valid = np.flatnonzero(p.valid)
     first, last = int(valid[0]), int(valid[-1])
     count = ref.count - p.valid if leave_out else ref.count
@@ -548,10 +548,10 @@ def road_load_factor(p: PassData, road_m: np.ndarray, deflection_m: np.ndarray |
 
     :func:`extract_pass` computes ``φ̂`` from the pass's own AP, so it carries the pass's AP noise —
     the very noise the load term ``W·(1 + φ)·J`` is then regressed against: an errors-in-variables
-    bias (measured on 300 healthy passes against noise-free twins: ~4 nats of spurious free-element
-    gain, the bridge read ~0.1 point soft). Driven over what the cloud knows instead — the fleet's
-    leave-one-out consensus road (:func:`~cloud.bridge.static.driven_road`) — φ holds the other
-    passes' noise only, averaged down by their number and independent of this pass's.
+    bias (spurious free-element gain, the bridge read soft). Driven over what the cloud knows
+    instead — the fleet's leave-one-out consensus road (:func:`~cloud.bridge.static.driven_road`) —
+    φ holds the other passes' noise only, averaged down by their number and independent of this
+    pass's.
 
     ``deflection_m`` (window grid, m, down positive): the deflection under the pass's *static* wheel
     load at each position of the wheel (e.g. W̄·J(x; θ), zero off the span), if the road does not

@@ -43,8 +43,8 @@ are kept for every vehicle and point (N·P·n_samples numbers: small problems on
 ``MAX_COLUMN_BYTES``) and rebuilt from two simulations per contact whenever a vehicle's parameters
 change; the residuals are recomputed from a full simulation every ``refresh_every`` iterations so
 that rounding cannot accumulate. The vehicle step runs the full simulation of the proposal as the
-thesis does (its current misfit is the kept residual). Measured on 3 vehicles and 401 points, an
-iteration costs about 1/100 of the literal one (``python -m benchmarks profile``).
+thesis does (its current misfit is the kept residual). An iteration costs a small fraction of
+the literal one (``python -m benchmarks profile``).
 
 :func:`exact_profile_posterior` is the same model's exact answer for fixed vehicle parameters: with
 the response linear in R, the conditional posterior of R is Gaussian with precision
@@ -79,9 +79,8 @@ THESIS_TAU1 = 1e5
 THESIS_SIGMA2 = 1e-3  # (m/s²)², the observation error variance σ₁²
 THESIS_N_ITER = 2000
 #: The exact posterior assembles a vehicle's normal equations by lag sums when P² exceeds this many
-#: times nc²·n, else by BLAS on H's columns. Measured per quarter-car (one core, loaded machine):
-#: P 201 / n 512: 1.06 ms by lags, 0.75 by BLAS; P 401 / n 1233: 19 vs 14 ms; P 1201 / n 1514: 33 vs
-#: 121 ms (P²/(nc²n) = 79, 130, 953).
+#: times nc²·n, else by BLAS on H's columns: BLAS's P²n/2 multiply-adds run near the core's peak,
+#: and the lag sums' O(n²) only win on fine grids.
 LAGS_ABOVE = 400.0
 MAX_COLUMN_BYTES = 2e9  # the sampler keeps every vehicle's response to every grid point in memory
 
@@ -473,8 +472,8 @@ def exact_profile_posterior(
     responses, O(n²) (:func:`_data_normal_equations`). The data make the precision dense — the
     quarter-car's impulse response does not decay within a 20 m pass — so the algebra is dense: at
     the thesis's size (P 201, n ≈ 550) ~P²n/2 multiply-adds per vehicle, which BLAS runs near the
-    core's peak; skipping H's causal zeros block-wise (half the multiply-adds) measured no faster
-    there, nor did the lag sums (1.06 against 0.75 ms), so neither is used there. Small problems only.
+    core's peak; skipping H's causal zeros block-wise (half the multiply-adds) is no faster there,
+    nor are the lag sums, so neither is used there. Small problems only.
     """
     grid = np.asarray(grid, float)
     x0 = [0.0] * len(channels_list) if x0 is None else list(x0)

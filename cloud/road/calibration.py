@@ -1,10 +1,8 @@
 """Fleet self-calibration, the vehicle step: every vehicle's identifiable ratios, jointly.
 
-Only ratios are identifiable (divide the equations of motion by the body mass): the AP depends on
-``K/M, k/M, c/M, m/M`` of a quarter-car, not on ``M``. So each model is parametrised by its
-reference mass, held at the class mean, and the ratios of every other mass, stiffness and damping
-to it; lengths (axle positions) stay absolute. The solver works on their logarithms (scale-free
-steps, positivity for free, and the class prior is log-normal).
+Only ratios are identifiable, so each vehicle is fitted in the parametrisation of
+:mod:`shared.vehicles.calibration`: its reference mass held at the class mean, the logarithms of the
+ratios of every other mass, stiffness and damping to it, lengths absolute.
 
 The step runs in the cloud but needs no raw data: a segment's AP under a known calibration is a
 lossless encoding of the vehicle's measured channels (the inverse is exactly invertible), so the
@@ -61,9 +59,9 @@ log = logging.getLogger(__name__)
 #: Where the remap re-runs or undoes the edge's inverse it uses the pass's own (:attr:`PassAp.dt_s`).
 REMAP_DT = 0.002
 #: Newmark γ of the remap's inverse under candidate parameters. The channels are reconstructed
-#: with the edge's γ = 0.8 (exactly what the edge inverted), but γ = 0.8's numerical damping
-#: at a half-car's wheel hop (~10 Hz) biases what the fleet agrees on by ~10 % in the axle
-#: ratios; γ = 0.6 (spurious roots still decaying, at −2/3) removes most of it.
+#: with the edge's γ = 0.8 (exactly what the edge inverted), but γ = 0.8's numerical damping at a
+#: half-car's wheel hop biases what the fleet agrees on in the axle ratios; γ = 0.6 (spurious roots
+#: still decaying, at −2/3) removes most of that bias.
 REMAP_GAMMA = 0.6
 BAND_M = (1.0, 30.0)  # wavelengths compared: resolved by every pass, free of drift-control effects
 TRIM_M = 3.0  # m cut at each end of a pass after band-passing (filter edge effects)
@@ -76,14 +74,11 @@ class RemapSettings:
     """How the per-vehicle step (:class:`PassRemap`) compares a model's channels.
 
     The channels are reconstructed from the AP, exactly only for what the AP holds exactly. A
-    half-car's AP at 1 % noise is mostly the inverse's amplified noise (std 20× the road's), and
-    two things then spoil the reconstruction: the forward model's start in static equilibrium on
-    that noisy AP leaves a free response of 1–3 channel sd that outlasts the 2 s warm-up, and the
-    linear interpolation from the 5 cm grid back to the samples folds part of the AP's short-wave
-    noise to low frequencies. One pass, finer physics, true parameters and profile: the
-    reconstructed channels were 26 / 44 % of their sd off (body acceleration / pitch rate; the
-    sensor noise is 1 %), 1.8 / 1.5 % with the start state a nuisance, 0.5 / 0.4 % with a 3 c/m
-    low-pass too; the ratios' 95 % intervals ±20 % (the class prior's) before, ±0.3 % after.
+    half-car's AP at 1 % noise is mostly the inverse's amplified noise, and two things then spoil
+    the reconstruction: the forward model's start in static equilibrium on that noisy AP leaves a
+    free response that outlasts the warm-up, and the linear interpolation from the grid back to the
+    samples folds part of the AP's short-wave noise to low frequencies. The start state as a
+    nuisance takes out the first, a low-pass of AP and consensus alike the second.
 
     ``lowpass_cpm``: zero-phase low-pass (cycles per metre) of the AP and the consensus on the grid
     before the remap (both alike, so the comparison stays exact below it; a road vehicle's body and
@@ -91,11 +86,10 @@ class RemapSettings:
     each pass is a nuisance, profiled out of the misfit (its free responses projected away, as
     :class:`PassChannels` does for the joint step). ``predict_gamma``: Newmark γ of the prediction
     under candidate parameters (the reconstruction keeps the edge's, so the round trip is exact).
-    The edge's γ = 0.8 damps a half-car's wheel hop numerically: against the *true* profile a fit
-    predicting at 0.8 is off by up to 12 % (Kt/ms +12 %, Cs/ms −8 %; γ = ½: < 0.3 %). Predicting
-    at 0.8 against a consensus of 0.8 APs left a fleet-shared bias (each AP distorted by its own
-    vehicle and speed; road-hc seed 1 Cs1/ms median 16.7 %), at ½ against it worse (seed 0, every
-    vehicle off alike: Cs2/ms +24 %). The half-car therefore predicts at ½ against a consensus of
+    The edge's γ = 0.8 damps a half-car's wheel hop numerically, so a fit predicting at 0.8 is
+    biased even against the true profile. Against a consensus of 0.8 APs (each distorted by its own
+    vehicle and speed) predicting at 0.8 leaves a bias the fleet shares, and predicting at ½ one
+    larger still. The half-car therefore predicts at ½ against a consensus of
     continuous-time APs (:func:`continuous_ap`, :data:`cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS`);
     its own channels are still reconstructed at the edge's γ (exact round trip).
     """
@@ -105,9 +99,8 @@ class RemapSettings:
     predict_gamma: float | None = None  # None: the edge's (edge_gamma(model))
 
 
-#: Per model; the default (the quarter-car's, tuned on road-qc) changes nothing. Half-car, road-hc
-#: seeds 0/1 (1 % noise) through the system: profile 14.3/15.7 %, ratios' medians ≤ 4.7/4.4 %,
-#: max 7.1/7.6 % (tests/test_halfcar_calibration.py; the joint AP-space step: 46 %, medians up to 72 %).
+#: Per model; the default (the quarter-car's) changes nothing. The half-car needs all three: in
+#: AP space (the joint step) its noisy AP does not calibrate.
 REMAP_SETTINGS = {"half_car": RemapSettings(lowpass_cpm=1.5, free_start=True, predict_gamma=0.5)}
 
 
@@ -119,8 +112,8 @@ class PassAp:
     spacing_m: float
     values: np.ndarray  # (n_points, n_contacts)
     speed_mps: float
-    #: s: the sample interval the edge inverted the pass at (its pass-done says; the Newmark transfer
-    #: of the edge's inverse depends on it: undone at 2 ms, a 1 ms pass's AP came out worse than sent)
+    #: s: the sample interval the edge inverted the pass at (its pass-done says): the Newmark transfer
+    #: of the edge's inverse depends on it, so it is undone at this step, not the grid's
     dt_s: float = REMAP_DT
 
 
@@ -503,12 +496,10 @@ def _autocorrelation_time(r: np.ndarray, max_lag: int = 200) -> float:
     return float(max(1.0, 1.0 + 2.0 * acf[1:k].sum()))
 
 
-#: Hz: :func:`continuous_ap` corrects up to here, faded to identity by 1.5× it. The edge's AP is off by
-#: up to 3 % in gain (quarter-car, γ 0.6) and 20° in phase (half-car, γ 0.8) at 60 Hz, and 0.5 m (the
-#: shortest wavelength the profile is scored on) is 60 Hz at 30 m/s. Noise-free passes from finer
-#: physics (γ ½ at 0.5 ms), 20–25 m/s, error against the road at 0.5–1 m: half-car 18–26 % → 0.65 %
-#: (a 30 Hz cut-off left 4–14 %), quarter-car 4.5–5.4 % → 0.6 %. ``|T⁻¹H|`` stays 0.86–1.0 on the
-#: diagonal below 100 Hz (the half-car's cross term grows to 0.37 at 80 Hz), so no noise is amplified.
+#: Hz: :func:`continuous_ap` corrects up to here, faded to identity by 1.5× it: 0.5 m (the shortest
+#: wavelength the profile is scored on) is 60 Hz at 30 m/s, and the edge's AP still carries its
+#: scheme's gain and phase error there. ``|T⁻¹H|`` stays near 1 on the diagonal in that band, so the
+#: correction amplifies no noise.
 CONTINUOUS_CUTOFF_HZ = 60.0
 MEMORY_S = 2.0  # s: how far past a pass's ends :func:`continuous_ap` continues it (mirrored, tapered)
 
@@ -535,9 +526,9 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
 
     Applied on the route grid itself, in wavenumber ``κ`` (the transfers at ``f = vκ``, constant
     speed ``v``): contact i meets chainage x at the time contact j meets ``x + off_j − off_i``, so
-    ``Â'_i(κ) = Σ_j C_ij(vκ) e^{2πiκ(off_j − off_i)} Â_j(κ)``. (Resampling to the time grid and back,
-    as a first version did, loses 3–6 % of the AP at 0.5–1 m to the linear interpolation, more than
-    the correction itself.) Each contact on its own extent (holes bridged linearly, a straight line
+    ``Â'_i(κ) = Σ_j C_ij(vκ) e^{2πiκ(off_j − off_i)} Â_j(κ)``. (Resampling to the time grid and back
+    would lose more of the AP's short waves to the linear interpolation than the correction gains:
+    :func:`continuous_ap_resampled`.) Each contact on its own extent (holes bridged linearly, a straight line
     removed, continued past its ends mirrored and tapered), faded to identity between ``cutoff_hz``
     and 1.5× it; NaN stays NaN.
     A pass's ends (within the correction's memory, ~0.5 s, and a wheelbase) are approximate: what
@@ -551,8 +542,8 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
     first = [int(np.flatnonzero(ok[:, i])[0]) for i in range(n_contacts)]
     last = [int(np.flatnonzero(ok[:, i])[-1]) + 1 for i in range(n_contacts)]
     # The correction's memory (the body mode's ~1 s) reaches past a contact's ends: there each contact
-    # continues as its mirror image, tapered to zero (an abrupt end would ring through the 1–2 % of
-    # ``T⁻¹H − 1`` at the body mode: 3× the edge's own error over a pass's first 15 m, half-car, 25 m/s).
+    # continues as its mirror image, tapered to zero (an abrupt end would ring through ``T⁻¹H − 1`` at
+    # the body mode, more than the edge's own error over a pass's first metres).
     ext = int(math.ceil(MEMORY_S * v / h))
     a, b = min(first) - ext, max(last) + ext
     series = np.zeros((b - a, n_contacts))
@@ -602,11 +593,11 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
 
 
 def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0) -> np.ndarray:
-    """:func:`continuous_ap` as first written: through the pass's time grid (resampled linearly from
-    the route grid and back, which loses 3–6 % of the AP at 0.5–1 m), up to 30 Hz. Kept for the
-    half-car's corrected consensus (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS), whose common gain
-    and step halving were tuned on it: with :func:`continuous_ap` instead, road-hc seed 1's Cs1/ms
-    reached 18.2 % (7.6 % with this). Retuning the half-car for the exact correction is open.
+    """:func:`continuous_ap` through the pass's time grid (resampled linearly from the route grid and
+    back, which loses part of the AP's short waves), up to 30 Hz. The half-car's corrected consensus
+    (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS) uses it: its common gain and step halving are
+    tuned on this one, and with :func:`continuous_ap` its damping ratios calibrate worse until they
+    are tuned again.
 
     The pass's AP (n_points, n_contacts) as an exact inverse of the continuous-time vehicle
     ``params`` would have made it from the same channels: ``T⁻¹H`` applied to the edge's AP, ``H``
@@ -656,20 +647,13 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
 
 #: Vehicle models whose passes the cloud fuses as continuous-time APs (:func:`continuous_segments`).
 #: Rail models are left out (their cloud re-runs the dynamics from the edge's AP, cloud.rail.batches), and so
-#: is the sprung mass (its joint step, :func:`fit_fleet`, reconstructs at the edge's γ; not measured).
-#: Half-cars too, measured: fused corrected, road-hc's profile got worse (true parameters, seed 0:
-#: 12.6 → 13.9 %, more shrinkage and error at 1–5 m; fleet seeds 0/2: 14.3 → 21.1 %, 11.4 → 18.4 %,
-#: measured with zero-padded rather than mirrored pass ends) and seed 1's Cs1/ms reached 16.7 %,
-#: though every seed's worst ratio otherwise improved (0: 7.1 → 5.2 %, 2: 7.3 → 6.5 %). They keep the
-#: corrected consensus in their vehicle step only (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS).
-#: Why worse (seed 0, true parameters): not the correction — each pass's corrected AP is closer to the
-#: road in every band (axle 1, 1–2 m 31 → 26 %, 2–5 m 5.6 → 2.7 %). The fusion over-shrinks half-car
-#: passes at 1–5 m (posterior gain 0.61 at 1–2 m, 0.89 at 2–5 m, where 6 passes × 2 axles of that
-#: accuracy warrant ~1.0): their edge error model is 10–600× too large in sd at 1–8 m (edge.error_model's
-#: unit spectra are gridded by plain interpolation, whose aliasing of the pitch-rate noise leaves a flat
-#: floor there that the alias-free AP does not have). The uncorrected AP's gain error, +2–7 % at 1–5 m,
-#: had been offsetting part of that shrinkage. Learnt τ (+8 % on corrected data) adds 0.3 points,
-#: cross-axle mixing of the correction 0.2. Fix the error model first.
+#: is the sprung mass (its joint step, :func:`fit_fleet`, reconstructs at the edge's γ). Half-cars too:
+#: each corrected pass is closer to the road, but the fusion over-shrinks half-car passes at 1–5 m
+#: (their edge error model is far too large there: edge.error_model grids its unit spectra by plain
+#: interpolation, whose aliasing of the pitch-rate noise leaves a floor the alias-free AP does not
+#: have), and the uncorrected AP's gain error offsets part of that shrinkage, so fused corrected the
+#: profile comes out worse. They keep the corrected consensus in their vehicle step only
+#: (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS) until the error model is fixed.
 CONTINUOUS_MODELS = frozenset({"quarter_car"})
 #: Points weighted down this much or more (the edge's σ × 100: invalid points, zeroed, and the
 #: inverse's warm-up) are holes for the correction (bridged, and kept as sent): a filter would spread them.
@@ -702,12 +686,10 @@ def continuous_segments(model: str, params: dict, segs: list[ApSegment],
     model, in the order given.
 
     Why: the edge's inverse runs Newmark at γ > ½ for stability, and its AP carries that scheme's
-    gain and phase error against the road (a quarter-car at γ 0.6: +2.5–3 % at 0.5–2 m, 20 m/s; a
-    half-car at γ 0.8: 13–26 % error at 0.5–2 m, noise-free). Every vehicle of a class shares it, so
-    fused as sent it biases the profile, its IRI and the fleet calibration alike (road-qc: k/M +2 %,
-    c/M −1.6 % on every vehicle). The error model is kept: ``|T⁻¹H|`` is 0.86–1.0 on the diagonal in
-    the corrected band (class means; the half-car's rear-to-front cross term ≤ 0.37), so the edge's
-    noise spectrum stays about right, if anything conservative (by ≤ 25 % in power)."""
+    gain and phase error against the road at short wavelengths. Every vehicle of a class shares it,
+    so fused as sent it biases the profile, its IRI and the fleet calibration alike. The error model
+    is kept: ``|T⁻¹H|`` is near 1 on the diagonal in the corrected band, so the edge's noise spectrum
+    stays about right, if anything conservative."""
     n_axles = max(s.axle for s in segs)
     lo, vals = pass_values(segs, n_axles)
     floor = min(float(np.min(s.sigma)) for s in segs)
@@ -810,9 +792,9 @@ def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray
     # Each sample counts as independent only if the misfit is white (sensor noise). A misfit the
     # consensus cannot explain — lane scatter on a 3-D carpet, the others' calibration error — is
     # smooth in time: it counts by its integrated autocorrelation time, so that it does not pull
-    # the ratios away from the class prior with the weight of white noise.
-    # (Measured at the vehicle's current calibration, where the round starts: re-measuring it at
-    # each optimum let carpet-0 move on for 12 rounds, 5.0 % profile error against 3.5 % settled in 7.)
+    # the ratios away from the class prior with the weight of white noise. It is measured at the
+    # vehicle's current calibration, where the round starts, and held through the round: re-measured
+    # at each optimum it lets the rounds wander on.
     taus = [_autocorrelation_time(col) for r in remaps for col in r.residual(
         from_calibration(model, dict(zip(names, np.exp(theta0))), ref_value)).reshape(r.n, -1).T]
     state["n_eff"] = float(max(n_res, 1)) / float(np.mean(taus))

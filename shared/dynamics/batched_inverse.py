@@ -11,8 +11,7 @@ its test checks it against this one.)
 
 The kernel is compiled once per vehicle structure (number of DOFs, which are measured and how,
 number of contacts), those being compile-time constants: numba then unrolls the small loops over
-DOFs and contacts, which halves the time per step against reading the structure from arrays
-(carriage, 450 trials × 3000 samples: 60 ms against 110 ms).
+DOFs and contacts, much faster than reading the structure from arrays.
 """
 
 from __future__ import annotations
