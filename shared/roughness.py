@@ -25,7 +25,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+
+from .jit import kernel
 
 
 class GoldenCar(NamedTuple):
@@ -47,9 +48,6 @@ SMOOTHING_BASE_M = 0.25
 """Base length of the moving average applied to the profile (m)."""
 INIT_LENGTH_M = 11.0
 """Length over which the initial slope is taken (m)."""
-
-_FLAGS = dict(cache=True)
-
 
 def golden_car_matrices(car: GoldenCar = GOLDEN_CAR) -> tuple[np.ndarray, np.ndarray]:
     """Continuous-time ``(A, B)`` of the quarter-car, state ``(z_s, ż_s, z_u, ż_u)``, input road height.
@@ -86,7 +84,7 @@ def transition(spacing_m: float, speed_mps: float = IRI_SPEED_MPS,
     return ST, PR
 
 
-@njit(**_FLAGS)
+@kernel
 def _iri_kernel(y, base, i11, dx, ST, PR, seg_of_step, sums, counts):
     """Accumulate ``|z0 − z2|`` per segment for every row of ``y`` (rows × points).
 

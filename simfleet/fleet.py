@@ -33,6 +33,7 @@ import zenoh
 from shared import keys
 from shared.drivelog import FORMAT, VERSION, DriveLog, DriveLogMeta
 from shared.fe.beam import Beam
+from shared.fe.design import design_beam, registry_krot
 from shared.profiles import RoadProfile, iso8608_profile, tyre_filter
 from shared.registry import Bridge, RegistryError, Site, VehicleClass, load_site
 from shared.sensors import add_noise
@@ -99,18 +100,6 @@ class Published(NamedTuple):
 # -- the world --------------------------------------------------------------------------------------
 
 
-def design_beam(bridge: Bridge) -> Beam:
-    """The healthy beam the registry describes (design E·I, no damage)."""
-    krot = None
-    if bridge.supports == "rotational_springs":
-        if bridge.krot_nm_per_rad is None:
-            raise FleetError(f"bridge {bridge.id!r}: krot_nm_per_rad: needed to simulate rotational_springs bearings")
-        krot = (bridge.krot_nm_per_rad, bridge.krot_nm_per_rad)
-    return Beam(span_m=bridge.span_m, n_elements=bridge.n_elements, E_pa=bridge.E_pa, I_m4=bridge.I_m4,
-                mass_per_m=bridge.mass_per_m, damping_ratio=bridge.damping_ratio, supports=bridge.supports,
-                krot_nm_per_rad=krot, depth_m=bridge.depth_m)
-
-
 def build_worlds(site: Site, seed: int = 0, road_class: str = "A") -> list[RouteWorld]:
     """A seeded ISO 8608 surface (tyre-filtered, zero mean) per route, with its first bridge."""
     worlds = []
@@ -122,7 +111,7 @@ def build_worlds(site: Site, seed: int = 0, road_class: str = "A") -> list[Route
         bridges = site.bridges_on(route.id)
         if len(bridges) > 1:
             log.warning("route %s: only bridge %s of %d is simulated", route.id, bridges[0].id, len(bridges))
-        beam = design_beam(bridges[0]) if bridges else None
+        beam = design_beam(bridges[0], krot=registry_krot(bridges[0])) if bridges else None
         worlds.append(RouteWorld(route.id, route.length_m, surface, beam,
                                  bridges[0].start_chainage_m if bridges else 0.0))
     return worlds
@@ -351,7 +340,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             _vehicle_class(site, args.model)
             for bridge in site.bridges:
-                design_beam(bridge)
+                design_beam(bridge, krot=registry_krot(bridge))
         except (FleetError, ValueError) as e:
             raise FleetError(f"{args.site}: {e}") from None
     except (FleetError, RegistryError, ValueError) as e:

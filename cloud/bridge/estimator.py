@@ -27,6 +27,7 @@ import numpy as np
 
 from shared.registry import Bridge, Site
 from shared.schema import ApSegment
+from shared.vehicles.calibration import calibration_names
 
 from cloud.bridge.dynamic import GlobalLevel, fit_elements_dynamic
 from cloud.bridge.hypotheses import Assessment, HypothesisSettings, Kernels, assess
@@ -210,8 +211,6 @@ class BridgeEstimator:
         ``settings.calibration_log_sd`` on every quantity.
         """
         if params_log_sd is None and self.settings.calibration_log_sd:
-            from cloud.road.calibration import calibration_names
-
             params_log_sd = {n: self.settings.calibration_log_sd for n in calibration_names(model)}
         edge = self.settings.edge
         if sample_interval_s is not None and abs(sample_interval_s * edge.sample_rate_hz - 1.0) > 1e-9:

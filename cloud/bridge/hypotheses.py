@@ -40,7 +40,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from shared.fe.beam import assemble, contact_matrix, crack_ei_factor
+from shared.fe.beam import (assemble, compliance_kernel, contact_matrix, crack_ei_factor, element_stiffness, free_dofs,
+                            stiffness_matrix)
 
 from cloud.bridge.static import Setup, Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch
 
@@ -140,8 +141,6 @@ class Kernels:
 
     @classmethod
     def of(cls, setup: Setup) -> "Kernels":
-        from shared.fe.beam import compliance_kernel
-
         basis = setup.basis
         x = basis.x
         beam = setup.beam
@@ -180,15 +179,13 @@ class Kernels:
         """Coefficients of ∂J/∂η_e of the design span on end springs ``krot`` (N·m/rad), η_e the
         relative change of element e's compliance: ∂J(x)/∂η_e = u_xᵀ K_e u_x (u_x = K⁻¹N(x)ᵀ,
         K_e the element's stiffness), the unit-load theorem for any supports. (n_k, n_b, n_e)."""
-        from shared.fe.beam import _element_stiffness, _free_dofs, _stiffness
-
         beam = self.setup.beam
         x = self.setup.basis.x
         n_e = beam.n_elements
-        K0 = _stiffness(beam)
+        K0 = stiffness_matrix(beam)
         N = contact_matrix(beam, x)
-        ke = _element_stiffness(beam.element_length_m, beam.element_ei())
-        free = _free_dofs(n_e)
+        ke = element_stiffness(beam.element_length_m, beam.element_ei())
+        free = free_dofs(n_e)
         idx = np.arange(4)[None, :] + 2 * np.arange(n_e)[:, None]  # (n_e, 4) global DOFs of each element
         out = []
         for k in np.atleast_1d(krot):

@@ -31,11 +31,11 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.linalg import solveh_banded
 
 from shared.fe.beam import influence_line
+from shared.fe.design import design_beam
 from shared.registry import Bridge
-
-from cloud.bridge.static import design_beam
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -68,8 +68,6 @@ class NormalEquations:
 
     def solve(self, ridge: float = 0.0) -> np.ndarray:
         """J (m/N) on the span grid; ``ridge`` adds a small multiple of the mean diagonal."""
-        from scipy.linalg import solveh_banded
-
         band = self.band.copy()
         band[-1] += ridge * float(np.mean(band[-1]))
         return solveh_banded(band, self.rhs)

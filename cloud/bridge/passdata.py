@@ -7,14 +7,14 @@ removed). This module turns a pass's segments into what the bridge estimators ne
 1. :func:`assemble_pass` — the pass's AP for one axle on the global grid, with a validity mask.
 2. :func:`correct_aps` — undo the edge inverse's time-discretisation error. The edge integrates with
    Newmark-β (γ > ½, first-order accurate: ``edge_gamma``); at the body's bounce frequency its AP is
-   off by ~1 % in amplitude and a few mrad in phase. That is negligible for a road, but not on a bridge: a
-   9 mm approach ramp then leaves 20–100 µm of error on the span, half the deflection (measured:
-   ``tests/test_bridge_passdata.py``). The AP the edge would have produced with a continuous-time
-   model is ``T⁻¹(ω) H(ω) · AP``, with ``H`` the edge's discrete Newmark forward transfer and
-   ``T`` the vehicle's continuous transfer (both closed form, :func:`newmark_transfer`,
-   :func:`continuous_transfer`), applied by FFT at the pass's speed.
-3. :class:`VehicleFilter` — the vehicle's continuous forward model on the chainage grid (Newmark
-   γ = ½, second-order). It maps a profile to the measured channel, which *whitens* AP errors
+   off in amplitude and phase by a little. That is negligible for a road, but not on a bridge: the
+   error an approach ramp leaves on the span is of the order of the deflection itself. The AP the
+   edge would have produced with a continuous-time model is ``T⁻¹(ω) H(ω) · AP``, with ``H`` the
+   edge's discrete Newmark forward transfer and ``T`` the vehicle's continuous transfer (both closed
+   form, :mod:`shared.dynamics.transfer`), applied by FFT at the pass's speed.
+3. :class:`VehicleFilter` — the vehicle's continuous forward model on the chainage grid
+   (:func:`shared.dynamics.forward.ap_response` at Newmark γ = ½, second-order). It maps a profile
+   to the measured channel, which *whitens* AP errors
    (sensor noise is white in the measured channel; the inverse colours it), annihilates offsets,
    slopes and the drift-control trend, and gives the dynamic wheel-load factor ``1 + φ(x)``
    (``φ`` = dynamic tyre force / static wheel load) from the AP and the calibrated ratios alone.
@@ -37,11 +37,15 @@ from collections import defaultdict
 from collections.abc import Iterable, Sequence
 
 import numpy as np
-from numba import njit
+from scipy.signal import butter, sosfiltfilt
 
+from shared.dynamics.forward import ap_response, contact_forces, measured_channels
 from shared.dynamics.inverse import edge_gamma
+from shared.dynamics.newmark import newmark_constants
+from shared.dynamics.transfer import continuous_transfer, newmark_transfer
 from shared.registry import Bridge
 from shared.schema import ApSegment
+from shared.vehicles import vehicle_from_params
 from shared.vehicles.base import VehicleSystem
 
 #: Segment points whose sigma exceeds this multiple of the pass median are unreliable (the edge
@@ -153,50 +157,6 @@ def assemble_pass(segments: Sequence[ApSegment], axle: int = 1) -> PassAp | None
 # 2. Transfer functions and the discretisation correction
 
 
-def _channel_rows(system: VehicleSystem) -> tuple[np.ndarray, np.ndarray]:
-    dofs = np.array([ch.dof for ch in system.channels], dtype=np.int64)
-    kinds = np.array([0 if ch.kind == "acc" else 1 for ch in system.channels], dtype=np.int64)
-    return dofs, kinds
-
-
-def newmark_transfer(system: VehicleSystem, freqs_hz: np.ndarray, dt: float, gamma: float = 0.8,
-                     beta: float | None = None) -> np.ndarray:
-    """Frequency response of the *discrete* Newmark-β forward model, contact profile → channels.
-
-    With ``g(z) = 1 − γ + γz`` and ``b(z) = ½ − β + βz`` Newmark's updates give
-    ``V = Δt·g/(z−1)·A`` and ``U = Δt²(g + b(z−1))/(z−1)²·A``, so the equation of motion reads
-    ``S(z) A = G (kc + cc·ż) Y`` with ``S = M + C·Δt·g/(z−1) + K·Δt²(g + b(z−1))/(z−1)²`` and the
-    contact rate by the trapezoidal rule, ``ż = (2/Δt)(z−1)/(z+1)`` — the scheme the edge's inverse
-    inverts exactly. Returns (n_f, n_channels, n_contacts) complex (m/s² or rad/s per m); zero at 0 Hz.
-    """
-    beta = 0.25 * (0.5 + gamma) ** 2 if beta is None else beta
-    f = np.asarray(freqs_hz, dtype=float)
-    dofs, kinds = _channel_rows(system)
-    out = np.zeros((f.size, len(dofs), system.n_contacts), dtype=complex)
-    pos = f > 0.0
-    z = np.exp(2j * math.pi * f[pos] * dt)[:, None, None]
-    g, b = (1.0 - gamma) + gamma * z, (0.5 - beta) + beta * z
-    S = system.M + system.C * (dt * g / (z - 1.0)) + system.K * (dt * dt * (g + b * (z - 1.0)) / (z - 1.0) ** 2)
-    rate = (2.0 / dt) * (z - 1.0) / (z + 1.0)  # (n, 1, 1)
-    A = np.linalg.solve(S, system.G[None, :, :] * (system.kc[None, None, :] + system.cc[None, None, :] * rate))
-    V = (dt * g / (z - 1.0)) * A
-    out[pos] = np.where(kinds[None, :, None] == 0, A[:, dofs], V[:, dofs])
-    return out
-
-
-def continuous_transfer(system: VehicleSystem, freqs_hz: np.ndarray) -> np.ndarray:
-    """Frequency response of the continuous-time vehicle, contact profile → channels (as above)."""
-    f = np.asarray(freqs_hz, dtype=float)
-    dofs, kinds = _channel_rows(system)
-    out = np.zeros((f.size, len(dofs), system.n_contacts), dtype=complex)
-    pos = f > 0.0
-    w = (2.0 * math.pi * f[pos])[:, None, None]
-    Z = -w * w * system.M + 1j * w * system.C + system.K
-    Q = np.linalg.solve(Z, system.G[None, :, :] * (system.kc[None, None, :] + 1j * w * system.cc[None, None, :]))
-    out[pos] = np.where(kinds[None, :, None] == 0, -w * w * Q[:, dofs], 1j * w * Q[:, dofs])
-    return out
-
-
 def correction_response(system: VehicleSystem, freqs_hz: np.ndarray, edge: EdgeSettings) -> np.ndarray:
     """``T⁻¹H``: maps the edge's AP to the AP of an exact inverse of the vehicles' continuous
     dynamics ``T``, (n_f, n_c, n_c).
@@ -273,74 +233,6 @@ def correct_aps(aps: dict[int, PassAp], system: VehicleSystem, edge: EdgeSetting
 # 3. The vehicle's continuous forward model on the chainage grid
 
 
-@njit(cache=True)
-def _forward_kernel(M, C, K, G, kc, cc, Y, dt, gamma, beta, dofs, kinds):
-    """Newmark-β response of a linear vehicle to contact profiles ``Y`` (n, n_c, k), from rest in
-    static equilibrium on Y[0]. Returns the channels (n, n_ch, k) and the dynamic contact forces
-    kc·(y − Gᵀq) + cc·(ẏ − Gᵀq̇) (n, n_c, k), N."""
-    n, n_c, k = Y.shape
-    nd = M.shape[0]
-    a0 = 1.0 / (beta * dt * dt)
-    a1 = gamma / (beta * dt)
-    a2 = 1.0 / (beta * dt)
-    a3 = 1.0 / (2.0 * beta) - 1.0
-    a4 = gamma / beta - 1.0
-    a5 = dt / 2.0 * (gamma / beta - 2.0)
-    a6 = (1.0 - gamma) * dt
-    a7 = gamma * dt
-    Keff_inv = np.linalg.inv(K + a0 * M + a1 * C)
-    Kinv = np.linalg.inv(K)
-    chans = np.zeros((n, dofs.size, k))
-    dyn = np.zeros((n, n_c, k))
-    u = np.zeros(nd)
-    v = np.zeros(nd)
-    a = np.zeros(nd)
-    f = np.zeros(nd)
-    rhs = np.zeros(nd)
-    ydot = np.zeros(n_c)
-    for col in range(k):
-        for i in range(nd):
-            f[i] = 0.0
-            for j in range(n_c):
-                f[i] += G[i, j] * kc[j] * Y[0, j, col]
-        u = Kinv @ f
-        for i in range(nd):
-            v[i] = 0.0
-            a[i] = 0.0
-        for j in range(n_c):
-            ydot[j] = 0.0
-        for s in range(n):
-            if s > 0:
-                for j in range(n_c):
-                    ydot[j] = 2.0 * (Y[s, j, col] - Y[s - 1, j, col]) / dt - ydot[j]
-                for i in range(nd):
-                    acc = 0.0
-                    for j in range(n_c):
-                        acc += G[i, j] * (kc[j] * Y[s, j, col] + cc[j] * ydot[j])
-                    f[i] = acc
-                for i in range(nd):
-                    acc = f[i]
-                    for j in range(nd):
-                        acc += M[i, j] * (a0 * u[j] + a2 * v[j] + a3 * a[j]) + C[i, j] * (a1 * u[j] + a4 * v[j] + a5 * a[j])
-                    rhs[i] = acc
-                u_new = Keff_inv @ rhs
-                for i in range(nd):
-                    a_new = a0 * (u_new[i] - u[i]) - a2 * v[i] - a3 * a[i]
-                    v[i] = v[i] + a6 * a[i] + a7 * a_new
-                    a[i] = a_new
-                    u[i] = u_new[i]
-            for c in range(dofs.size):
-                chans[s, c, col] = a[dofs[c]] if kinds[c] == 0 else v[dofs[c]]
-            for j in range(n_c):
-                gu = 0.0
-                gv = 0.0
-                for i in range(nd):
-                    gu += G[i, j] * u[i]
-                    gv += G[i, j] * v[i]
-                dyn[s, j, col] = kc[j] * (Y[s, j, col] - gu) + cc[j] * (ydot[j] - gv)
-    return chans, dyn
-
-
 @dataclasses.dataclass(frozen=True, eq=False)
 class VehicleFilter:
     """The vehicle's continuous forward model driven along the chainage grid at ``speed_mps``.
@@ -359,15 +251,15 @@ class VehicleFilter:
 
     def run(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Channels (n, n_ch, k) and dynamic contact forces (n, n_c, k), N, for profiles (n, n_c, k) m."""
-        Y = np.ascontiguousarray(Y, dtype=np.float64)
+        Y = np.asarray(Y, dtype=np.float64)
         if Y.ndim != 3 or Y.shape[1] != self.system.n_contacts:
             raise ValueError(f"VehicleFilter.run: expected (n, {self.system.n_contacts}, k), got {Y.shape}")
-        s = self.system
-        dofs, kinds = _channel_rows(s)
-        return _forward_kernel(np.ascontiguousarray(s.M, dtype=float), np.ascontiguousarray(s.C, dtype=float),
-                               np.ascontiguousarray(s.K, dtype=float), np.ascontiguousarray(s.G, dtype=float),
-                               np.asarray(s.kc, dtype=float), np.asarray(s.cc, dtype=float), Y, self.dt, 0.5, 0.25,
-                               dofs, kinds)
+        profiles = np.ascontiguousarray(np.moveaxis(Y, 2, 0))  # (k, n, n_c): a batch of independent profiles
+        c = newmark_constants(self.dt, 0.5, 0.25)
+        state = ap_response(self.system, profiles, c)
+        channels = measured_channels(self.system, state)
+        forces = contact_forces(self.system, profiles, state, c.dt)
+        return np.moveaxis(channels, 0, 2), np.moveaxis(forces, 0, 2)
 
     def whiten(self, y: np.ndarray) -> np.ndarray:
         """First measured channel for single-contact profiles ``y`` (n,) or (n, k): the whitening map."""
@@ -452,8 +344,6 @@ class PassData:
     params_log_sd: dict | None = None
 
     def system(self) -> VehicleSystem:
-        from shared.vehicles import vehicle_from_params
-
         return vehicle_from_params(self.model, dict(self.params)).system()
 
     def vehicle_filter(self) -> VehicleFilter:
@@ -464,8 +354,6 @@ def _low_pass(factor: np.ndarray, speed_mps: float, spacing_m: float, cutoff_hz:
     """A load factor ``1 + φ`` with φ low-passed at ``cutoff_hz`` (zero phase; unchanged if short or no cutoff)."""
     if not cutoff_hz or factor.size <= 30:
         return factor
-    from scipy.signal import butter, sosfiltfilt
-
     nyq = 0.5 * speed_mps / spacing_m
     if cutoff_hz >= nyq:
         return factor
@@ -487,8 +375,6 @@ def extract_pass(segments: Sequence[ApSegment], window: Window, model: str, para
     such fast load changes anyway. ``params_log_sd``: the calibration's uncertainty (see
     :attr:`PassData.params_log_sd`).
     """
-    from shared.vehicles import vehicle_from_params
-
     system = vehicle_from_params(model, dict(params)).system()
     if edge.gamma is None:
         edge = dataclasses.replace(edge, gamma=edge_gamma(model))
@@ -589,9 +475,9 @@ def consensus_end(p: PassData, ref: Reference, leave_out: bool = True) -> int:
     """The last window index of ``p`` at which its consensus still averages (nearly) the same passes
     as on the rest of ``p``: passes end at staggered points (the edge drops the last grid points a
     pass's anti-alias window cuts, a speed-dependent count), and where more than
-    :data:`CONSENSUS_DROPOUT` of them have ended the consensus is the mean of the longer ones only
-    (measured, global10-n30: a residual 2nd difference of 30.8 µm there vs 5.8 typical). One pass
-    that ends early does not cut the others (it moves the consensus by 1/n of its own drift)."""
+    :data:`CONSENSUS_DROPOUT` of them have ended the consensus is the mean of the longer ones only,
+    and its second difference jumps there. One pass that ends early does not cut the others (it
+    moves the consensus by 1/n of its own drift)."""
     valid = np.flatnonzero(p.valid)
     first, last = int(valid[0]), int(valid[-1])
     count = ref.count - p.valid if leave_out else ref.count
@@ -662,10 +548,10 @@ def road_load_factor(p: PassData, road_m: np.ndarray, deflection_m: np.ndarray |
 
     :func:`extract_pass` computes ``φ̂`` from the pass's own AP, so it carries the pass's AP noise —
     the very noise the load term ``W·(1 + φ)·J`` is then regressed against: an errors-in-variables
-    bias (measured on 300 healthy passes against noise-free twins: ~4 nats of spurious free-element
-    gain, the bridge read ~0.1 point soft). Driven over what the cloud knows instead — the fleet's
-    leave-one-out consensus road (:func:`~cloud.bridge.static.driven_road`) — φ holds the other
-    passes' noise only, averaged down by their number and independent of this pass's.
+    bias (spurious free-element gain, the bridge read soft). Driven over what the cloud knows
+    instead — the fleet's leave-one-out consensus road (:func:`~cloud.bridge.static.driven_road`) —
+    φ holds the other passes' noise only, averaged down by their number and independent of this
+    pass's.
 
     ``deflection_m`` (window grid, m, down positive): the deflection under the pass's *static* wheel
     load at each position of the wheel (e.g. W̄·J(x; θ), zero off the span), if the road does not

@@ -57,6 +57,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from shared.fe.beam import Beam, compliance_kernel
+from shared.fe.design import design_beam
 from shared.registry import Bridge
 
 from cloud.bridge.passdata import PassData, Reference, Window, consensus_end, consensus_used, residual
@@ -1202,14 +1203,6 @@ class Setup:
             # the bump is fitted as stiffness.
             prior = dataclasses.replace(prior, scales=())
         return ElementModel.of(self.basis, self.beam, prior)
-
-
-def design_beam(bridge: Bridge, ei_factor: np.ndarray | None = None, krot: tuple[float, float] | None = None) -> Beam:
-    """The registry bridge as an FE :class:`Beam` (design stiffness unless ``ei_factor``)."""
-    supports = "simply_supported" if krot is None else "rotational_springs"
-    return Beam(span_m=bridge.span_m, n_elements=bridge.n_elements, E_pa=bridge.E_pa, I_m4=bridge.I_m4,
-                mass_per_m=bridge.mass_per_m, damping_ratio=bridge.damping_ratio, supports=supports,
-                krot_nm_per_rad=krot, ei_factor=ei_factor, depth_m=bridge.depth_m)
 
 
 def whiten_all(passes: Sequence[PassData], setup: Setup) -> list[WhitenedPass]:

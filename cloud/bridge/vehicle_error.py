@@ -47,6 +47,10 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from shared.dynamics.transfer import newmark_transfer
+from shared.vehicles import vehicle_from_params
+from shared.vehicles.calibration import calibration_names, class_prior
+
 #: finite-difference step in the log calibration quantities
 FD_STEP = 1e-3
 
@@ -64,8 +68,6 @@ def perturbed_params(params: Mapping[str, float], name: str, step: float) -> dic
 
 def class_log_sd(site, model: str) -> dict[str, float]:
     """Log-sd of every calibration quantity under the vehicle class prior (an uncalibrated vehicle)."""
-    from cloud.road.calibration import calibration_names, class_prior
-
     vc = site.vehicle_class(model)
     _, sd = class_prior(model, dict(vc.mean), dict(vc.std))
     return dict(zip(calibration_names(model), (float(s) for s in sd)))
@@ -124,15 +126,11 @@ def distortion_of(model: str, params: Mapping[str, float], speed_mps: float, spa
     ``speed_mps`` over ``profile`` sampled every ``spacing_m``.
 
     Computed as the ratio of the forward model's discrete transfer functions
-    (:func:`~cloud.bridge.passdata.newmark_transfer` with the trapezoidal rule of
+    (:func:`~shared.dynamics.transfer.newmark_transfer` with the trapezoidal rule of
     :class:`~cloud.bridge.passdata.VehicleFilter`), applied by FFT with zero padding: it is causal
     and stable (the channel's zeros — e.g. the suspension's k + c·s — are in the left half-plane),
     and zero at 0 Hz.
     """
-    from shared.vehicles import vehicle_from_params
-
-    from cloud.bridge.passdata import newmark_transfer
-
     profile = np.asarray(profile, dtype=float)
     n = profile.size
     dt = spacing_m / speed_mps

@@ -39,8 +39,8 @@ import numpy as np
 from scipy.interpolate import make_interp_spline
 
 from shared import keys
-from shared.dynamics.forward import measured_channels, trapezoid_rate
-from shared.dynamics.newmark import integrate, newmark_constants
+from shared.dynamics.forward import channels_from_ap
+from shared.dynamics.newmark import newmark_constants
 from shared.schema import Alarm, ApSegment
 from shared.track_quality import (ALERT_ISOLATED_MM, ALERT_SD_MM, d1_longitudinal_level, isolated_defects,
                                   segment_quality)
@@ -88,18 +88,6 @@ def _axle_series(segs: list[ApSegment]) -> tuple[np.ndarray, np.ndarray, np.ndar
     return t[keep], x[keep], ap[keep], sigma[keep]
 
 
-def channels_from_ap(model: str, params: dict, ap: np.ndarray, dt: float) -> np.ndarray:
-    """The bogie channels (n, 4) the vehicle under ``params`` measures on the profile ``ap`` (n, 4)
-    under its wheels: Newmark γ = 0.8 with the trapezoidal contact rate, from static equilibrium —
-    the discretisation the inverse inverts exactly."""
-    system = vehicle_from_params(model, params).system()
-    ydot = trapezoid_rate(ap, np.zeros(ap.shape[1]), dt)
-    force = (ap * system.kc + ydot * system.cc) @ system.G.T
-    u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap[0]))
-    state = integrate(system.M, system.C, system.K, force, newmark_constants(dt, GAMMA), u0=u0)
-    return measured_channels(system, state)
-
-
 def rebuild_pass(pass_id: str, segments: list[ApSegment], model: str, params: dict,
                  dt: float = RESYNTH_DT_S) -> RebuiltPass | None:
     """A run for the batch calibration from its held AP segments (None if a wheel has none)."""
@@ -119,7 +107,7 @@ def rebuild_pass(pass_id: str, segments: list[ApSegment], model: str, params: di
     ap = np.stack([make_interp_spline(ti, ai, k=3)(t) for ti, _, ai, _ in series], axis=1)
     x0 = float(np.mean([np.interp(t_lo, ti, xi) - offsets[i] for i, (ti, xi, _, _) in enumerate(series)]))
     speed = float(np.mean([s.speed_mps for s in segments]))
-    z = channels_from_ap(model, params, ap, dt)
+    z = channels_from_ap(vehicle_from_params(model, params).system(), ap, newmark_constants(dt, GAMMA))
     return RebuiltPass(RailRun(pass_id, z, dt, speed, x0), dict(params), float(t_lo),
                        {i: sorted(v, key=lambda s: s.start_index) for i, v in by_axle.items()})
 

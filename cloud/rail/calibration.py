@@ -22,51 +22,45 @@ started from a grid search of its own wheels' agreement (:func:`_speed_from_whee
 
 Beyond the thesis, the carriage's global properties (``mb, Ib, kp, cp, ks, cs``, common to every
 run) are calibrated with the batch, their class sd (~5 %) as the prior: with them fixed at the class
-means, the run masses absorb the global errors (a 7 % error in ``ks`` moves every ``mv`` ~7 %),
-while the batch — different masses and speeds over one track — identifies them; the class means of
+means, the run masses absorb the global errors (an error in ``ks`` moves every ``mv`` by about as
+much), while the batch — different masses and speeds over one track — identifies them; the class means of
 ``mv`` and ``Iv`` (known for a route, as in the thesis's blind test) pin the common scale.
 
 Records need not start at rest. The inverse starts the body at rest, right for a record that
 starts in static equilibrium (a logger switched on at a standstill; our simulator's runs) and wrong
 for one that starts mid-motion: the body's free oscillation then rides every AP, and on Table 3.1's
 suspension it decays slowly (bounce 1.16 Hz, pitch 1.4 Hz, ζ ≈ 0.07–0.08: e-folding in ~2 s, 60 m
-at 30 m/s), so no start-up window a 150 m record can spare removes it (dropping the first 0.3–1 s of
-the benchmark's runs took mv's median error from 0.9 % to 5.3 %, Iv's to 7.0 %). Given θ the AP is
+at 30 m/s), so no start-up window a 150 m record can spare removes it. Given θ the AP is
 affine in the body's initial state (:data:`BODY0_NAMES`), so each run carries it as a nuisance with
 a weak prior, its Jacobian columns exact from the same forward-mode pass. A free state costs
-information when the record did start at rest (mv 0.9 → 1.4 % on the benchmark), so before the last
+information when the record did start at rest, so before the last
 stage each run's fitted state is tested against rest (Wald χ², 4 dof, :data:`REST_CHI2`) and held
 at rest where consistent — a spike-and-slab prior decided per run. A mid-motion record's first
-chainage comes from the log (GNSS speed × time: ~0.3 m off after 0.5 s), so each run also carries a
-chainage shift (prior sd ``position_sd_m``). The shift is tested the same way (against the log's
-chainage, :data:`SHIFT_CHI2`) and held at zero where consistent: held where the middle stage left
-it (sd ~3 cm), the last stage's speeds took up its error (the blind test's at-rest records: per-run
-speed scatter 0.007 → 0.033 %, ~1 → 5 cm along the span; held at the log's, 0.007 % again).
+chainage comes from the log (GNSS speed × time: decimetres off after half a second), so each run
+also carries a chainage shift (prior sd ``position_sd_m``). The shift is tested the same way
+(against the log's chainage, :data:`SHIFT_CHI2`) and held at zero where consistent: held where the
+middle stage left it instead (centimetres), the last stage's speeds would take up its error.
 
 Gauss–Newton with Levenberg damping on all 8·n_b + 6 unknowns at once (the normal matrix of the
 profiled consensus has a closed form from per-run blocks, :func:`calibrate_batch`), in stages of
 decreasing shortest wavelength; σ² is re-estimated from the residual with its along-track
 correlation; the 95 % intervals are the Gauss–Newton sandwich at the optimum, H⁻¹ (JᵀΣJ/σ⁴ + prior)
 H⁻¹ with Σ the noise's covariance along the track and between a run's wheels as the residual shows
-it (:func:`noise_information`; the Hessian alone took the noise as white), with the global
+it (:func:`noise_information`; the Hessian alone would take the noise as white), with the global
 properties' uncertainty marginalised.
 
 Cost (the thesis's CE needs thousands of batch evaluations; this needs tens): the early stages see
 no short waves, so their channels are decimated to ~20 samples per period of the stage's cut-off
 and compared on a coarser grid; the Jacobian is exact, the AP's derivatives in the 8 inverse
 parameters and the body's initial state carried through the inverse's recursion in forward mode
-(:func:`carriage_aps_sensitivities`: one pass per run at ~4 inverses' cost, where finite differences
-took 13 and were only good to their step; the state's columns are skipped once every run is held at
-rest), the speed's and shift's columns finite differences of the mapping alone; it is refreshed every third
+(:func:`carriage_aps_sensitivities`: one pass per run at a few inverses' cost, where finite
+differences need one per parameter and are only good to their step; the state's columns are skipped
+once every run is held at rest), the speed's and shift's columns finite differences of the mapping alone; it is refreshed every third
 accepted step, with chord steps (1 inverse per run) in between; samples past what the window needs
 are not inverted; every trial of every run is one compiled inverse call (:func:`carriage_aps_runs`)
 and one interpolation (:meth:`_Mapper.map_runs`); the stage's low-pass is a compiled zero-phase
 filter of the mapped rows in space (:func:`sosfiltfilt_rows`; on the channels before the inverse it
-biased the masses, :class:`_Mapper`). Measured on the benchmark's 50-run batch (``python -m
-benchmarks rail``, one BLAS thread, shared machine): 0.22–0.31 s CPU (0.25–0.42 s with the
-low-pass on the channels, which took more iterations), against 0.73 s with finite differences;
-with the initial state and the shift, 0.44–0.50 s (15 iterations instead of 12, each with 8 unknowns
-per run instead of 3; the records of the same batch started mid-motion, 0.63 s and 24 iterations).
+biases the masses, :class:`_Mapper`). ``python -m benchmarks rail`` times it.
 
 Pure functions on arrays: no I/O, no transport.
 """
@@ -80,8 +74,9 @@ from typing import Sequence
 
 import numpy as np
 import scipy.fft
-from numba import njit
 
+from shared.dynamics.newmark import newmark_constants
+from shared.jit import kernel
 from shared.vehicles.carriage import Carriage
 
 RUN_NAMES = ("mv", "Iv", "v")
@@ -117,9 +112,8 @@ STAGE_TOL_LOG = 1e-3
 #: that stay in cache and are reused, instead of ~40 MB fresh pages per Jacobian).
 JACOBIAN_CHUNK_RUNS = 8
 #: The last stage's Jacobian may be this far (log, every coordinate) from the optimum: the Laplace
-#: intervals then use it instead of a fresh one at the end. J moves ~1 % over such a step; the
-#: intervals' widths on the blind test's 14 batches moved < 0.5 % with this and everything else of
-#: the exact Jacobian together.
+#: intervals then use it instead of a fresh one at the end: J moves about a per cent over such a
+#: step, the intervals' widths much less.
 LAPLACE_REUSE_LOG = 0.01
 Z95 = 1.959963984540054
 #: :func:`noise_information` keeps the wavenumbers up to the last where the residual's power times
@@ -197,12 +191,12 @@ def _lowpass(run: RailRun, min_wavelength_m: float = 2.0) -> np.ndarray:
     return z
 
 
-@njit(cache=True)
+@kernel
 def sosfiltfilt_columns(sos, x):
     """``scipy.signal.sosfiltfilt(sos, x, axis=0)`` with its defaults (odd extension of 3·(2·sections
     + 1) samples, each pass started in the steady state of its first sample), for sections without
-    zero coefficients: the same arithmetic, to rounding. scipy's ~0.35 ms a call, mostly Python,
-    was ~10 % of a production batch calibration (one call per run and stage)."""
+    zero coefficients: the same arithmetic, to rounding. scipy's is mostly Python overhead, a
+    noticeable share of a batch calibration, which calls it once per run and stage."""
     n, nch = x.shape
     edge = 3 * (2 * sos.shape[0] + 1)
     if n <= edge:
@@ -213,11 +207,11 @@ def sosfiltfilt_columns(sos, x):
     return ext[edge:edge + n].copy()
 
 
-@njit(cache=True)
+@kernel
 def sosfiltfilt_rows(sos, x):
     """:func:`sosfiltfilt_columns` along the last axis of ``x`` (rows, n): the same numbers. The mapper
     filters ~200–300 mapped rows a call; a block of rows at a time is transposed into a work array
-    that stays in cache (2–3x faster than numpy's transposes around :func:`sosfiltfilt_columns`)."""
+    that stays in cache (faster than numpy's transposes around :func:`sosfiltfilt_columns`)."""
     nch, n = x.shape
     edge = 3 * (2 * sos.shape[0] + 1)
     if n <= edge:
@@ -236,7 +230,7 @@ def sosfiltfilt_rows(sos, x):
     return out
 
 
-@njit(cache=True)
+@kernel
 def _filtfilt_extended(sos, ext, edge):
     """In place on ``ext`` (n + 2·edge, nch), the record in the middle rows: the odd extensions,
     then the forward and backward passes of every section (scipy's sosfiltfilt arithmetic)."""
@@ -272,7 +266,7 @@ def _filtfilt_extended(sos, ext, edge):
             k = kk if direction == 0 else m - 1 - kk
             row = ext[k]
             # section by section over a whole row: the channels' recursions are independent, so
-            # the inner loop vectorises (3x faster than channel by channel through both sections)
+            # the inner loop vectorises (channel by channel through both sections it cannot)
             for q in range(ns):
                 b0, b1, b2, a1, a2 = sos[q, 0], sos[q, 1], sos[q, 2], sos[q, 4], sos[q, 5]
                 s0 = st0[q]
@@ -287,8 +281,8 @@ def _filtfilt_extended(sos, ext, edge):
 
 def butter4_sos(wn: float) -> np.ndarray:
     """``scipy.signal.butter(4, wn, output="sos")`` in closed form (same sections, same order, to
-    ~1e-13 relative): the bilinear transform of the prewarped analog poles. scipy's design took
-    ~0.3 ms a call — 6 % of a production batch calibration, which designs one per run and stage."""
+    ~1e-13 relative): the bilinear transform of the prewarped analog poles. scipy's design is slow
+    for a batch calibration, which designs one per run and stage."""
     warped = 4.0 * math.tan(math.pi * wn / 2.0)  # scipy's prewarp at fs = 2
     pa = warped * np.exp(1j * np.pi * np.array([5.0, 7.0]) / 8.0)  # one pole of each conjugate pair
     pd = (4.0 + pa) / (4.0 - pa)
@@ -321,15 +315,10 @@ class _Mapper:
     The low-pass is applied to the mapped AP, in space, not to the channels before the inverse: a
     filter commutes with the linear inverse only away from the record's start, where the channels'
     filter makes an edge error that the inverse's lightly damped body modes then carry for seconds
-    (most of a 120 m window). That error depends on each run's mv, so it biased the masses — not a
-    common scale but an over-dispersion: noise-free runs on a rigid rail with the true globals, the
-    blind test's healthy batch (profile 1), calibrated mv regressed on the truth had slope 1.023
-    (6 µm residual at the truth, decaying along the window); low-passed in space, 1.000 (0.3 µm).
-    The blind test's healthy batches as calibrated (2 % noise, globals free): slope 1.045 / 1.048 →
-    1.010 / 1.014 on profiles 1 / 2, what is left a scale common to the batch (log-log slope 0.99 /
-    1.00), where the priors pin it. Its size depends on the track near the record's start (seed 1's
-    batches: slope ~1 either way). On the grid the filter's edges are the same for every run and
-    wheel, so the truth stays exact."""
+    (most of a window). That error depends on each run's mv, so it biases the masses — not a common
+    scale but an over-dispersion (calibrated mv regressed on the truth has a slope above 1), by an
+    amount that depends on the track near the record's start. On the grid the filter's edges are the
+    same for every run and wheel, so the truth stays exact."""
 
     def __init__(self, grid: np.ndarray, min_wavelength_m: float | None = None):
         self.grid = grid
@@ -359,7 +348,7 @@ class _Mapper:
         return self.detrend(self.lowpass(out))
 
 
-@njit(cache=True)
+@kernel
 def _map_kernel(aps, dts, x0, speeds, lengths, offsets, grid, out):
     """out[r, t, s, i, k] = AP of run r, trial t, wheel i at chainage grid[k] at speed speeds[r, s]:
     linear interpolation between the bracketing samples, computed (the samples are uniform in time),
@@ -384,13 +373,9 @@ def _map_kernel(aps, dts, x0, speeds, lengths, offsets, grid, out):
 #: The carriage's parameters the inverse depends on, in the order of :func:`carriage_aps`' columns.
 INVERSE_NAMES = ("mv", "Iv", "mb", "Ib", "kp", "cp", "ks", "cs")
 #: Newmark γ of the calibration's inverse. Not the edge's 0.8: its numerical damping (~(γ − ½)·ω·Δt/2,
-#: +0.013 on the bogies' ~7 Hz bounce, ζ 0.06) is read as a lower cp relative to the masses, and
-#: cp's prior then pulls the batch's common mass scale up: mv +1.5 % on average beyond what the
-#: priors explain (six quick seeds and the blind test's healthy batches: common mv error −0.3…+5.0 %
-#: at 0.8, −1.4…+3.5 % at 0.5, against −1.7…+1.6 % the class priors alone give; the blind
-#: test's mv coverage 0.62/0.12 → 0.92/0.54 on profiles 1/2, median |mv error| 2.4 → 1.9 %; on the
-#: benchmark's rail-track batch, whose prior error the bias happened to offset, 0.80 → 0.99 %, Iv
-#: 0.44 → 0.79 %). ``tests/test_rail_calibration.py`` checks the common error over seeds.
+#: a fifth of the bogies' own damping at their bounce) is read as a lower cp relative to the masses,
+#: and cp's prior then pulls the batch's common mass scale up beyond what the priors explain.
+#: ``tests/test_rail_calibration.py`` checks the common error over seeds.
 INVERSE_GAMMA = 0.5
 #: The body's state at a record's first sample, relative to the bogies' (m, rad, m/s, rad/s). The
 #: inverse's default start at rest is right only for a record that starts at rest; a record that
@@ -398,10 +383,10 @@ INVERSE_GAMMA = 0.5
 #: slowly: bounce 1.16 Hz, pitch 1.4 Hz at ζ ≈ 0.07–0.08 with Table 3.1's suspension (e-folding
 #: in ~2 s, 60 m at 30 m/s) — no start-up window a 150 m record could spare removes it.
 BODY0_NAMES = ("u", "pitch", "u_dot", "pitch_rate")
-#: :func:`calibrate_batch` carries the initial state in these units (m, rad, m/s, rad/s): ~70× its
-#: posterior sd on the benchmark's batch, as a log unit is ~70× the masses' — the step tolerance
-#: then means the same for both (in mm and mm/s the state's steps never fell below it and the
-#: stages ran out of iterations). Its prior sd (same units as SI): weak, beyond a body's motion on a track.
+#: :func:`calibrate_batch` carries the initial state in these units (m, rad, m/s, rad/s): as many
+#: times its typical posterior sd as a log unit is the masses', so the step tolerance means the same
+#: for both (in mm and mm/s the state's steps never fall below it and the stages run out of
+#: iterations). Its prior sd (same units as SI): weak, beyond a body's motion on a track.
 BODY0_UNIT = np.array([1e-2, 1e-3, 1e-1, 1e-2])
 BODY0_PRIOR_SD = np.array([0.05, 0.01, 0.2, 0.05])
 #: A run's unknowns in :func:`calibrate_batch`: log mv, log Iv, log v, the chainage shift of its
@@ -411,7 +396,8 @@ _I_SHIFT, _I_BODY = len(RUN_NAMES), len(RUN_NAMES) + 1
 CHAINAGE_GAUGE_SD_M = 1e-3  # the runs' mean shift is held to the logs' (:func:`calibrate_batch`), m
 #: The shift's Jacobian column: a central difference of the mapping with this step, m — about a
 #: sample's length at speed, over which the linear interpolation's kinks average out (at 1 mm the
-#: column jumped from kink to kink and Gauss–Newton crawled), ~0.15 % off for the 2 m waves.
+#: column jumps from kink to kink and Gauss–Newton crawls), a fraction of a per cent off for the 2 m
+#: waves.
 SHIFT_FD_M = 0.03
 #: A run whose fitted initial state is within this of rest (Wald χ², 4 dof: the 99.9 % quantile) is
 #: held at rest (to ``REST_SD``, m, rad, m/s, rad/s: a tight prior, rest as the logger saw it).
@@ -437,7 +423,7 @@ def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: floa
                       body0: np.ndarray | None = None) -> np.ndarray:
     """APs (T, N, 4) under T parameter sets ``theta`` (T, 8) in :data:`INVERSE_NAMES` order, trial t
     on run ``run_of[t]``'s channels ``z`` (R, N, 4) (the first ``lengths[r]`` samples, step
-    ``dts[r]``; the rest of its AP is zero). Same result as :func:`shared.dynamics.population.
+    ``dts[r]``; the rest of its AP is zero). Same result as :func:`cloud.reference.cross_entropy.
     population_aps` per run; the carriage's matrices are assembled in array form — M, C, K are
     linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`) — and the whole
     batch is one compiled call (:func:`_inverse_kernel` without derivatives), instead of a
@@ -488,8 +474,6 @@ def carriage_aps_sensitivities(theta: np.ndarray, Lb: float, Lv: float, z: np.nd
 def _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, body0, nd, out) -> None:
     """:func:`_inverse_kernel` on ``out`` (T, N, ≥ 1 + nd, 4) with the carriage's matrices of each
     trial; ``nd`` 0: the primal alone (the derivatives' inputs are None: compiled without them)."""
-    from shared.dynamics.newmark import newmark_constants
-
     dts = np.asarray(dts, dtype=float)
     M, C, K, G, sec, prim = _carriage_matrices(theta, Lb, Lv)
     c = newmark_constants(float(dts.min()), INVERSE_GAMMA)
@@ -502,7 +486,7 @@ def _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, body0, nd, out) ->
                     np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta, out)
 
 
-@njit(cache=True)
+@kernel
 def _inverse_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, run_of, nd, z, lengths, dts, gamma, beta, out):
     """The carriage's inverse step (:func:`shared.dynamics.batched_inverse.inverse_runs` with the carriage's
     structure: DOFs 2–5 measured, accelerations and pitch rates alternately; 0–1 the body, free;
@@ -515,7 +499,7 @@ def _inverse_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, run_of, nd, z, 
 
     ``PC`` None (``nd`` 0): the AP alone, for the chord steps' trials. numba compiles that call
     without the derivatives' code (its branches test the argument against None, which it prunes at
-    compile time): as fast as a kernel of the primal alone, where a run-time flag cost ~20 %.
+    compile time): as fast as a kernel of the primal alone, which a run-time flag is not.
 
     The measured DOFs' states are data, so only the body's and the contacts' states have
     derivatives. Differentiating M a + C v + K u − G g = 0 in log θ_j: S [ds_f; dg] = −(b_j + C_f
@@ -663,7 +647,7 @@ def _inverse_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, run_of, nd, z, 
                     hist = 2.0 * y[c] / dt + yd[c]
                     ynew = (g + cp * hist) / den
                     if PC is not None:
-                        for j in range(nd):  # (reciprocals: divisions were a quarter of the kernel)
+                        for j in range(nd):  # (reciprocals: divisions are slow)
                             dyn[j] = (ds[2 + c, j] + cp * (two_dt * dy[c, j] + dyd[c, j])) * inv_den
                         dyn[4] -= ynew * kp * inv_den  # the contact's stiffness is kp
                         dyn[5] += cp * (hist - two_dt * ynew) * inv_den  # and its damping cp
@@ -840,7 +824,7 @@ def noise_information(e: np.ndarray, D: np.ndarray, L: int, active: np.ndarray) 
     rows — and Σ the noise's covariance as the residual ``e`` shows it (:func:`_residual_cross_spectrum`):
     the meat of the sandwich covariance H⁻¹ (JᵀΣJ/σ⁴ + prior) H⁻¹ of the estimate, which weighs
     every grid point alike. With Σ = σ² I it is σ² JᵀJ. Local coordinates not in ``active``: zero.
-    ~50 ms on the benchmark's 50-run batch (one BLAS thread), once per calibration.
+    Once per calibration.
 
     Run s's score in its local coordinate j, Σ_rw (D_rw − D̄)ᵀ ε_rw, is its own rows' D_swᵀ ε_sw
     less D̄_sjᵀ Σ_rw ε_rw (every run's noise): covariances of such pairs are the runs' own blocks,
@@ -932,8 +916,8 @@ def calibrate_batch(
     Laplace covariance given the globals plus their error propagated through the runs' sensitivity
     to them (the full matrix: the globals' errors are strongly correlated along the common mass
     scale). On the batch the covariance came from, this is exactly the free fit's marginal interval.
-    Without it a held global's error is shared by every run's interval unseen (the blind test's
-    damaged batches: mv/Iv coverage 0.00–0.58 with the healthy batch's globals).
+    Without it a held global's error is shared by every run's interval unseen, and the intervals
+    cover far too rarely.
     """
     t_start = time.perf_counter()
     runs = list(runs)
@@ -972,8 +956,8 @@ def calibrate_batch(
     n_par = L * n + n_g
     N = 4 * n
     # The records' common shift is the chainage's gauge: the consensus follows it, so the data hardly
-    # see it, but drifting it moves the window over the track (on the blind test's healthy profile-2
-    # batch the common mass error went +1.62 → +1.74 %). The logs' mean chainage defines it.
+    # see it, but drifting it moves the window over the track (and the common mass error with it).
+    # The logs' mean chainage defines it.
     gauge = np.zeros(n_par)
     gauge[_I_SHIFT: L * n: L] = 1.0 / n
     Q = np.outer(gauge, gauge) / CHAINAGE_GAUGE_SD_M**2
@@ -1101,11 +1085,11 @@ def calibrate_batch(
         mapper = mapper_for(min_wavelength)
         stage = stage_channels(min_wavelength, final_decimation if last else None)
         # The records' chainage shifts are fitted in the middle stages only. The first holds them
-        # where the logs put them: with the run properties still at the class means its shifts took
-        # up misfit (~0.5 m steps on exact chainages) and cost iterations, and its waves are long
+        # where the logs put them: with the run properties still at the class means its shifts take
+        # up misfit (decimetre steps on exact chainages) and cost iterations, and its waves are long
         # against a chainage error anyway. The last holds them where the middle one left them
-        # (sd ~3 cm there): at 2 m the linear interpolation's kinks make the misfit rough in a
-        # shift below ~1 cm, and Gauss–Newton's shift steps were rejected over and over.
+        # (centimetres): at 2 m the linear interpolation's kinks make the misfit rough in a shift
+        # below a centimetre, and Gauss–Newton's shift steps are rejected over and over.
         hold_shift = len(stages_m) > 1 and (i_stage == 0 or (last and len(stages_m) > 2))
         P[_I_SHIFT: L * n: L] = 1.0 / np.where(hold_shift | shift_held, REST_SD, position_sd_m) ** 2
         mu[_I_SHIFT: L * n: L] = x[_I_SHIFT: L * n: L] if hold_shift else 0.0
@@ -1148,9 +1132,6 @@ def calibrate_batch(
     # (:func:`noise_information`). H⁻¹ alone takes the noise as white with σ² scaled by the
     # residual's correlation factor: right on average over the grid, not for each coordinate, whose
     # signature sits where the (integrated, red) noise is stronger or weaker than that average.
-    # Monte Carlo over the noise (10 × the benchmark's 50 runs, per-run errors about the batch's
-    # mean over the intervals' own per-run sd): mv/Iv z rms 0.87/0.58 → 1.15/0.92 on clean starts,
-    # 1.46/1.50 → 1.29/1.35 on records cut mid-motion.
     meat = noise_information(e, D, L, active) / sigma2**2 + np.diag(P) + Q
     H_inv = np.linalg.inv(H)
     cov = H_inv @ meat @ H_inv
@@ -1219,9 +1200,9 @@ def cross_entropy_batch(
     (smoothed by ``alpha``), and a restart keeps the mean but resets the sd (Botev and Kroese, 2004)
     when the sd has collapsed (max σ/σ₀ < ``sd_tol``) or the best has not improved for ``patience``
     generations. The comparison grid and cubic removal are those of :func:`calibrate_batch`; the
-    low-pass (the same 2 m) is on the channels, once per run, as ours was until its edge error was
-    found to over-disperse the masses (:class:`_Mapper`): in space it would filter every trial of
-    every run, ~10⁴ × 200 rows here, and slow the reference for an accuracy it does not reach anyway.
+    low-pass (the same 2 m) is on the channels, once per run, although its edge error over-disperses
+    the masses (:class:`_Mapper`): in space it would filter every trial of every run, and slow the
+    reference for an accuracy it does not reach anyway.
     """
     t0 = time.perf_counter()
     runs = list(runs)

@@ -43,8 +43,8 @@ are kept for every vehicle and point (N·P·n_samples numbers: small problems on
 ``MAX_COLUMN_BYTES``) and rebuilt from two simulations per contact whenever a vehicle's parameters
 change; the residuals are recomputed from a full simulation every ``refresh_every`` iterations so
 that rounding cannot accumulate. The vehicle step runs the full simulation of the proposal as the
-thesis does (its current misfit is the kept residual). Measured on 3 vehicles and 401 points, an
-iteration costs about 1/100 of the literal one (``python -m benchmarks profile``).
+thesis does (its current misfit is the kept residual). An iteration costs a small fraction of
+the literal one (``python -m benchmarks profile``).
 
 :func:`exact_profile_posterior` is the same model's exact answer for fixed vehicle parameters: with
 the response linear in R, the conditional posterior of R is Gaussian with precision
@@ -61,11 +61,11 @@ import time
 from typing import NamedTuple, Sequence
 
 import numpy as np
-from numba import njit
 from scipy.linalg import solve_triangular
 
-from shared.dynamics.forward import measured_channels
-from shared.dynamics.newmark import integrate, newmark_constants
+from shared.dynamics.forward import channels_from_ap
+from shared.dynamics.newmark import newmark_constants
+from shared.jit import kernel
 from shared.vehicles import MODELS, vehicle_from_params
 
 log = logging.getLogger(__name__)
@@ -79,9 +79,8 @@ THESIS_TAU1 = 1e5
 THESIS_SIGMA2 = 1e-3  # (m/s²)², the observation error variance σ₁²
 THESIS_N_ITER = 2000
 #: The exact posterior assembles a vehicle's normal equations by lag sums when P² exceeds this many
-#: times nc²·n, else by BLAS on H's columns. Measured per quarter-car (one core, loaded machine):
-#: P 201 / n 512: 1.06 ms by lags, 0.75 by BLAS; P 401 / n 1233: 19 vs 14 ms; P 1201 / n 1514: 33 vs
-#: 121 ms (P²/(nc²n) = 79, 130, 953).
+#: times nc²·n, else by BLAS on H's columns: BLAS's P²n/2 multiply-adds run near the core's peak,
+#: and the lag sums' O(n²) only win on fine grids.
 LAGS_ABOVE = 400.0
 MAX_COLUMN_BYTES = 2e9  # the sampler keeps every vehicle's response to every grid point in memory
 
@@ -144,12 +143,9 @@ def _surface(geo: _Geometry, R: np.ndarray) -> np.ndarray:
 
 
 def _simulate(system, y: np.ndarray, dt: float) -> np.ndarray:
-    """Channels of ``system`` driven by surface ``y`` (n, nc), from static equilibrium at rest."""
-    c = newmark_constants(dt)
-    g = y * system.kc
-    force = g @ system.G.T
-    u0 = np.linalg.solve(system.K, system.G @ g[0])
-    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
+    """Channels of ``system`` driven by surface ``y`` (n, nc), from static equilibrium at rest (the
+    thesis's γ = 0.8)."""
+    return channels_from_ap(system, y, newmark_constants(dt))
 
 
 def _impulse_responses(system, n: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +166,7 @@ def _impulse_responses(system, n: int, dt: float) -> tuple[np.ndarray, np.ndarra
     return gk, g0
 
 
-@njit(cache=True)
+@kernel
 def _build_h(n_len, idx, w, ks, ke, gk, g0, j, h):
     """h[t] = response of the channels to a unit change of grid point j (rows ≥ the returned kmin)."""
     nc = idx.shape[0]
@@ -203,7 +199,7 @@ def _build_h(n_len, idx, w, ks, ke, gk, g0, j, h):
     return kmin
 
 
-@njit(cache=True)
+@kernel
 def _columns(n_len, idx, w, ks, ke, gk, g0, cols, kmin):
     """Every column of H (the response to a unit change of each grid point): cols (P, n, nch)."""
     P = cols.shape[0]
@@ -211,7 +207,7 @@ def _columns(n_len, idx, w, ks, ke, gk, g0, cols, kmin):
         kmin[j] = _build_h(n_len, idx, w, ks, ke, gk, g0, j, cols[j])
 
 
-@njit(cache=True)
+@kernel
 def _profile_sweep(R, grid, tau1, ridge, s_profile, inv_s2, n_len, cols, kmin, resid, normals, uniforms):
     """One Metropolis sweep over every profile point (eq. 4.16–4.19), residuals kept exact.
 
@@ -254,7 +250,7 @@ def _profile_sweep(R, grid, tau1, ridge, s_profile, inv_s2, n_len, cols, kmin, r
     return accepted
 
 
-@njit(cache=True)
+@kernel
 def _columns_by_sample(n_len, idx, w, gk, g0, cols):
     """Every column of H at once into ``cols`` (P, nch, n), zeroed: cols[j, q, t] = H[t, q, j].
 
@@ -285,7 +281,7 @@ def _columns_by_sample(n_len, idx, w, gk, g0, cols):
                             col[t] += wt * g[t - k]
 
 
-@njit(cache=True)
+@kernel
 def _gram_by_lags(idx, w, gk, g0, wq, z, M, D0, b):
     """HᵀΛH and HᵀΛz from the impulse responses in O(nc²·nch·n²) operations, never forming H.
 
@@ -478,8 +474,8 @@ def exact_profile_posterior(
     responses, O(n²) (:func:`_data_normal_equations`). The data make the precision dense — the
     quarter-car's impulse response does not decay within a 20 m pass — so the algebra is dense: at
     the thesis's size (P 201, n ≈ 550) ~P²n/2 multiply-adds per vehicle, which BLAS runs near the
-    core's peak; skipping H's causal zeros block-wise (half the multiply-adds) measured no faster
-    there, nor did the lag sums (1.06 against 0.75 ms), so neither is used there. Small problems only.
+    core's peak; skipping H's causal zeros block-wise (half the multiply-adds) is no faster there,
+    nor are the lag sums, so neither is used there. Small problems only.
     """
     grid = np.asarray(grid, float)
     x0 = [0.0] * len(channels_list) if x0 is None else list(x0)

@@ -1,10 +1,8 @@
 """Fleet self-calibration, the vehicle step: every vehicle's identifiable ratios, jointly.
 
-Only ratios are identifiable (divide the equations of motion by the body mass): the AP depends on
-``K/M, k/M, c/M, m/M`` of a quarter-car, not on ``M``. So each model is parametrised by its
-reference mass, held at the class mean, and the ratios of every other mass, stiffness and damping
-to it; lengths (axle positions) stay absolute. The solver works on their logarithms (scale-free
-steps, positivity for free, and the class prior is log-normal).
+Only ratios are identifiable, so each vehicle is fitted in the parametrisation of
+:mod:`shared.vehicles.calibration`: its reference mass held at the class mean, the logarithms of the
+ratios of every other mass, stiffness and damping to it, lengths absolute.
 
 The step runs in the cloud but needs no raw data: a segment's AP under a known calibration is a
 lossless encoding of the vehicle's measured channels (the inverse is exactly invertible), so the
@@ -46,30 +44,24 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
-from shared.dynamics.forward import measured_channels, trapezoid_rate
+from shared.dynamics.forward import channels_from_ap
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
-from shared.dynamics.newmark import integrate, newmark_constants
+from shared.dynamics.newmark import newmark_constants
+from shared.dynamics.transfer import continuous_transfer, newmark_transfer
 from shared.schema import ApSegment
-from shared.vehicles import MODELS, vehicle_from_params
+from shared.vehicles import vehicle_from_params
+from shared.vehicles.calibration import REFERENCE, calibration_names, class_prior, from_calibration, to_calibration
 
 log = logging.getLogger(__name__)
-
-#: model → (reference mass, absolute length parameters)
-REFERENCE = {
-    "sprung_mass": ("m", ()),
-    "quarter_car": ("M", ()),
-    "half_car": ("ms", ("D1", "D2")),
-    "bogie_half_car": ("ms", ("D1", "D2")),
-}
 
 #: s: the time grid of the remap where it is a free choice (continuous-time APs; the filter barely
 #: depends on it), and the edge's sample interval where a pass does not say (a 500 Hz logger's).
 #: Where the remap re-runs or undoes the edge's inverse it uses the pass's own (:attr:`PassAp.dt_s`).
 REMAP_DT = 0.002
 #: Newmark γ of the remap's inverse under candidate parameters. The channels are reconstructed
-#: with the edge's γ = 0.8 (exactly what the edge inverted), but γ = 0.8's numerical damping
-#: at a half-car's wheel hop (~10 Hz) biases what the fleet agrees on by ~10 % in the axle
-#: ratios; γ = 0.6 (spurious roots still decaying, at −2/3) removes most of it.
+#: with the edge's γ = 0.8 (exactly what the edge inverted), but γ = 0.8's numerical damping at a
+#: half-car's wheel hop biases what the fleet agrees on in the axle ratios; γ = 0.6 (spurious roots
+#: still decaying, at −2/3) removes most of that bias.
 REMAP_GAMMA = 0.6
 BAND_M = (1.0, 30.0)  # wavelengths compared: resolved by every pass, free of drift-control effects
 TRIM_M = 3.0  # m cut at each end of a pass after band-passing (filter edge effects)
@@ -82,14 +74,11 @@ class RemapSettings:
     """How the per-vehicle step (:class:`PassRemap`) compares a model's channels.
 
     The channels are reconstructed from the AP, exactly only for what the AP holds exactly. A
-    half-car's AP at 1 % noise is mostly the inverse's amplified noise (std 20× the road's), and
-    two things then spoil the reconstruction: the forward model's start in static equilibrium on
-    that noisy AP leaves a free response of 1–3 channel sd that outlasts the 2 s warm-up, and the
-    linear interpolation from the 5 cm grid back to the samples folds part of the AP's short-wave
-    noise to low frequencies. One pass, finer physics, true parameters and profile: the
-    reconstructed channels were 26 / 44 % of their sd off (body acceleration / pitch rate; the
-    sensor noise is 1 %), 1.8 / 1.5 % with the start state a nuisance, 0.5 / 0.4 % with a 3 c/m
-    low-pass too; the ratios' 95 % intervals ±20 % (the class prior's) before, ±0.3 % after.
+    half-car's AP at 1 % noise is mostly the inverse's amplified noise, and two things then spoil
+    the reconstruction: the forward model's start in static equilibrium on that noisy AP leaves a
+    free response that outlasts the warm-up, and the linear interpolation from the grid back to the
+    samples folds part of the AP's short-wave noise to low frequencies. The start state as a
+    nuisance takes out the first, a low-pass of AP and consensus alike the second.
 
     ``lowpass_cpm``: zero-phase low-pass (cycles per metre) of the AP and the consensus on the grid
     before the remap (both alike, so the comparison stays exact below it; a road vehicle's body and
@@ -97,11 +86,10 @@ class RemapSettings:
     each pass is a nuisance, profiled out of the misfit (its free responses projected away, as
     :class:`PassChannels` does for the joint step). ``predict_gamma``: Newmark γ of the prediction
     under candidate parameters (the reconstruction keeps the edge's, so the round trip is exact).
-    The edge's γ = 0.8 damps a half-car's wheel hop numerically: against the *true* profile a fit
-    predicting at 0.8 is off by up to 12 % (Kt/ms +12 %, Cs/ms −8 %; γ = ½: < 0.3 %). Predicting
-    at 0.8 against a consensus of 0.8 APs left a fleet-shared bias (each AP distorted by its own
-    vehicle and speed; road-hc seed 1 Cs1/ms median 16.7 %), at ½ against it worse (seed 0, every
-    vehicle off alike: Cs2/ms +24 %). The half-car therefore predicts at ½ against a consensus of
+    The edge's γ = 0.8 damps a half-car's wheel hop numerically, so a fit predicting at 0.8 is
+    biased even against the true profile. Against a consensus of 0.8 APs (each distorted by its own
+    vehicle and speed) predicting at 0.8 leaves a bias the fleet shares, and predicting at ½ one
+    larger still. The half-car therefore predicts at ½ against a consensus of
     continuous-time APs (:func:`continuous_ap`, :data:`cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS`);
     its own channels are still reconstructed at the edge's γ (exact round trip).
     """
@@ -111,51 +99,9 @@ class RemapSettings:
     predict_gamma: float | None = None  # None: the edge's (edge_gamma(model))
 
 
-#: Per model; the default (the quarter-car's, tuned on road-qc) changes nothing. Half-car, road-hc
-#: seeds 0/1 (1 % noise) through the system: profile 14.3/15.7 %, ratios' medians ≤ 4.7/4.4 %,
-#: max 7.1/7.6 % (tests/test_halfcar_calibration.py; the joint AP-space step: 46 %, medians up to 72 %).
+#: Per model; the default (the quarter-car's) changes nothing. The half-car needs all three: in
+#: AP space (the joint step) its noisy AP does not calibrate.
 REMAP_SETTINGS = {"half_car": RemapSettings(lowpass_cpm=1.5, free_start=True, predict_gamma=0.5)}
-
-
-def calibration_names(model: str) -> list[str]:
-    """The identifiable quantities of a model, e.g. ``['m/M', 'K/M', 'k/M', 'c/M']``."""
-    ref, lengths = REFERENCE[model]
-    names = []
-    for p in MODELS[model].param_names():
-        if p == ref:
-            continue
-        names.append(p if p in lengths else f"{p}/{ref}")
-    return names
-
-
-def to_calibration(model: str, params: dict[str, float]) -> dict[str, float]:
-    ref, lengths = REFERENCE[model]
-    return {n: (params[n] if "/" not in n else params[n.split("/")[0]] / params[ref])
-            for n in calibration_names(model)}
-
-
-def from_calibration(model: str, cal: dict[str, float], ref_value: float) -> dict[str, float]:
-    ref, _ = REFERENCE[model]
-    params = {ref: ref_value}
-    for n, v in cal.items():
-        params[n.split("/")[0]] = v * ref_value if "/" in n else v
-    return params
-
-
-def class_prior(model: str, mean: dict[str, float], std: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Prior on the log of each calibration quantity (delta method from the class's mean/std)."""
-    ref, _ = REFERENCE[model]
-    mu, sd = [], []
-    for n in calibration_names(model):
-        if "/" in n:
-            p = n.split("/")[0]
-            mu.append(math.log(mean[p] / mean[ref]))
-            cv = math.hypot(std[p] / mean[p], std[ref] / mean[ref])
-        else:
-            mu.append(math.log(mean[n]))
-            cv = std[n] / mean[n]
-        sd.append(max(cv, 1e-3))
-    return np.array(mu), np.array(sd)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,8 +112,8 @@ class PassAp:
     spacing_m: float
     values: np.ndarray  # (n_points, n_contacts)
     speed_mps: float
-    #: s: the sample interval the edge inverted the pass at (its pass-done says; the Newmark transfer
-    #: of the edge's inverse depends on it: undone at 2 ms, a 1 ms pass's AP came out worse than sent)
+    #: s: the sample interval the edge inverted the pass at (its pass-done says): the Newmark transfer
+    #: of the edge's inverse depends on it, so it is undone at this step, not the grid's
     dt_s: float = REMAP_DT
 
 
@@ -185,19 +131,6 @@ class VehicleFit:
 def _band(spacing_m: float):
     lo, hi = BAND_M
     return butter(2, [1.0 / hi, 1.0 / lo], btype="band", fs=1.0 / spacing_m, output="sos")
-
-
-def _forward_channels(system, ap_t: np.ndarray, dt: float, gamma: float, u0=None, v0=None) -> np.ndarray:
-    """The logger's channels of ``system`` driven by ``ap_t`` (n, n_contacts) from the state (u0, v0)
-    (default: static equilibrium on the first input), integrated with the Newmark constants the
-    edge's inverse uses (``gamma``: so the round trip is exact)."""
-    c = newmark_constants(dt, gamma)
-    force = (ap_t * system.kc) @ system.G.T
-    if np.any(system.cc):
-        force += (trapezoid_rate(ap_t, np.zeros(ap_t.shape[1]), dt) * system.cc) @ system.G.T
-    if u0 is None:
-        u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
-    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0, v0=v0))
 
 
 def _lowpass_grid(values: np.ndarray, spacing_m: float, cutoff_cpm: float) -> np.ndarray:
@@ -229,8 +162,8 @@ def _free_response_basis(model: str, params0: dict, n_samples: int, skip: int, s
         e = np.zeros(n_dof)
         e[d] = 1.0
         for u0, v0 in ((e, None), (np.zeros(n_dof), e)):
-            free = _forward_channels(system, zero, dt, edge_gamma(model) if gamma is None else gamma,
-                                     u0=u0, v0=v0)
+            free = channels_from_ap(system, zero, newmark_constants(dt, edge_gamma(model) if gamma is None else gamma),
+                                    u0=u0, v0=v0)
             cols.append((free[skip:] / scale).ravel())
     A = np.stack(cols, axis=1)
     q, _ = np.linalg.qr(A / np.maximum(np.linalg.norm(A, axis=0), 1e-300))
@@ -275,7 +208,7 @@ class PassChannels:
         self.x_cg = xc0 + ap.speed_mps * np.arange(0.0, (xc1 - xc0) / ap.speed_mps, dt)
         ap_t = np.stack([np.interp(self.x_cg + off0[i], x[ok[:, i]], values[ok[:, i], i])
                          for i in range(self.n_contacts)], axis=1)
-        self.z = _forward_channels(system0, ap_t, dt, edge_gamma(model))
+        self.z = channels_from_ap(system0, ap_t, newmark_constants(dt, edge_gamma(model)))
         # Free responses: displacement scale twice the AP's spread (lengths over the contacts'
         # lever arm for rotations), velocity scale that times the DOF's own natural frequency.
         amp = 2.0 * float(np.std(ap_t)) + 1e-6
@@ -289,8 +222,8 @@ class PassChannels:
             for kind in ("u", "v"):
                 e = np.zeros(n_dof)
                 e[d] = u_scale if kind == "u" else u_scale * omega
-                free = _forward_channels(system0, zero, dt, edge_gamma(model), u0=e if kind == "u" else np.zeros(n_dof),
-                                         v0=e if kind == "v" else None)
+                free = channels_from_ap(system0, zero, newmark_constants(dt, edge_gamma(model)),
+                                        u0=e if kind == "u" else np.zeros(n_dof), v0=e if kind == "v" else None)
                 self.free.append(free)
         # Holes inside the pass (refused segments): their neighbourhood is never compared.
         hole = np.zeros(self.n_points, bool)
@@ -563,22 +496,10 @@ def _autocorrelation_time(r: np.ndarray, max_lag: int = 200) -> float:
     return float(max(1.0, 1.0 + 2.0 * acf[1:k].sum()))
 
 
-def _forward_channels_at(model: str, params: dict, ap_t: np.ndarray, gamma: float | None = None,
-                         dt: float = REMAP_DT) -> np.ndarray:
-    system = vehicle_from_params(model, params).system()
-    # default the edge's γ: the round trip is exact (at the edge's step ``dt``)
-    c = newmark_constants(dt, edge_gamma(model) if gamma is None else gamma)
-    force = (ap_t * system.kc) @ system.G.T
-    u0 = np.linalg.solve(system.K, system.G @ (system.kc * ap_t[0]))
-    return measured_channels(system, integrate(system.M, system.C, system.K, force, c, u0=u0))
-
-
-#: Hz: :func:`continuous_ap` corrects up to here, faded to identity by 1.5× it. The edge's AP is off by
-#: up to 3 % in gain (quarter-car, γ 0.6) and 20° in phase (half-car, γ 0.8) at 60 Hz, and 0.5 m (the
-#: shortest wavelength the profile is scored on) is 60 Hz at 30 m/s. Noise-free passes from finer
-#: physics (γ ½ at 0.5 ms), 20–25 m/s, error against the road at 0.5–1 m: half-car 18–26 % → 0.65 %
-#: (a 30 Hz cut-off left 4–14 %), quarter-car 4.5–5.4 % → 0.6 %. ``|T⁻¹H|`` stays 0.86–1.0 on the
-#: diagonal below 100 Hz (the half-car's cross term grows to 0.37 at 80 Hz), so no noise is amplified.
+#: Hz: :func:`continuous_ap` corrects up to here, faded to identity by 1.5× it: 0.5 m (the shortest
+#: wavelength the profile is scored on) is 60 Hz at 30 m/s, and the edge's AP still carries its
+#: scheme's gain and phase error there. ``|T⁻¹H|`` stays near 1 on the diagonal in that band, so the
+#: correction amplifies no noise.
 CONTINUOUS_CUTOFF_HZ = 60.0
 MEMORY_S = 2.0  # s: how far past a pass's ends :func:`continuous_ap` continues it (mirrored, tapered)
 
@@ -605,15 +526,13 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
 
     Applied on the route grid itself, in wavenumber ``κ`` (the transfers at ``f = vκ``, constant
     speed ``v``): contact i meets chainage x at the time contact j meets ``x + off_j − off_i``, so
-    ``Â'_i(κ) = Σ_j C_ij(vκ) e^{2πiκ(off_j − off_i)} Â_j(κ)``. (Resampling to the time grid and back,
-    as a first version did, loses 3–6 % of the AP at 0.5–1 m to the linear interpolation, more than
-    the correction itself.) Each contact on its own extent (holes bridged linearly, a straight line
+    ``Â'_i(κ) = Σ_j C_ij(vκ) e^{2πiκ(off_j − off_i)} Â_j(κ)``. (Resampling to the time grid and back
+    would lose more of the AP's short waves to the linear interpolation than the correction gains:
+    :func:`continuous_ap_resampled`.) Each contact on its own extent (holes bridged linearly, a straight line
     removed, continued past its ends mirrored and tapered), faded to identity between ``cutoff_hz``
     and 1.5× it; NaN stays NaN.
     A pass's ends (within the correction's memory, ~0.5 s, and a wheelbase) are approximate: what
     the other contacts would add there was not driven."""
-    from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
-
     system, values, ok = _correction_inputs(model, params, ap)
     n_points, n_contacts = values.shape
     h, v = ap.spacing_m, ap.speed_mps
@@ -623,8 +542,8 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
     first = [int(np.flatnonzero(ok[:, i])[0]) for i in range(n_contacts)]
     last = [int(np.flatnonzero(ok[:, i])[-1]) + 1 for i in range(n_contacts)]
     # The correction's memory (the body mode's ~1 s) reaches past a contact's ends: there each contact
-    # continues as its mirror image, tapered to zero (an abrupt end would ring through the 1–2 % of
-    # ``T⁻¹H − 1`` at the body mode: 3× the edge's own error over a pass's first 15 m, half-car, 25 m/s).
+    # continues as its mirror image, tapered to zero (an abrupt end would ring through ``T⁻¹H − 1`` at
+    # the body mode, more than the edge's own error over a pass's first metres).
     ext = int(math.ceil(MEMORY_S * v / h))
     a, b = min(first) - ext, max(last) + ext
     series = np.zeros((b - a, n_contacts))
@@ -674,11 +593,11 @@ def continuous_ap(model: str, params: dict, ap: PassAp, cutoff_hz: float = CONTI
 
 
 def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: float = 30.0) -> np.ndarray:
-    """:func:`continuous_ap` as first written: through the pass's time grid (resampled linearly from
-    the route grid and back, which loses 3–6 % of the AP at 0.5–1 m), up to 30 Hz. Kept for the
-    half-car's corrected consensus (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS), whose common gain
-    and step halving were tuned on it: with :func:`continuous_ap` instead, road-hc seed 1's Cs1/ms
-    reached 18.2 % (7.6 % with this). Retuning the half-car for the exact correction is open.
+    """:func:`continuous_ap` through the pass's time grid (resampled linearly from the route grid and
+    back, which loses part of the AP's short waves), up to 30 Hz. The half-car's corrected consensus
+    (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS) uses it: its common gain and step halving are
+    tuned on this one, and with :func:`continuous_ap` its damping ratios calibrate worse until they
+    are tuned again.
 
     The pass's AP (n_points, n_contacts) as an exact inverse of the continuous-time vehicle
     ``params`` would have made it from the same channels: ``T⁻¹H`` applied to the edge's AP, ``H``
@@ -691,8 +610,6 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
     The contacts are corrected together on the pass's time grid (constant speed), on their common
     extent (straight line removed, zero-padded FFT), faded to identity between ``cutoff_hz`` and 1.5×
     it; points outside that extent keep the edge's value, NaN stays NaN."""
-    from cloud.bridge.passdata import continuous_transfer, newmark_transfer  # a pure-maths module
-
     system, values, ok = _correction_inputs(model, params, ap)
     n_points, n_contacts = values.shape
     h, v = ap.spacing_m, ap.speed_mps
@@ -730,20 +647,13 @@ def continuous_ap_resampled(model: str, params: dict, ap: PassAp, cutoff_hz: flo
 
 #: Vehicle models whose passes the cloud fuses as continuous-time APs (:func:`continuous_segments`).
 #: Rail models are left out (their cloud re-runs the dynamics from the edge's AP, cloud.rail.batches), and so
-#: is the sprung mass (its joint step, :func:`fit_fleet`, reconstructs at the edge's γ; not measured).
-#: Half-cars too, measured: fused corrected, road-hc's profile got worse (true parameters, seed 0:
-#: 12.6 → 13.9 %, more shrinkage and error at 1–5 m; fleet seeds 0/2: 14.3 → 21.1 %, 11.4 → 18.4 %,
-#: measured with zero-padded rather than mirrored pass ends) and seed 1's Cs1/ms reached 16.7 %,
-#: though every seed's worst ratio otherwise improved (0: 7.1 → 5.2 %, 2: 7.3 → 6.5 %). They keep the
-#: corrected consensus in their vehicle step only (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS).
-#: Why worse (seed 0, true parameters): not the correction — each pass's corrected AP is closer to the
-#: road in every band (axle 1, 1–2 m 31 → 26 %, 2–5 m 5.6 → 2.7 %). The fusion over-shrinks half-car
-#: passes at 1–5 m (posterior gain 0.61 at 1–2 m, 0.89 at 2–5 m, where 6 passes × 2 axles of that
-#: accuracy warrant ~1.0): their edge error model is 10–600× too large in sd at 1–8 m (edge.error_model's
-#: unit spectra are gridded by plain interpolation, whose aliasing of the pitch-rate noise leaves a flat
-#: floor there that the alias-free AP does not have). The uncorrected AP's gain error, +2–7 % at 1–5 m,
-#: had been offsetting part of that shrinkage. Learnt τ (+8 % on corrected data) adds 0.3 points,
-#: cross-axle mixing of the correction 0.2. Fix the error model first.
+#: is the sprung mass (its joint step, :func:`fit_fleet`, reconstructs at the edge's γ). Half-cars too:
+#: each corrected pass is closer to the road, but the fusion over-shrinks half-car passes at 1–5 m
+#: (their edge error model is far too large there: edge.error_model grids its unit spectra by plain
+#: interpolation, whose aliasing of the pitch-rate noise leaves a floor the alias-free AP does not
+#: have), and the uncorrected AP's gain error offsets part of that shrinkage, so fused corrected the
+#: profile comes out worse. They keep the corrected consensus in their vehicle step only
+#: (cloud.road.fleet_calibration.CONTINUOUS_CONSENSUS) until the error model is fixed.
 CONTINUOUS_MODELS = frozenset({"quarter_car"})
 #: Points weighted down this much or more (the edge's σ × 100: invalid points, zeroed, and the
 #: inverse's warm-up) are holes for the correction (bridged, and kept as sent): a filter would spread them.
@@ -776,12 +686,10 @@ def continuous_segments(model: str, params: dict, segs: list[ApSegment],
     model, in the order given.
 
     Why: the edge's inverse runs Newmark at γ > ½ for stability, and its AP carries that scheme's
-    gain and phase error against the road (a quarter-car at γ 0.6: +2.5–3 % at 0.5–2 m, 20 m/s; a
-    half-car at γ 0.8: 13–26 % error at 0.5–2 m, noise-free). Every vehicle of a class shares it, so
-    fused as sent it biases the profile, its IRI and the fleet calibration alike (road-qc: k/M +2 %,
-    c/M −1.6 % on every vehicle). The error model is kept: ``|T⁻¹H|`` is 0.86–1.0 on the diagonal in
-    the corrected band (class means; the half-car's rear-to-front cross term ≤ 0.37), so the edge's
-    noise spectrum stays about right, if anything conservative (by ≤ 25 % in power)."""
+    gain and phase error against the road at short wavelengths. Every vehicle of a class shares it,
+    so fused as sent it biases the profile, its IRI and the fleet calibration alike. The error model
+    is kept: ``|T⁻¹H|`` is near 1 on the diagonal in the corrected band, so the edge's noise spectrum
+    stays about right, if anything conservative."""
     n_axles = max(s.axle for s in segs)
     lo, vals = pass_values(segs, n_axles)
     floor = min(float(np.min(s.sigma)) for s in segs)
@@ -841,7 +749,8 @@ class PassRemap:
             vals, cons = (_lowpass_grid(a, ap.spacing_m, self.settings.lowpass_cpm) for a in (ap.values, consensus))
         ap_t = np.stack([np.interp(xt + off[i], x, vals[:, i]) for i in range(n_contacts)], axis=1)
         self.profile_t = np.stack([np.interp(xt + off[i], x, cons[:, i]) for i in range(n_contacts)], axis=1)
-        self.z = _forward_channels_at(model, params0, ap_t, self.ap_gamma, self.dt)
+        self.z = channels_from_ap(vehicle_from_params(model, params0).system(), ap_t,
+                                  newmark_constants(self.dt, self.ap_gamma))
         self.skip = int(self.WARMUP_S / self.dt)
         self.n = max(self.z.shape[0] - self.skip, 0)
         self.scale = np.std(self.z[self.skip:], axis=0) + 1e-12  # channels in comparable units
@@ -850,7 +759,10 @@ class PassRemap:
                             if self.settings.free_start else None)
 
     def residual(self, params: dict) -> np.ndarray:
-        pred = _forward_channels_at(self.model, params, self.profile_t, self.predict_gamma, self.dt)
+        # (the edge's γ where none is set: the round trip is exact)
+        gamma = edge_gamma(self.model) if self.predict_gamma is None else self.predict_gamma
+        pred = channels_from_ap(vehicle_from_params(self.model, params).system(), self.profile_t,
+                                newmark_constants(self.dt, gamma))
         r = ((pred - self.z)[self.skip:] / self.scale).ravel()
         if self.start_basis is not None:  # the unknown start state, profiled out
             r = r - self.start_basis @ (self.start_basis.T @ r)
@@ -880,9 +792,9 @@ def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray
     # Each sample counts as independent only if the misfit is white (sensor noise). A misfit the
     # consensus cannot explain — lane scatter on a 3-D carpet, the others' calibration error — is
     # smooth in time: it counts by its integrated autocorrelation time, so that it does not pull
-    # the ratios away from the class prior with the weight of white noise.
-    # (Measured at the vehicle's current calibration, where the round starts: re-measuring it at
-    # each optimum let carpet-0 move on for 12 rounds, 5.0 % profile error against 3.5 % settled in 7.)
+    # the ratios away from the class prior with the weight of white noise. It is measured at the
+    # vehicle's current calibration, where the round starts, and held through the round: re-measured
+    # at each optimum it lets the rounds wander on.
     taus = [_autocorrelation_time(col) for r in remaps for col in r.residual(
         from_calibration(model, dict(zip(names, np.exp(theta0))), ref_value)).reshape(r.n, -1).T]
     state["n_eff"] = float(max(n_res, 1)) / float(np.mean(taus))

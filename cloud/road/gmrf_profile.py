@@ -56,9 +56,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from scipy.linalg import cho_solve_banded, cholesky_banded
 
+from shared.jit import kernel
 from shared.schema import SIGMA_SCALE, ApSegment
 
 from cloud.road.banded import draw_into, selected_inverse
@@ -67,7 +67,6 @@ from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn
 
 log = logging.getLogger(__name__)
 
-_FLAGS = dict(cache=True)
 _Z95 = 1.959963984540054
 _DIFF = {1: np.array([-1.0, 1.0]), 2: np.array([1.0, -2.0, 1.0])}
 TAU_BOUNDS = (1.0, 1.0e16)
@@ -122,7 +121,7 @@ def segment_information(values: np.ndarray, sigma: np.ndarray, rho: float
     return diag, off, rhs
 
 
-@njit(**_FLAGS)
+@kernel
 def _accumulate(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, rho, sign,
                 is_pass):
     """Add ``sign`` times a segment's :func:`segment_information` to the route's sums from index ``lo``.
@@ -225,7 +224,7 @@ def _model_shares(error_model: np.ndarray, widths: list[int]) -> np.ndarray:
     return np.array([error_model[0] ** 2 * np.trapezoid(g * g / sym, w) / math.pi for g in gains])
 
 
-@njit(**_FLAGS)
+@kernel
 def _accumulate_band(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, error_model,
                      sign, is_pass):
     """:func:`_accumulate` for a segment with its own error model (:func:`segment_band_information`):

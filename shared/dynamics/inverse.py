@@ -30,8 +30,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
+from ..jit import fma_kernel
 from ..vehicles.base import VehicleSystem
 from .newmark import NewmarkConstants, newmark_constants
 
@@ -199,6 +199,14 @@ class Realisation(NamedTuple):
         """(nd, p, q): realisations with equal structure can share one bank kernel."""
         return self.Ad.shape[0], self.A2.shape[0], self.A1.shape[0]
 
+    def run(self, s0: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The outputs y (n, n_out) of the recursion from state ``s0`` (n_keep,), in the original
+        coordinates, over the inputs ``z`` (n, n_in)."""
+        z = np.ascontiguousarray(z, dtype=float)
+        y = np.empty((len(z), self.C.shape[0]))
+        _run_blocks(self.Ad, self.A2, self.A1, self.B, self.C, self.D, self.Tinv @ s0, z, y)
+        return y
+
 
 def dense_realisation(A: np.ndarray, B: np.ndarray, C: np.ndarray, D: np.ndarray) -> Realisation:
     """The recursion as it is: one dense block, T = I."""
@@ -357,7 +365,7 @@ def _modal_realisation(A, B, C, D, neutral_tol, close):
 
 def _agrees(fast: Realisation, dense: Realisation, A: np.ndarray, n_check: int = 256) -> bool:
     """Run both realisations from one random state on one random input; compare the outputs."""
-    import scipy.linalg as sla
+    import scipy.linalg as sla  # heavy import, only when a model is built
 
     rng = np.random.default_rng(12345)
     _, (scale, _) = sla.matrix_balance(A, permute=False, separate=True)
@@ -374,11 +382,10 @@ def _agrees(fast: Realisation, dense: Realisation, A: np.ndarray, n_check: int =
 #: Newmark γ of the edge's inverse at the logger rate, by vehicle model (default the thesis's 0.8),
 #: and of every cloud step that reconstructs the measured channels from an AP (the round trip is
 #: exact only at the same γ). γ = 0.8 (the thesis's, at Δt = 1 ms) adds numerical damping that at
-#: our 2 ms biases a quarter-car's calibration against the continuous physics (noise-free, true
-#: profile: c/M −4.4 %, m/M +4.7 %, k/M +6.8 %), and the fleet, fitted with the same model, agrees
-#: on the biased values (road-qc seed 0: c/M −3.4 % ± 0.7 %). γ = 0.6 keeps the spurious roots
-#: decaying (at −2/3) with a third of the damping. Half-cars stay at 0.8: at 0.6 their AP from the
-#: pitch rate is implausible (road-hc: every segment refused).
+#: a 2 ms step biases a quarter-car's calibration against the continuous physics, and a fleet fitted
+#: with the same model agrees on the biased values. γ = 0.6 keeps the spurious roots decaying (at
+#: −2/3) with a third of the damping. Half-cars stay at 0.8: at 0.6 their AP from the pitch rate is
+#: implausible (the edge refuses it).
 EDGE_GAMMA = {"quarter_car": 0.6, "sprung_mass": 0.6}
 
 
@@ -431,12 +438,8 @@ def build_inverse(
     return InverseModel(A, B, C, D, keep, max(n_warmup, 1), system, c, realise(A, B, C, D, neutral_tol), contact_rule)
 
 
-# Only FMA contraction: no reassociation, so every sample is computed by the same operations in the
-# same order whatever the chunking, and the bank kernel matches the single-stream one bit for bit.
-_FLAGS = dict(cache=True, fastmath={"contract"})
-
-
-@njit(**_FLAGS)
+# FMA contraction only (no reassociation): the bank kernel matches the single-stream one bit for bit.
+@fma_kernel
 def _run_blocks(Ad, A2, A1, B, C, D, w, z, y):
     """y_k = C w + D z_k ; w' = A w + B z_k over all samples k, A block diagonal (see Realisation).
 
@@ -488,7 +491,7 @@ def _run_blocks(Ad, A2, A1, B, C, D, w, z, y):
             w[i] = acc
 
 
-@njit(**_FLAGS)
+@fma_kernel
 def _run_blocks_bank(Ad, A2, A1, B, C, D, w, z, y):
     """:func:`_run_blocks` for many streams, streams innermost (contiguous) so every loop vectorises.
 

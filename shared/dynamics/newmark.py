@@ -6,7 +6,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+
+from ..jit import kernel
 
 #: The thesis's choice: gamma > 1/2 adds numerical damping of spurious high-frequency modes,
 #: which is what keeps the *inverse* recursion stable; beta = (gamma + 1/2)^2 / 4.
@@ -84,32 +85,34 @@ def step(M, C, K, f_next, state: NewmarkState, c: NewmarkConstants, K_eff_inv=No
     return NewmarkState(u1, v1, a1)
 
 
-@njit(cache=True)
+@kernel
 def _integrate_kernel(K_eff_inv, M, C, f, u0, v0, a0_, k):
-    n_steps, n = f.shape
-    u = np.empty((n_steps, n))
-    v = np.empty((n_steps, n))
-    a = np.empty((n_steps, n))
-    u[0] = u0
-    v[0] = v0
-    a[0] = a0_
+    """The recurrence of :func:`step` for ``m`` load cases ``f`` (m, n_steps, n) from (m, n) states."""
+    m, n_steps, n = f.shape
+    u = np.empty((m, n_steps, n))
+    v = np.empty((m, n_steps, n))
+    a = np.empty((m, n_steps, n))
     rhs = np.empty(n)
-    for s in range(1, n_steps):
-        pu = k[0] * u[s - 1] + k[2] * v[s - 1] + k[3] * a[s - 1]
-        pc = k[1] * u[s - 1] + k[4] * v[s - 1] + k[5] * a[s - 1]
-        for i in range(n):
-            acc = f[s, i]
-            for j in range(n):
-                acc += M[i, j] * pu[j] + C[i, j] * pc[j]
-            rhs[i] = acc
-        for i in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += K_eff_inv[i, j] * rhs[j]
-            u[s, i] = acc
-        for i in range(n):
-            a[s, i] = k[0] * (u[s, i] - u[s - 1, i]) - k[2] * v[s - 1, i] - k[3] * a[s - 1, i]
-            v[s, i] = v[s - 1, i] + k[6] * a[s - 1, i] + k[7] * a[s, i]
+    for b in range(m):
+        u[b, 0] = u0[b]
+        v[b, 0] = v0[b]
+        a[b, 0] = a0_[b]
+        for s in range(1, n_steps):
+            pu = k[0] * u[b, s - 1] + k[2] * v[b, s - 1] + k[3] * a[b, s - 1]
+            pc = k[1] * u[b, s - 1] + k[4] * v[b, s - 1] + k[5] * a[b, s - 1]
+            for i in range(n):
+                acc = f[b, s, i]
+                for j in range(n):
+                    acc += M[i, j] * pu[j] + C[i, j] * pc[j]
+                rhs[i] = acc
+            for i in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += K_eff_inv[i, j] * rhs[j]
+                u[b, s, i] = acc
+            for i in range(n):
+                a[b, s, i] = k[0] * (u[b, s, i] - u[b, s - 1, i]) - k[2] * v[b, s - 1, i] - k[3] * a[b, s - 1, i]
+                v[b, s, i] = v[b, s - 1, i] + k[6] * a[b, s - 1, i] + k[7] * a[b, s, i]
     return u, v, a
 
 
@@ -124,8 +127,10 @@ def integrate(
 ) -> NewmarkState:
     """Integrate M ü + C u̇ + K u = f(t) over ``force`` (n_steps, n_dof) sampled every ``c.dt``.
 
-    The initial acceleration follows from the equation of motion at t = 0.
-    Returns the state histories, each (n_steps, n_dof).
+    ``force`` may also be a batch of independent load cases (m, n_steps, n_dof) of one system, with
+    ``u0``/``v0`` (n_dof,) shared or (m, n_dof) each: integrated in one compiled call, each case
+    exactly as alone. The initial acceleration follows from the equation of motion at t = 0.
+    Returns the state histories, each shaped like ``force``.
     """
     M = np.atleast_2d(np.asarray(M, float))
     C = np.atleast_2d(np.asarray(C, float))
@@ -134,13 +139,21 @@ def integrate(
     if f.ndim == 1:
         f = f[:, None]
     n = M.shape[0]
-    if f.shape[1] != n or M.shape != (n, n) or C.shape != (n, n) or K.shape != (n, n):
+    if f.ndim not in (2, 3) or f.shape[-1] != n or M.shape != (n, n) or C.shape != (n, n) or K.shape != (n, n):
         raise ValueError("integrate: matrices and force must agree on the number of degrees of freedom")
     if not np.all(np.isfinite(f)):
         raise ValueError("integrate: force contains NaN or inf")
-    u0 = np.zeros(n) if u0 is None else np.asarray(u0, float)
-    v0 = np.zeros(n) if v0 is None else np.asarray(v0, float)
-    acc0 = np.linalg.solve(M, f[0] - C @ v0 - K @ u0)
     K_eff_inv = np.linalg.inv(effective_stiffness(M, C, K, c))
     k = np.array([c.a0, c.a1, c.a2, c.a3, c.a4, c.a5, c.a6, c.a7])
-    return NewmarkState(*_integrate_kernel(K_eff_inv, M, C, f, u0, v0, acc0, k))
+    if f.ndim == 2:
+        u0 = np.zeros(n) if u0 is None else np.asarray(u0, float)
+        v0 = np.zeros(n) if v0 is None else np.asarray(v0, float)
+        acc0 = np.linalg.solve(M, f[0] - C @ v0 - K @ u0)
+        u, v, a = _integrate_kernel(K_eff_inv, M, C, f[None], u0[None], v0[None], acc0[None], k)
+        return NewmarkState(u[0], v[0], a[0])
+    m = f.shape[0]
+    u0 = np.broadcast_to(np.zeros(n) if u0 is None else np.asarray(u0, float), (m, n))
+    v0 = np.broadcast_to(np.zeros(n) if v0 is None else np.asarray(v0, float), (m, n))
+    acc0 = np.array([np.linalg.solve(M, f[b, 0] - C @ v0[b] - K @ u0[b]) for b in range(m)]).reshape(m, n)
+    return NewmarkState(*_integrate_kernel(K_eff_inv, M, C, np.ascontiguousarray(f), np.ascontiguousarray(u0),
+                                           np.ascontiguousarray(v0), np.ascontiguousarray(acc0), k))

@@ -21,8 +21,9 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import numpy as np
-from numba import njit
+from scipy.linalg import cho_solve_banded, cholesky_banded
 
+from ..jit import kernel
 from ..track.model import Track
 from ..vehicles.carriage import Carriage
 from .inverse import InverseState
@@ -83,8 +84,6 @@ class _Path(NamedTuple):
 
 def _static_start(carriage: Carriage, track: Track, dofs0, vals0, r0):
     """Carriage resting on the track at its first position: track displacement, wheel AP, contact force."""
-    from scipy.linalg import cho_solve_banded, cholesky_banded
-
     s = carriage.system()
     P = carriage.axle_loads_n()
     # Contact-force response of the body/bogies to wheel displacements: λ = P + S·y.
@@ -137,8 +136,6 @@ def simulate_train_track(
     probe_x = np.zeros(0) if probe_x_m is None else np.atleast_1d(np.asarray(probe_x_m, float))
     pd, pv = track.contact_entries(probe_x) if len(probe_x) else (np.zeros((0, 4), np.int64), np.zeros((0, 4)))
 
-    from scipy.linalg import cholesky_banded
-
     K_eff = track.K + c.a0 * track.M + c.a1 * track.C
     L = np.ascontiguousarray(cholesky_banded(K_eff, lower=True))
     Kv_eff = fm.K + c.a0 * fm.M + c.a1 * fm.C
@@ -153,7 +150,7 @@ def simulate_train_track(
     return TrainTrackResponse(t, x_cg, q, qd, qdd, channels, defl + r, defl, r, lam, probes, dt)
 
 
-@njit(cache=True)
+@kernel
 def _band_symv2(A, x, B, y, out):
     """out = A x + B y for A, B symmetric with one lower band storage shape ab[i − j, j]."""
     bw1, n = A.shape
@@ -167,7 +164,7 @@ def _band_symv2(A, x, B, y, out):
             out[j] += A[kk, j] * x[i] + B[kk, j] * y[i]
 
 
-@njit(cache=True)
+@kernel
 def _band_cho_solve_multi(L, X):
     """Solve (L Lᵀ) X = B in place for the columns of X (n, m), L the lower band Cholesky factor
     c[i − j, j] = L[i, j]. All right-hand sides in one sweep (the m values of a row are contiguous)."""
@@ -193,7 +190,7 @@ def _band_cho_solve_multi(L, X):
             X[i, c] *= d
 
 
-@njit(cache=True)
+@kernel
 def _run(coupled, path, u0, q0, lam0):
     """Newmark steps of the coupled system from the static start (u0, q0, λ0) along ``path``."""
     L, Mt, Ct, Mv, Cv, Kv_inv, E, P, k = coupled

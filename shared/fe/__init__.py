@@ -14,11 +14,14 @@ from shared.fe.beam import (
     contact_vector,
     crack_ei_factor,
     crack_peak_loss,
+    element_stiffness,
+    free_dofs,
     global_ei_factor,
     hermite_shape,
     influence_line,
     natural_frequencies,
     static_deflection,
+    stiffness_matrix,
 )
 
 __all__ = [
@@ -35,9 +38,12 @@ __all__ = [
     "contact_vector",
     "crack_ei_factor",
     "crack_peak_loss",
+    "element_stiffness",
+    "free_dofs",
     "global_ei_factor",
     "hermite_shape",
     "influence_line",
     "natural_frequencies",
     "static_deflection",
+    "stiffness_matrix",
 ]

@@ -8,6 +8,9 @@ import operator
 from typing import NamedTuple
 
 import numpy as np
+from scipy import linalg
+
+from ..dynamics.newmark import integrate, newmark_constants
 
 # Sign convention (the project's): displacements and forces are positive UP, rotations are
 # θ = dw/dx (anticlockwise positive). A wheel pushing down on the deck is a negative force.
@@ -193,8 +196,9 @@ def hermite_shape(xi: np.ndarray | float, le: float, derivative: int = 0) -> np.
     return np.stack(np.broadcast_arrays(*n), axis=-1)
 
 
-def _element_stiffness(le: float, ei: np.ndarray) -> np.ndarray:
-    """Stiffness of each element with constant EI, shape (n_e, 4, 4)."""
+def element_stiffness(le: float, ei: np.ndarray) -> np.ndarray:
+    """Stiffness of Hermite elements of length ``le`` (m), each of constant E·I ``ei`` (n_e,) N·m²:
+    (n_e, 4, 4), DOFs (w_start, θ_start, w_end, θ_end) in N/m, N, N·m/rad."""
     k = np.array(
         [
             [12.0, 6 * le, -12.0, 6 * le],
@@ -227,11 +231,12 @@ def element_matrices(le: float, ei: np.ndarray, mass_per_m: float) -> tuple[np.n
     """
     ei = np.atleast_1d(np.asarray(ei, dtype=float))
     me = np.broadcast_to(_element_mass(le, mass_per_m), (len(ei), 4, 4))
-    return _element_stiffness(le, ei), np.array(me)
+    return element_stiffness(le, ei), np.array(me)
 
 
-def _free_dofs(n_elements: int) -> np.ndarray:
-    """Global indices of the DOFs left after removing w_0 and w_n."""
+def free_dofs(n_elements: int) -> np.ndarray:
+    """Global indices (2·node + {0: w, 1: θ}) of the DOFs every matrix here acts on: all but the
+    support deflections w_0 and w_n, in order."""
     n_total = 2 * (n_elements + 1)
     return np.setdiff1d(np.arange(n_total), [0, n_total - 2])
 
@@ -244,10 +249,11 @@ def _assemble_full(n_elements: int, element_matrices: np.ndarray) -> np.ndarray:
     return out
 
 
-def _stiffness(beam: Beam) -> np.ndarray:
-    """K on the free DOFs, with the support springs."""
-    ke = _element_stiffness(beam.element_length_m, beam.element_ei())
-    free = _free_dofs(beam.n_elements)
+def stiffness_matrix(beam: Beam) -> np.ndarray:
+    """The beam's stiffness K on its free DOFs (:func:`free_dofs`), support springs included,
+    N/m (N·m/rad on rotations): what :func:`assemble` returns as ``K``, without the mass and damping."""
+    ke = element_stiffness(beam.element_length_m, beam.element_ei())
+    free = free_dofs(beam.n_elements)
     K = _assemble_full(beam.n_elements, ke)[np.ix_(free, free)]
     if beam.supports == "rotational_springs":
         K[0, 0] += beam.krot_nm_per_rad[0]  # θ_0 is free DOF 0 and θ_n the last one
@@ -258,7 +264,7 @@ def _stiffness(beam: Beam) -> np.ndarray:
 def _mass(beam: Beam) -> np.ndarray:
     """Consistent M on the free DOFs (the supports carry no lumped mass)."""
     me = np.broadcast_to(_element_mass(beam.element_length_m, beam.mass_per_m), (beam.n_elements, 4, 4))
-    free = _free_dofs(beam.n_elements)
+    free = free_dofs(beam.n_elements)
     return _assemble_full(beam.n_elements, me)[np.ix_(free, free)]
 
 
@@ -286,9 +292,7 @@ def assemble(beam: Beam, damping: str = "rayleigh") -> BeamSystem:
     """
     if damping not in DAMPING_MODELS:
         raise ValueError(f"damping: must be one of {DAMPING_MODELS}, got {damping!r}")
-    from scipy import linalg  # deferred: scipy.linalg costs ~0.25 s to import
-
-    M, K = _mass(beam), _stiffness(beam)
+    M, K = _mass(beam), stiffness_matrix(beam)
     zeta = beam.damping_ratio
     if damping == "rayleigh":
         lam = linalg.eigh(K, M, eigvals_only=True, subset_by_index=[0, min(1, len(M) - 1)])
@@ -298,7 +302,7 @@ def assemble(beam: Beam, damping: str = "rayleigh") -> BeamSystem:
         lam, phi = linalg.eigh(K, M)  # phi is M-orthonormal
         Mphi = M @ phi
         C = (Mphi * (2 * zeta * np.sqrt(lam))) @ Mphi.T
-    return BeamSystem(M=M, K=K, C=0.5 * (C + C.T), free_dofs=_free_dofs(beam.n_elements), n_dof=len(M))
+    return BeamSystem(M=M, K=K, C=0.5 * (C + C.T), free_dofs=free_dofs(beam.n_elements), n_dof=len(M))
 
 
 def natural_frequencies(beam: Beam, n_modes: int = 5) -> np.ndarray:
@@ -310,9 +314,7 @@ def natural_frequencies(beam: Beam, n_modes: int = 5) -> np.ndarray:
     n_dof = 2 * beam.n_elements
     if n_modes > n_dof:
         raise ValueError(f"n_modes: at most {n_dof} for {beam.n_elements} elements, got {n_modes}")
-    from scipy import linalg  # deferred: scipy.linalg costs ~0.25 s to import
-
-    lam = linalg.eigh(_stiffness(beam), _mass(beam), eigvals_only=True, subset_by_index=[0, n_modes - 1])
+    lam = linalg.eigh(stiffness_matrix(beam), _mass(beam), eigvals_only=True, subset_by_index=[0, n_modes - 1])
     return np.sqrt(lam) / (2 * math.pi)
 
 
@@ -338,7 +340,7 @@ def contact_entries(beam: Beam, x_m: np.ndarray | float) -> ContactEntries:
     values = hermite_shape(xi, le) * on[:, None]
 
     full_to_free = np.full(2 * (n + 1), -1, dtype=np.int64)
-    full_to_free[_free_dofs(n)] = np.arange(2 * n)
+    full_to_free[free_dofs(n)] = np.arange(2 * n)
     dofs = full_to_free[2 * e[:, None] + np.arange(4)]
     dofs[~on] = -1
     values[dofs < 0] = 0.0
@@ -471,13 +473,11 @@ def static_deflection(
     axles of one vehicle). A downward wheel load W is ``load_n = -W``. Returns an array of the
     shape of ``x_eval_m``; forces or evaluation points off the span contribute / read zero.
     """
-    from scipy import linalg  # deferred: scipy.linalg costs ~0.25 s to import
-
     p, xl = np.broadcast_arrays(np.asarray(load_n, dtype=float), np.asarray(x_load_m, dtype=float))
     if not np.all(np.isfinite(p)):
         raise ValueError("load_n: forces must be finite")
     f = contact_matrix(beam, xl.ravel()).T @ p.ravel()
-    u = linalg.solve(_stiffness(beam), f, assume_a="pos")
+    u = linalg.solve(stiffness_matrix(beam), f, assume_a="pos")
     x_eval = np.asarray(x_eval_m, dtype=float)
     return (contact_matrix(beam, x_eval.ravel()) @ u).reshape(x_eval.shape)
 
@@ -491,11 +491,9 @@ def influence_line(beam: Beam, x_m: np.ndarray | float) -> np.ndarray:
     (Hermite elements with piecewise-constant E·I); between nodes the error falls as le³.
     Zero off the span.
     """
-    from scipy import linalg  # deferred: scipy.linalg costs ~0.25 s to import
-
     x = np.asarray(x_m, dtype=float)
     N = contact_matrix(beam, x.ravel())
-    U = linalg.solve(_stiffness(beam), N.T, assume_a="pos")
+    U = linalg.solve(stiffness_matrix(beam), N.T, assume_a="pos")
     return np.einsum("ij,ji->i", N, U).reshape(x.shape)
 
 
@@ -592,8 +590,6 @@ def moving_load_deflection(
     γ = ½, β = ¼ is the trapezoidal rule (second order, no numerical damping). ``system``: the
     beam's :func:`assemble` result, if already at hand (saves an eigen-solve per call).
     """
-    from ..dynamics.newmark import integrate, newmark_constants
-
     x = np.asarray(x_m, dtype=float)
     p = np.asarray(force_n, dtype=float)
     if x.ndim != 1 or p.shape != x.shape:
