@@ -19,12 +19,12 @@ drive it stays bounded and the scale error is learnt. The first sample lands on 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from shared.jit import kernel
 
 MIN_SPEED_MPS = 0.5  # below this the GNSS residual says nothing about the odometer scale
 
 
-@njit(cache=True)
+@kernel
 def _fuse(gnss, speed, dt, k_pos, k_scale, x0, s0):
     out = np.empty(gnss.size)
     x, s = x0, s0

@@ -10,10 +10,10 @@ transfer is sinc²-like, 2 % at a wavelength of half_width/1.5.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from shared.jit import kernel
 
 
-@njit(cache=True)
+@kernel
 def local_linear_trend(values, valid, half_width):
     """Trend of ``values`` (NaN-free where ``valid``) at every index, from valid points only."""
     n = values.size
@@ -42,7 +42,7 @@ def local_linear_trend(values, valid, half_width):
     return out
 
 
-@njit(cache=True)
+@kernel
 def _lattice_trend(values, valid, half_width, step):
     n = values.size
     # The lattice samples the mean of the valid values over one step around each of its points, not

@@ -10,7 +10,7 @@ import dataclasses
 import math
 
 import numpy as np
-from numba import njit
+from shared.jit import kernel
 
 from shared.dynamics.inverse import InverseModel, InverseStream
 from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
@@ -66,7 +66,7 @@ class EdgeConfig:
         return int(round(self.drift_half_width_m / self.spacing_m))
 
 
-@njit(cache=True)
+@kernel
 def _interp_between(x, y, j, xg):
     """``np.interp``'s value at ``xg`` strictly between samples ``j`` and ``j + 1``."""
     slope = (y[j + 1] - y[j]) / (x[j + 1] - x[j])
@@ -78,7 +78,7 @@ def _interp_between(x, y, j, xg):
     return v
 
 
-@njit(cache=True)
+@kernel
 def _to_grid(x, ap, t, reliable, first, spacing, values, times, valid):
     """Samples (chainage ``x`` non-decreasing) onto grid points ``first, first + 1, …`` (``values.size`` of
     them), in place: ``np.interp`` of ``ap`` and ``t`` (its arithmetic and its choice of neighbours,
@@ -132,7 +132,7 @@ def _kaiser_table(n: int = 4096) -> np.ndarray:
 _KAISER = _kaiser_table()
 
 
-@njit(cache=True)
+@kernel
 def _grid_positions(x, number0, first, spacing, index, speed, dt):
     """At grid points ``first, first + 1, …``: the fractional sample number (samples' chainage
     ``x``, numbered ``number0, number0 + 1, …``) and the chainage speed (m/s) between the two
@@ -149,7 +149,7 @@ def _grid_positions(x, number0, first, spacing, index, speed, dt):
         index[k] = float(number0 + j) + ((xg - x[j]) / step if step > 0 else 0.0)
 
 
-@njit(cache=True)
+@kernel
 def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_speed, final):
     """Low-pass and resample the AP at grid points ``k0, k0 + 1, …`` (their fractional sample
     numbers ``index``, chainage speeds ``speed``) from its samples ``sap`` (numbered ``s0, s0 + 1,

@@ -30,7 +30,7 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from numba import njit
+from shared.jit import kernel
 
 from shared.fe.beam import Beam, BeamSystem, assemble, contact_matrix, influence_line, moving_load_deflection
 
@@ -129,7 +129,7 @@ class StiffnessDerivatives:
         return J, -np.einsum("zix,zij,zjx->xz", loc, self.ke, loc)
 
 
-@njit(cache=True)
+@kernel
 def _tangent_kernel(L, M, C, K, k, u, v, ke, dofs, beta, dalpha, dbeta, cdofs, cvals, band):
     """Forward-mode sensitivity of the Newmark moving-force solve to each element's θ.
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from shared.jit import kernel
 
 
-@njit(cache=True)
+@kernel
 def band_cholesky(ab):
     """Lower banded Cholesky factor (``cb[d, j] = L[j + d, j]``) of the lower banded ``ab``."""
     u1, n = ab.shape
@@ -36,7 +36,7 @@ def band_cholesky(ab):
     return cb
 
 
-@njit(cache=True)
+@kernel
 def band_solve(cb, M):
     """``M ← (L Lᵀ)⁻¹ M`` in place for the banded factor ``cb`` and right-hand sides ``M`` (n, r)."""
     u1, n = cb.shape
@@ -60,7 +60,7 @@ def band_solve(cb, M):
     return M
 
 
-@njit(cache=True)
+@kernel
 def selected_inverse(cb):
     """Band of ``Σ = (L Lᵀ)⁻¹`` from the lower banded Cholesky factor ``cb[d, i] = L[i + d, i]``.
 
@@ -87,7 +87,7 @@ def selected_inverse(cb):
     return S
 
 
-@njit(cache=True)
+@kernel
 def draw_into(cb, mean, z):
     """Turn standard normal rows ``z`` (n_rhs, n) into ``mean + L⁻ᵀ z`` in place (back substitution)."""
     u1, n = cb.shape

@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from numba import njit
+from shared.jit import kernel
 
 from shared.schema import SIGMA_SCALE, ApSegment
 
@@ -27,7 +27,7 @@ class ProfileSnapshot:
     n_passes: np.ndarray  # int
 
 
-@njit(cache=True)
+@kernel
 def _accumulate(sw, swy, swyy, count, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, sign, is_pass):
     """Add ``sign`` times a segment's ``w = 1/sigma²``, ``w·y`` and ``w·y²`` from index ``lo`` (and move
     ``count`` by ``sign`` if ``is_pass``) in one pass, the segment given by its wire codes and decoded

@@ -51,7 +51,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from shared.jit import kernel
 from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from scipy.optimize import minimize_scalar
 
@@ -160,7 +160,7 @@ def drift_system(segments: list[ApSegment], a: int, e: int, size: int, spacing_m
     return DriftSystem(A_Rb, A_bb, b_b, cat(knots).astype(np.int64), passes, offsets)
 
 
-@njit(cache=True)
+@kernel
 def _assemble(g, c, w, q, rhs, seg_lo, seg_hi, K):
     """``A_Rβ`` and ``BᵀQB`` (COO triplets, duplicates to be summed) and ``BᵀQy`` from the stacked rows.
 
@@ -245,7 +245,7 @@ def _band_block(S: np.ndarray, J: np.ndarray) -> np.ndarray:
     return S[d, np.minimum(J[:, None], J[None, :])]
 
 
-@njit(cache=True)
+@kernel
 def _chunk_rhs(ab, indptr, indices, data, b, i0, i1, around, betas):
     """``[A_IS, A_Iβ, b_I]`` (dense, (i1 − i0, |S| + |β| + 1)) of interior points ``[i0, i1)``:
     ``A_IS`` from the banded ``ab`` (lower, ``ab[d, j] = A[j + d, j]``) against the separator points
