@@ -1,6 +1,6 @@
 import sys
 
-from shared.cli import single_threaded_blas
+from shared.blas import single_threaded_blas
 
 single_threaded_blas()  # before numpy loads BLAS (OPENBLAS_NUM_THREADS etc. set by the user win)
 

@@ -1,12 +1,18 @@
-"""Command-line entry of the simulated fleet: ``driveby sim`` (and ``python -m simfleet``)."""
+"""The ``driveby`` console script (also ``python -m simfleet``): one entry dispatching to the
+simulator, the run orchestration, the reports and the edge and cloud daemons.
+
+Subcommands import their modules lazily, so ``driveby --help`` stays fast and a daemon loads only
+its own package.
+"""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
-from .scenarios import SCENARIOS
+from shared.blas import single_threaded_blas
 
 
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,6 +28,9 @@ def add_sim_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_sim(args: argparse.Namespace) -> int:
+    # Imported here: the scenarios load numpy, which must not happen before a daemon sets its BLAS threads.
+    from .scenarios import SCENARIOS
+
     if args.list:
         width = max(len(n) for n in SCENARIOS)
         for name, sc in SCENARIOS.items():
@@ -59,15 +68,86 @@ def run_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--logs", required=True, help="directory of drive logs (*.parquet)")
+    p.add_argument("--site", required=True, help="site registry TOML")
+    p.add_argument("--export", required=True, help="output directory for the Parquet export")
+    p.add_argument("--rrd", help="save the Rerun recording to this file")
+    p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
+                   help="fleet: self-calibrate (default); nominal: trust each log's nominal_params")
+    p.add_argument("--connect", help="use this Zenoh router instead of starting one")
+    p.add_argument("--net", default="net", help="network name in the key space")
+    p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
+    p.add_argument("--rate", type=float, help="replay at X× real time (default: as fast as possible)")
+    p.add_argument("--align", action="store_true",
+                   help="align passes in chainage against the consensus (GNSS bias, odometry stretch)")
+    p.add_argument("--shards", type=int, default=1, metavar="N",
+                   help="split the routes among N cloud daemons behind two routers (scale-out, exercised locally)")
+    p.add_argument("--secure", nargs="?", const=True, default=False, metavar="DIR",
+                   help="TLS with mutual authentication and access control: certificates made into the export's "
+                        ".run/security, or those of security directory DIR (needed with --connect)")
+
+
+def _cmd_run(args) -> int:
+    from .run import RunError, run
+
+    try:
+        res = run(Path(args.logs), Path(args.site), Path(args.export), Path(args.rrd) if args.rrd else None,
+                  args.calibration, args.connect, args.net, args.viewer, rate=args.rate, align=args.align,
+                  shards=args.shards, secure=args.secure)
+    except RunError as e:
+        print(f"driveby run: {e}", file=sys.stderr)
+        return 1
+    rejected = sum(res.stats.get("rejected", {}).values())
+    print(f"{res.acked}/{res.passes} passes processed in {res.seconds:.1f} s; "
+          f"{res.stats.get('accepted', 0)} segments accepted, {rejected} rejected; export: {args.export}")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from .demo import demo
+
+    return demo(args.out, seed=args.seed, passes=args.passes)
+
+
+DAEMONS = {"edge": "edge.node", "cloud": "cloud.daemon.node", "fleet": "simfleet.node"}  # subcommand → module with main
+BLAS_DAEMONS = ("edge", "cloud")  # long-running, sharing the machine: single-threaded BLAS by default
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["fleet"]:  # its own parser (and its heavier imports) only when asked for
-        from .fleet import main as fleet_main
+    if argv[:1] and argv[0] in DAEMONS:
+        # Daemons own their whole command line (Zenoh options, ...): hand it over untouched.
+        if argv[0] in BLAS_DAEMONS:
+            single_threaded_blas()
+        node = importlib.import_module(DAEMONS[argv[0]])
+        try:
+            return node.main(argv[1:])
+        except KeyboardInterrupt:
+            return 130
+    from .reproduce import add_reproduce_arguments, run_reproduce
 
-        return fleet_main(argv[1:])
-    p = argparse.ArgumentParser(prog="python -m simfleet", description="simulated fleet")
+    p = argparse.ArgumentParser(prog="driveby", description="fleet drive-by monitoring of roads, rail and bridges")
     sub = p.add_subparsers(dest="command", required=True)
-    add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs"))
-    sub.add_parser("fleet", help="live simulated fleet publishers (fleet --help for its options)")
+    demo = sub.add_parser("demo", help="simulate a small fleet over a road and a cracked bridge, run it, summarise")
+    demo.add_argument("--out", default="driveby-demo", help="working directory (default ./driveby-demo)")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--passes", type=int, default=20)
+    add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
+    _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
+    add_reproduce_arguments(sub)
+    for name, what in (("edge", "the edge daemon (see driveby edge --help)"),
+                       ("cloud", "the cloud aggregator daemon (see driveby cloud --help)"),
+                       ("fleet", "live simulated fleet publishers (see driveby fleet --help)")):
+        sub.add_parser(name, help=what, add_help=False)
     args = p.parse_args(argv)
-    return run_sim(args)
+    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": run_reproduce}
+    try:
+        return handlers[args.command](args)
+    except KeyboardInterrupt:
+        print("driveby: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -122,7 +122,7 @@ def small_fleet(tmp_path_factory):
 
 
 def test_fleet_calibration_through_the_system_beats_the_class_prior(small_fleet, tmp_path):
-    res = subprocess.run([sys.executable, "-m", "shared.cli", "run", "--logs", str(small_fleet / "logs"),
+    res = subprocess.run([sys.executable, "-m", "simfleet.cli", "run", "--logs", str(small_fleet / "logs"),
                           "--site", str(small_fleet / "site.toml"), "--export", str(tmp_path / "out"),
                           "--calibration", "fleet"], capture_output=True, text=True, timeout=900,
                          stdin=subprocess.DEVNULL)

@@ -230,7 +230,7 @@ def test_sensor_noise_level_is_measured_from_the_data(tmp_path):
 
 
 def _driveby(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shared.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "simfleet.cli", *args], capture_output=True, text=True,
                           timeout=600, stdin=subprocess.DEVNULL)
 
 

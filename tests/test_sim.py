@@ -32,7 +32,7 @@ SEED = 11
 
 
 def driveby(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shared.cli", "sim", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "simfleet.cli", "sim", *args], capture_output=True, text=True,
                           timeout=120, stdin=subprocess.DEVNULL)
 
 

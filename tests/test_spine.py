@@ -40,7 +40,7 @@ def road(tmp_path_factory) -> Path:
 
 
 def _driveby(*args: str, timeout: float = 600.0) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "shared.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "simfleet.cli", *args], capture_output=True, text=True,
                           timeout=timeout, stdin=subprocess.DEVNULL)
 
 
