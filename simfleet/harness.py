@@ -3,7 +3,8 @@
 The same code as the daemons (:class:`edge.node.Edge`, :class:`cloud.daemon.core.Cloud`), wired by a
 queue instead of Zenoh: chunks in, segments, pass-dones and calibrations routed by key, and whenever
 the queue is empty what the cloud daemon does when the bus is quiet (an alignment sweep, else a
-calibration round). Deterministic: no threads, no timing, so a run is a function of its logs.
+calibration round). One thread, and every message is delivered before the cloud's next idle work,
+so a run is a function of its logs.
 """
 
 from __future__ import annotations

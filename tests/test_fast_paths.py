@@ -254,7 +254,7 @@ def test_status_counts_current_passes_incrementally(road):
     assert cloud.status()["passes_current"] == brute == 2 and agg.stats()["passes_complete"] == 2
     cloud.on_done(keys.done_key(NET, "veh-1"), PassDone("veh-1", "p2", "R1", 1, 1).encode())
     assert agg.stats()["passes_complete"] == 3 and cloud.status()["passes_current"] == 2  # p2 is at v1
-    # Status follows acks at most every STATUS_INTERVAL_S; a forced flush publishes what is held back.
+    # Status follows acks at most every status_interval_s; a forced flush publishes what is held back.
     status_key = keys.status_key(NET, cloud.node_id)
     assert 1 <= published.count(status_key) <= 4
     cloud.flush_status(force=True)

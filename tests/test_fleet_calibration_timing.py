@@ -76,7 +76,7 @@ def test_a_slow_edge_gives_the_calibration_of_a_fast_one(fleet, refresh_wait_s):
     while the others come back; each rejoins when it is back."""
     logs, site, fast = fleet
     # 2 s per pass: six passes take 12 s to come back, longer than the cloud's re-issue and refresh
-    # waits (REISSUE_AFTER_S + REFRESH_WAIT_S), though the edge never stops returning them.
+    # waits (reissue_after_s + refresh_wait_s), though the edge never stops returning them.
     settings = CloudSettings(calibration="fleet")
     assert 6 * 2.0 > settings.reissue_after_s + settings.refresh_wait_s
     if refresh_wait_s is not None:

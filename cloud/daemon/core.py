@@ -106,7 +106,7 @@ class Cloud:
         self._status_at = -math.inf  # when the status was last published
         self.rail = None
         if any(vc.model in RAIL_MODELS for vc in site.vehicle_classes):
-            # Imported here, not at module top: rail is ~1 300 lines of numba a road-only daemon
+            # Imported here, not at module top: rail is numba-heavy code that a road-only daemon
             # (no rail vehicle class in its registry) never needs to load or compile.
             from cloud.rail.batches import RailBatches
 

@@ -297,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
                 cloud.record = durability.record_own
             # What exists now (modules, numba and pyarrow internals, the session) lives as long as the
             # process: keep it out of full garbage collections, whose pause scans every tracked object
-            # (~0.1 s of them) and would land in the middle of the stream.
+            # and would land in the middle of the stream.
             gc.collect()
             gc.freeze()
             serve(session, cloud, stop, args.export, durability)

@@ -228,7 +228,7 @@ class Aggregator:
             return self._reject(e.reason, str(e))
         if self.foreign_routes and (done.vehicle_id, done.pass_id) not in self._pass_route:
             # A shard counts every vehicle's passes per route, its own and the others': the shard
-            # with most of a vehicle's passes calibrates it (Cloud.owns).
+            # with most of a vehicle's passes calibrates it (cloud.daemon.sharding).
             self._pass_route[(done.vehicle_id, done.pass_id)] = done.route_id
             self.vehicle_routes.setdefault(done.vehicle_id, collections.Counter())[done.route_id] += 1
         if done.route_id in self.foreign_routes:
