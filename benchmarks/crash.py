@@ -22,7 +22,7 @@ Per trial, against the reference (``--calibration nominal``: exact posteriors):
 (iterative self-calibration; the issue's bound is 1e-6 relative after it settles), adding the
 vehicles.parquet means to the comparison (on the cells both profiles have: the aligned extent can
 move by a cell). Calibration rounds run in epochs, fixed prefixes of the passes in completion order
-(:meth:`cloud.daemon.node.Cloud.maybe_calibrate`), journalled with the calibrator's state before a round's
+(:meth:`cloud.daemon.core.Cloud.maybe_calibrate`), journalled with the calibrator's state before a round's
 calibrations are published, so an uninterrupted run and a killed-and-restarted one run the same
 rounds on the same data. There ``accepted`` is not comparable (an edge resubmits every segment per
 calibration version, and a restarted cloud may re-issue a calibration to get a pass recomputed that

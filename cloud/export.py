@@ -8,6 +8,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from shared.track_quality import d1_longitudinal_level, segment_quality
+
+from cloud.road.long_wave import drift_of, pass_error_draws
 from cloud.road.mean_profile import ProfileSnapshot
 
 ROUGHNESS_SEGMENTS_M = (10.0, 100.0)
@@ -39,11 +42,9 @@ def profile_draws(profile, route_id: str, snap: ProfileSnapshot, segments: list,
     """``n`` draws (n, P) of a route's profile carrying every error term of its exported band: the
     posterior's own (``profile.sample``: the white/AR(1) or edge error model, and the per-pass drift
     nuisance when it is on) plus the passes' excess error beyond those
-    (:func:`.estimators.long_wave.pass_error_draws`, told of the drift nuisance), so that what is
+    (:func:`cloud.road.long_wave.pass_error_draws`, told of the drift nuisance), so that what is
     computed from them (the IRI) has the band's uncertainty. ``snap`` is the posterior's snapshot of
     the route, ``segments`` the held segments."""
-    from cloud.road.long_wave import drift_of, pass_error_draws
-
     rng = np.random.default_rng(rng)
     draws = profile.sample(route_id, n, rng)  # (first: the posterior, hence its drift level, is computed)
     return draws + pass_error_draws(snap, segments, n, rng, drift=drift_of(profile, route_id))
@@ -54,14 +55,14 @@ def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, 
     """``roughness.parquet``: route_id, start_m, end_m, length_m, iri_m_per_km, iri_lo95, iri_hi95.
 
     ``samples`` (n_samples, P) are posterior draws of the route's profile (m) on ``chainage_m``
-    (:func:`profile_draws`: with every error term of the profile's band), NaN where the profile is unknown; a single profile (P,) is one
-    draw. Each draw's IRI is computed per consecutive 10 m and 100 m segment
+    (:func:`profile_draws`: with every error term of the profile's band), NaN where the profile is
+    unknown; a single profile (P,) is one draw. Each draw's IRI is computed per consecutive 10 m and 100 m segment
     (:func:`shared.roughness.iri_segments`); ``iri_m_per_km`` is the posterior mean of the IRI (the
     mean over draws, not the IRI of the mean profile, which is biased low because averaging
     smooths), and the band is the 2.5 % / 97.5 % quantiles over draws. ``length_m`` is the nominal
     segment length; segments without enough profile (NaN IRI) are left out.
     """
-    from shared.roughness import iri_segments  # numba: only loaded when roughness is exported
+    from shared.roughness import iri_segments  # numba kernels: loaded only when roughness is exported
 
     x = np.asarray(chainage_m, dtype=np.float64)
     draws = np.atleast_2d(np.asarray(samples, dtype=np.float64))
@@ -71,7 +72,7 @@ def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, 
         raise ValueError(f"chainage spacing {x[1] - x[0]} is not spacing_m {spacing_m}")
     # A segment's bounds are clipped to the profile's extent, not the route's: where the passes begin
     # a few metres in, the first segment's IRI is of the stretch from there (the car's run starts
-    # there), and start_m says so — reported as [0, L) it read as the IRI of ground no pass drove.
+    # there), and start_m says so — [0, L) would claim the IRI of ground no pass drove.
     # (Whether a segment is reported at all still asks for half of its nominal length.)
     has = np.flatnonzero(np.isfinite(draws).any(axis=0))
     first_m, last_m = (x[has[0]], x[has[-1]]) if has.size else (np.inf, -np.inf)
@@ -111,8 +112,6 @@ TRACK_QUALITY_SCHEMA = pa.schema([("route_id", pa.string()), ("start_m", pa.floa
 def track_quality_table(snapshots: dict[str, ProfileSnapshot]) -> pa.Table:
     """``track_quality.parquet`` (rail routes): route_id, start_m, end_m, sd_d1_mm, max_abs_d1_mm —
     the EN 13848 D1 longitudinal level (3–25 m) of the fused AP per 200 m (:mod:`shared.track_quality`)."""
-    from shared.track_quality import d1_longitudinal_level, segment_quality
-
     rows = []
     for rid, s in snapshots.items():
         if s.chainage_m.size < 2:

@@ -14,6 +14,9 @@ passes so far, set with `View.set_pass`) and ``wall_time`` timelines. Entity pat
     bridge/<bridge>/indicators        Scalars, D1 and D2 (%, eq. 3.24) and P(damage) (%)
     bridge/<bridge>/summary           TextDocument, the hypotheses' probabilities and the decision
     bridge/<bridge>/alarms            TextLog, alarms with a severity level
+    rail/<route>/track_quality/...    LineStrips2D ``d1``, ``sd_per_200m``, ``alert_limits`` (mm, up); ``table``
+    rail/<vehicle>/runs               TextDocument, a carriage's run estimates with 95 % intervals
+    rail/<vehicle>/runs/<quantity>    Points2D (run index, estimate) and ``ci95`` LineStrips2D
 
 Rerun's 2D view draws +y downwards and ignores view coordinates in 2D (rerun-io/rerun#1387), so the
 profile strips store ``-elevation`` in mm: up on the screen is up on the road. Readers of the
@@ -91,10 +94,16 @@ def _bridge_id(bridge: Any) -> str:
     return str(getattr(bridge, "id", bridge))
 
 
+def rail_path(name: str) -> str:
+    """Entity path of a rail route's or carriage's group, ``rail/<name>``."""
+    return f"rail/{_part(name)}"
+
+
 def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
               profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM,
-              calibration_params: Sequence[str] = ()) -> rrb.Blueprint:
-    """The one default layout: profiles per route, aggregator counters and fleet, bridges.
+              calibration_params: Sequence[str] = (), rail_routes: Sequence[str] = (),
+              rail_vehicles: Sequence[str] = (), run_names: Sequence[str] = ()) -> rrb.Blueprint:
+    """The one default layout: profiles per route, aggregator counters and fleet, bridges, rail.
 
     Parameters
     ----------
@@ -103,6 +112,9 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     bridges : bridge ids or registry `Bridge` objects; each gets a stiffness time series, its
         MR-IL (bounded to the span when a `Bridge` is given), D1/D2 and P(damage) on the pass
         timeline, the hypotheses' summary and an alarm log. No bridge, no bridge row.
+    rail_routes, rail_vehicles, run_names : a ``rail`` row below the rest: per rail route its
+        EN 13848 D1 level, sd per 200 m and alert limits against chainage and the table; per
+        carriage its runs' estimates of each of ``run_names``. No rail route or carriage, no row.
     """
     route_tabs = []
     for rid, length in routes.items():
@@ -146,7 +158,29 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     if bridge_tabs:
         rows.append(rrb.Tabs(*bridge_tabs, name="bridges"))
     shares = [3] * bool(route_tabs) + [2] + [2] * bool(bridge_tabs)
-    return rrb.Blueprint(rrb.Vertical(*rows, row_shares=shares), auto_views=False)
+    layout = rrb.Vertical(*rows, row_shares=shares)
+    rail_tabs = _rail_tabs(rail_routes, rail_vehicles, run_names)
+    if rail_tabs:
+        layout = rrb.Vertical(layout, rrb.Tabs(*rail_tabs, name="rail"), row_shares=[3, 1])
+    return rrb.Blueprint(layout, auto_views=False)
+
+
+def _rail_tabs(routes: Sequence[str], vehicles: Sequence[str], run_names: Sequence[str]) -> list:
+    tabs = []
+    for route in routes:
+        root = f"{rail_path(route)}/track_quality"
+        tabs.append(rrb.Horizontal(
+            rrb.Spatial2DView(origin=root, contents=["$origin/d1", "$origin/sd_per_200m", "$origin/alert_limits"],
+                              name=f"{route}: EN 13848 D1 (mm, up) vs chainage (m)"),
+            rrb.TextDocumentView(origin=f"{root}/table", name=f"{route}: D1 per 200 m"),
+            column_shares=[3, 2], name=f"{route} track"))
+    for vid in vehicles:
+        root = f"{rail_path(vid)}/runs"
+        tabs.append(rrb.Horizontal(
+            rrb.TextDocumentView(origin=root, name=f"{vid}: runs (95 %)"),
+            *[rrb.Spatial2DView(origin=f"{root}/{_part(k)}", contents=["$origin/**"], name=f"{vid}: {k} per run")
+              for k in run_names], name=f"{vid} runs"))
+    return tabs
 
 
 def _mril_bounds(bridge: Any) -> rrb.VisualBounds2D | None:
@@ -260,13 +294,14 @@ class View:
         self._pass = 0
         self._closed = False
         self._styled: dict[str, Any] = {}  # entity path → what its static style was made for
+        self._layout = (dict(routes or {}), list(bridges), profile_range_mm, tuple(calibration_params))
+        self._rail_layout: tuple = ((), (), ())  # (rail routes, carriages, run quantities) in the blueprint
         self.recording_id = recording_id or str(uuid.uuid4())
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.recording_id)
         # Exactly two timelines: `pass` and `wall_time` (log_time would duplicate wall_time).
         self._rec.set_log_time_enabled(False)
         self._rec.set_log_tick_enabled(False)
-        self._rec.set_sinks(*sinks, default_blueprint=blueprint(dict(routes or {}), list(bridges),
-                                                                profile_range_mm, calibration_params))
+        self._rec.set_sinks(*sinks, default_blueprint=blueprint(*self._layout))
 
     # -- time ------------------------------------------------------------------------------------------
     @property
@@ -553,6 +588,69 @@ class View:
                 return
             self._stamp()
             self._rec.log(f"{bridge_path(bridge_id)}/alarms", rr.TextLog(str(message), level=level))
+
+    # -- rail ------------------------------------------------------------------------------------------
+    def log_rail(self, rows: Any) -> None:
+        """Log the rail batches at the current pass (a `cloud.rail.batches.RailViewRows`, duck-typed):
+        each carriage's run estimates, each rail bridge's bogie MR-IL against its reference and
+        D1/D2, each rail route's D1 track quality. The blueprint gains the rail row (its routes and
+        carriages) the first time they appear."""
+        layout = (tuple(rows.routes), tuple(rows.vehicles), tuple(rows.run_names))
+        with self._lock:
+            if self._closed:
+                return
+            if layout != self._rail_layout and (layout[0] or layout[1]):
+                self._rec.send_blueprint(blueprint(*self._layout, *layout))
+                self._rail_layout = layout
+            self._stamp()
+            for vid, route, runs in rows.runs:
+                self._log_runs(vid, route, runs, rows.run_names)
+            for b in rows.bridges:
+                self.log_bridge_mril(b.bridge_id, b.x_m, b.J, b.reference_J)
+                self.log_bridge_indicators(b.bridge_id, b.d1_pct, b.d2_pct, float(b.damaged))
+            for t in rows.track:
+                self._log_track_quality(t)
+
+    def _log_runs(self, vehicle_id: str, route_id: str, runs: Sequence[Any], names: Sequence[str]) -> None:
+        """A carriage's runs: a markdown table (mv, Iv in t, t·m²; v in m/s) and per quantity the
+        estimate (Points2D) and its 95 % interval (``ci95``) against the run's index."""
+        root = f"{rail_path(vehicle_id)}/runs"
+        lines = [f"### {vehicle_id} on {route_id}: {len(runs)} runs", "",
+                 "| run | mv (t) | Iv (t·m²) | v (m/s) |", "|---|---|---|---|"]
+        for r in runs:
+            cells = [f"{r.mean[k] / s:.4g} [{r.lo95[k] / s:.4g}, {r.hi95[k] / s:.4g}]"
+                     for k, s in (("mv", 1e3), ("Iv", 1e3), ("v", 1.0))]
+            lines.append(f"| {r.pass_id} | " + " | ".join(cells) + " |")
+        self._rec.log(root, rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN))
+        idx = np.arange(len(runs), dtype=float)
+        for k in names:
+            mean = np.array([r.mean[k] for r in runs])
+            lo = np.array([r.lo95[k] for r in runs])
+            hi = np.array([r.hi95[k] for r in runs])
+            self._rec.log(f"{root}/{_part(k)}", rr.Points2D(np.stack([idx, mean], axis=1), radii=0.1))
+            self._rec.log(f"{root}/{_part(k)}/ci95",
+                          rr.LineStrips2D([np.array([[i, a], [i, b]]) for i, a, b in zip(idx, lo, hi)]))
+
+    def _log_track_quality(self, t: Any) -> None:
+        """A rail route's D1 level (mm, up) against chainage, its sd per 200 m as steps, the
+        isolated-defect alert limits and a table per 200 m (``sd``/``isolated`` alerts)."""
+        x, d1 = np.asarray(t.chainage_m, float), np.asarray(t.d1_m, float)
+        root = f"{rail_path(t.route_id)}/track_quality"
+        self._rec.log(f"{root}/d1", rr.LineStrips2D(finite_runs(x, SCREEN_Y * 1e3 * d1)))
+        steps = [np.array([[s.start_m, SCREEN_Y * s.sd_d1_mm], [s.end_m, SCREEN_Y * s.sd_d1_mm]])
+                 for s in t.segments if np.isfinite(s.sd_d1_mm)]
+        self._rec.log(f"{root}/sd_per_200m", rr.LineStrips2D(steps))
+        self._rec.log(f"{root}/alert_limits", rr.LineStrips2D(
+            [np.array([[0.0, SCREEN_Y * lim], [x[-1], SCREEN_Y * lim]]) for lim in
+             (t.alert_isolated_mm, -t.alert_isolated_mm)]))
+        lines = [f"### {t.route_id}: EN 13848 D1 (3–25 m)", "",
+                 "| start m | end m | sd mm | max abs mm | alert |", "|---|---|---|---|---|"]
+        for s in t.segments:
+            alert = "sd" if s.sd_d1_mm > t.alert_sd_mm else ""
+            if any(s.start_m <= d[0] < s.end_m for d in t.defects):
+                alert = (alert + " isolated").strip()
+            lines.append(f"| {s.start_m:.0f} | {s.end_m:.0f} | {s.sd_d1_mm:.3f} | {s.max_abs_d1_mm:.3f} | {alert} |")
+        self._rec.log(f"{root}/table", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN))
 
     # -- lifetime --------------------------------------------------------------------------------------
     def flush(self, timeout_s: float = 10.0) -> bool:

@@ -79,48 +79,19 @@ class SystemRun:
     stats: dict = dataclasses.field(default_factory=dict)
 
 
-def run_in_process(logs, site, export_dir: Path, calibration: str = "fleet", spacing_m: float = 0.05,
-                   align: bool = False):
-    """The edge and cloud cores wired by an in-memory queue instead of Zenoh; returns (cloud, rounds).
+def run_in_process(logs, site, export_dir: Path | None, calibration: str = "fleet", spacing_m: float = 0.05,
+                   align: bool = False, settings=None):
+    """The edge and cloud cores wired by an in-memory bus instead of Zenoh (:mod:`simfleet.harness`);
+    returns (cloud, rounds). ``settings`` (a :class:`cloud.daemon.settings.CloudSettings`) replaces
+    ``calibration``, ``spacing_m`` and ``align`` when given."""
+    # Imported here: the harness loads the cloud core, which ``driveby reproduce --help`` does not need.
+    from cloud.daemon.settings import CloudSettings
 
-    Same code as the daemons (``edge.node.Edge``, ``cloud.daemon.node.Cloud``): chunks in, segments,
-    pass markers and calibrations routed by key, and whenever the queue is empty what the daemon
-    does when the bus is quiet: an alignment sweep (``align``) or else a calibration round.
-    """
-    from cloud.daemon.node import Cloud
-    from edge.node import Edge
+    from . import harness
 
-    from .replay import replay
-
-    queue: collections.deque = collections.deque()
-
-    def publish(key, payload):
-        queue.append((key, payload))
-
-    edge = Edge("net", publish, site, calibration)
-    cloud = Cloud("net", site, publish, spacing_m=spacing_m, calibration=calibration, align=align)
-    route = {"veh": lambda k, p: edge.on_chunk(p), "ap": cloud.on_segment, "done": cloud.on_done,
-             "calib": lambda k, p: edge.on_calibration(p)}
-
-    def pump():
-        while queue:
-            key, payload = queue.popleft()
-            handler = route.get(key.split("/")[2])
-            if handler is not None:
-                handler(key, payload)
-
-    replay(logs, publish, "net")
-    pump()
-    rounds = 0
-    while True:
-        cloud.fuse_pending()  # the daemon's idle work when the bus is quiet
-        if not (cloud.maybe_align() or cloud.maybe_calibrate()):
-            break
-        rounds += 1
-        pump()
-    if export_dir is not None:
-        cloud.export(Path(export_dir))
-    return cloud, rounds
+    if settings is None:
+        settings = CloudSettings(calibration=calibration, spacing_m=spacing_m, align=align)
+    return harness.run_in_process(logs, site, export_dir, settings)
 
 
 def run_system(sim_dir: Path, export_dir: Path, calibration: str = "fleet") -> SystemRun:

@@ -3,7 +3,7 @@ ours, and our error beside the Cramér–Rao bound.
 
 Conditions are the issue's: 2 % sensor noise, smooth deck (as the thesis), vehicle parameters from
 the system's own fleet self-calibration (the edge and cloud cores wired in process,
-:func:`simfleet.reproduce.run_in_process`, ``calibration="fleet"``: the parameters each pass's AP
+:func:`simfleet.harness.run_in_process`, ``calibration="fleet"``: the parameters each pass's AP
 was computed with), wheel loads from the registry's vehicle class (the class mean mass fixes the
 scale, thesis §4.5.5). The bridge estimator (:class:`cloud.bridge.estimator.BridgeEstimator`) gets
 the calibrated passes; the simulation's truth is read only here, to score.
@@ -128,11 +128,12 @@ def simulate_dir(work: Path, name: str, passes: int, seed: int = 0, noise_pct: f
 
 
 def _simulate_case(name, d: Path, cache: Path, passes, seed, noise_pct, calibration, nominal) -> Case:
+    from cloud.daemon.settings import CloudSettings
     from shared.drivelog import list_drive_logs, read_drive_log
     from shared.registry import load_site
 
     from . import sim
-    from .reproduce import run_in_process
+    from .harness import run_in_process
     from .scenarios import SCENARIOS
 
     t0 = time.perf_counter()
@@ -141,7 +142,7 @@ def _simulate_case(name, d: Path, cache: Path, passes, seed, noise_pct, calibrat
                      workers=2, progress=False)
     logs = [read_drive_log(p) for p in list_drive_logs(d / "logs")]
     site = load_site(d / "site.toml")
-    cloud, rounds = run_in_process(logs, site, None, calibration)
+    cloud, rounds = run_in_process(logs, site, None, CloudSettings(calibration=calibration))
     if cloud.calibrator is not None:
         params = {v: dict(st.params) for v, st in cloud.calibrator.vehicles.items()}
     else:  # nominal: what the edge computed with, the logs' own parameters

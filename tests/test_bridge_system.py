@@ -4,7 +4,7 @@ End to end through ``driveby run`` (a Zenoh router on a free loopback port, edge
 separate processes, real drive logs, real Parquet and .rrd read back): a small healthy smooth-deck
 bridge, with nominal calibration so the run takes seconds. The alarm's *decision* on a damaged
 bridge is not checked through that path: with the cloud's stand-in parameters (nominal mode: the
-class mean, see ``Cloud._bridge_params``) the estimator cannot see a stiffness loss, and fleet
+class mean: the cloud's fallback parameters) the estimator cannot see a stiffness loss, and fleet
 self-calibration, which gives it the vehicles' parameters, takes minutes (12 rounds, measured ~160 s
 for 12 passes on this machine). The alarm logic is checked instead on the cloud's transport-free
 :class:`~cloud.bridge.monitor.BridgeMonitor`, fed by the real edge with the parameters the edge itself used
@@ -195,7 +195,8 @@ def test_the_cloud_publishes_an_alarm_over_zenoh_once():
     """Cloud.maybe_estimate_bridges publishes on driveby/<net>/alarm/<bridge> (a real Zenoh session
     on a loopback router) — here with the monitor fed above, the Cloud's own being unable to see
     the loss in nominal mode (module docstring)."""
-    from cloud.daemon.node import Cloud
+    from cloud.daemon.core import Cloud
+    from cloud.daemon.settings import CloudSettings
 
     monitor, *_ = new_fed_monitor(0.30)
     got, arrived, marker = [], threading.Event(), threading.Event()
@@ -209,8 +210,8 @@ def test_the_cloud_publishes_an_alarm_over_zenoh_once():
             arrived.set()
 
         session.declare_subscriber(keys.alarm_keyexpr(NET), on_alarm)
-        cloud = Cloud(NET, monitor.site, lambda k, p: session.put(k, p), calibration="nominal")
-        cloud.bridge.monitor = monitor
+        cloud = Cloud(NET, monitor.site, lambda k, p: session.put(k, p), CloudSettings(calibration="nominal"))
+        cloud.bridges = monitor
         assert cloud.maybe_estimate_bridges(force=True)
         assert arrived.wait(10.0), "no alarm arrived"
         assert not cloud.maybe_estimate_bridges(force=True)  # nothing new: no estimate, no alarm

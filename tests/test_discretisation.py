@@ -1,4 +1,4 @@
-"""The edge inverse's discretisation is undone before the cloud fuses a pass (issue #4).
+"""The edge inverse's discretisation is undone before the cloud fuses a pass.
 
 The edge runs its inverse at Newmark γ > ½ for stability (quarter-car 0.6, half-car 0.8). Against the
 road that scheme has a gain and phase error every vehicle of a class shares, so fused as sent it
@@ -15,7 +15,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-import cloud.daemon.node
+from cloud.daemon.settings import CloudSettings
 from cloud.road.calibration import PassAp, class_prior, continuous_ap, fit_vehicle, to_calibration
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
@@ -52,7 +52,7 @@ def test_the_vehicle_step_on_continuous_aps_has_no_shared_bias():
     assert max(abs(e) for e in after.values()) < 0.005, after
 
 
-def fused_profile_gains(sim, out) -> dict[tuple[float, float], float]:
+def fused_profile_gains(sim, out, continuous_aps: bool = True) -> dict[tuple[float, float], float]:
     """A simulation's logs through the edge and cloud code in process (nominal calibration, into
     ``out``): the fused profile's gain against the road's in the 0.5–1 and 1–2 m bands (10 m trimmed
     at each end)."""
@@ -62,7 +62,8 @@ def fused_profile_gains(sim, out) -> dict[tuple[float, float], float]:
     from simfleet.reproduce import run_in_process
 
     logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
-    run_in_process(logs, load_site(sim / "site.toml"), out, calibration="nominal")
+    run_in_process(logs, load_site(sim / "site.toml"), out,
+                   settings=CloudSettings(calibration="nominal", continuous_aps=continuous_aps))
     truth = json.loads((sim / "truth.json").read_text())
     t = pq.read_table(out / "profile.parquet").to_pydict()
     x, est = np.asarray(t["chainage_m"]), np.asarray(t["elevation_m"])
@@ -78,7 +79,7 @@ def fused_profile_gains(sim, out) -> dict[tuple[float, float], float]:
 
 
 @pytest.mark.parametrize("corrected", [True, False])
-def test_the_fused_profile_has_the_roads_gain_at_short_wavelengths(tmp_path, monkeypatch, corrected):
+def test_the_fused_profile_has_the_roads_gain_at_short_wavelengths(tmp_path, corrected):
     """Six quarter-cars of road-qc, 0.2 % noise (so that the posterior hardly shrinks), each log with
     the vehicle's true parameters, through the edge and cloud code (nominal calibration): the fused
     profile's gain against the road at 0.5–2 m. Fused as the edge sends them, the APs make it
@@ -88,8 +89,7 @@ def test_the_fused_profile_has_the_roads_gain_at_short_wavelengths(tmp_path, mon
     sim = tmp_path / "sim"
     generate(SCENARIOS["road-qc"], sim, seed=5, passes=6, vehicles=6, noise_pct=0.2, nominal="true", workers=1,
              progress=False)
-    monkeypatch.setattr(cloud.daemon.node, "CONTINUOUS_APS", corrected)
-    for (lo, hi), gain in fused_profile_gains(sim, tmp_path / "out").items():
+    for (lo, hi), gain in fused_profile_gains(sim, tmp_path / "out", continuous_aps=corrected).items():
         if corrected:
             assert abs(gain - 1.0) < 0.006, (lo, hi, gain)
         else:  # the test sees the edge's discretisation when it is there

@@ -19,13 +19,15 @@ import zenoh
 
 from cloud.daemon.durable import AP, DONE, Durability
 from cloud.daemon.journal import Journal
-from cloud.daemon.node import Cloud
+from cloud.daemon.core import Cloud
+from cloud.daemon.settings import CloudSettings
 from edge.node import Edge
 from shared import keys
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
 from shared.schema import decode_ack, decode_ap
 from shared.transport import run_router, zenoh_config
+from simfleet.harness import Harness
 from simfleet.replay import chunks_of
 from simfleet.run import run
 from simfleet.scenarios import SCENARIOS
@@ -61,7 +63,7 @@ def _feed(cloud, msgs, durability=None):
 
 
 def _cloud(road):
-    return Cloud(NET, load_site(road / "site.toml"), lambda k, p: None, calibration="nominal")
+    return Cloud(NET, load_site(road / "site.toml"), lambda k, p: None, CloudSettings(calibration="nominal"))
 
 
 def _same(a: Cloud, b: Cloud):
@@ -165,25 +167,25 @@ def test_a_cloud_killed_mid_run_is_restarted_and_the_export_is_unchanged(road, t
 
 
 def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, snapshot=False, max_resident_passes=None):
-    """Edge and cloud cores wired in memory (as simfleet.reproduce.run_in_process), the cloud with a
-    journal; optionally the cloud "dies" after some calibration rounds and is rebuilt from it."""
-    import collections
-
-    from simfleet.replay import replay
-
+    """Edge and cloud cores on the harness's in-memory bus (:class:`simfleet.harness.Harness`), the
+    cloud with a journal; optionally the cloud "dies" after some calibration rounds and is rebuilt from it."""
     site = load_site(road / "site.toml")
-    queue: collections.deque = collections.deque()
+    settings = CloudSettings(calibration="fleet", max_resident=max_resident, spill_dir=state_dir,
+                             max_resident_passes=max_resident_passes)
     state = {"durability": None}
 
-    def publish(key, payload):
+    def on_publish(key, payload):  # as the daemon's publish: the cloud's own calibrations are journalled
         d = state["durability"]
         if d is not None and d.live and "/calib/" in key:
             d.record("calib", key, payload)
-        queue.append((key, payload))
+        return False
 
-    def new_cloud():
-        cloud = Cloud(NET, site, publish, calibration="fleet", max_resident=max_resident, spill_dir=state_dir,
-                      max_resident_passes=max_resident_passes)
+    def on_deliver(key, payload):  # as the daemon: input is journalled before it is applied
+        kind = key.split("/")[2]
+        if kind in ("ap", "done"):
+            state["durability"].record(AP if kind == "ap" else DONE, key, payload)
+
+    def recovered(cloud):
         cloud.calibrator.max_rounds = 5  # enough rounds to crash between; the suite stays quick
         d = Durability(Journal(state_dir), cloud)
         d.recover()
@@ -192,36 +194,18 @@ def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, sna
         state["durability"] = d
         return cloud
 
-    edge = Edge(NET, publish, site, "fleet")
-    cloud = new_cloud()
-
-    def pump():
-        while queue:
-            key, payload = queue.popleft()
-            kind = key.split("/")[2]
-            if kind == "veh":
-                edge.on_chunk(payload)
-            elif kind == "calib":
-                edge.on_calibration(payload)
-            elif kind in ("ap", "done"):
-                state["durability"].record(AP if kind == "ap" else DONE, key, payload)
-                (cloud.on_segment if kind == "ap" else cloud.on_done)(key, payload)
-
-    logs = [read_drive_log(p) for p in list_drive_logs(road / "logs")]
-    replay(logs, publish, NET)
-    pump()
+    h = Harness(site, settings, net=NET, on_publish=on_publish, on_deliver=on_deliver)
+    recovered(h.cloud)
+    h.replay([read_drive_log(p) for p in list_drive_logs(road / "logs")])
     rounds = 0
-    while True:
-        cloud.fuse_pending()  # the daemon's idle work when the bus is quiet
-        if not cloud.maybe_calibrate():
-            break
+    while h.idle():  # the daemon's idle work when the bus is quiet
         rounds += 1
         if rounds == crash_after_rounds:
             if snapshot:  # compacted first: the restart reads a snapshot (epoch, calibrator, passes in order)
                 state["durability"].maybe_snapshot(force=True)
-            cloud = new_cloud()  # the old one is gone; in flight messages are still delivered
-        pump()
-    return cloud
+            h.cloud = recovered(Cloud(NET, site, h.publish, settings))  # in flight messages are still delivered
+        h.pump()
+    return h.cloud
 
 
 def test_fleet_calibration_resumes_from_the_journal(road, tmp_path):
@@ -293,7 +277,7 @@ def test_a_restarted_cloud_does_not_raise_a_standing_alarm_again(tmp_path):
     published: list[str] = []
 
     def cloud_on(state_dir):
-        c = Cloud(NET, monitor.site, lambda k, p: published.append(k), calibration="nominal")
+        c = Cloud(NET, monitor.site, lambda k, p: published.append(k), CloudSettings(calibration="nominal"))
         c.bridges = copy.deepcopy(monitor)  # as a restarted cloud rebuilds it: fed, not yet estimated
         d = Durability(Journal(state_dir), c)
         d.recover()
@@ -326,8 +310,8 @@ def test_memory_stays_bounded_as_passes_accumulate_and_the_export_is_unchanged(r
     unbounded = _cloud(road)
     _feed(unbounded, msgs)
     bound = 3
-    cloud = Cloud(NET, load_site(road / "site.toml"), lambda k, p: None, calibration="nominal",
-                  max_resident=bound, spill_dir=tmp_path / "spill")
+    cloud = Cloud(NET, load_site(road / "site.toml"), lambda k, p: None,
+                  CloudSettings(calibration="nominal", max_resident=bound, spill_dir=tmp_path / "spill"))
     store = cloud.aggregator.segments
     kept = cloud.profile.segments  # the profile estimator's own (exact retraction, per-pass drift)
     seg_bytes = max(s.values_q.nbytes + s.sigma_q.nbytes for s in unbounded.aggregator.segments.values())
@@ -402,8 +386,9 @@ def test_held_state_stays_bounded_as_passes_accumulate(road, tmp_path):
 
     unbounded = _cloud(road)
     per_pass_unbounded = fed(unbounded)
-    cloud = Cloud(NET, load_site(road / "site.toml"), lambda k, p: None, calibration="nominal",
-                  max_resident=seg_bound, max_resident_passes=pass_bound, spill_dir=tmp_path / "spill")
+    cloud = Cloud(NET, load_site(road / "site.toml"), lambda k, p: None,
+                  CloudSettings(calibration="nominal", max_resident=seg_bound, max_resident_passes=pass_bound,
+                                spill_dir=tmp_path / "spill"))
     per_pass = fed(cloud)
     assert cloud.passes_complete == unbounded.passes_complete == 120
     assert len(cloud.aggregator.passes) == 120 and cloud.aggregator.passes.spilled == 120 - pass_bound
@@ -417,22 +402,19 @@ def test_held_state_stays_bounded_as_passes_accumulate(road, tmp_path):
         assert a[name].equals(b[name]), name
 
 
-def test_compaction_runs_when_the_journal_is_mostly_garbage(road, tmp_path, monkeypatch):
+def test_compaction_runs_when_the_journal_is_mostly_garbage(road, tmp_path):
     """A snapshot rewrites the live state: not due while every journalled record is live (a soak's
     steady stream), due once superseded or duplicate records make the journal twice the live state;
     the compacted state restarts to the same cloud."""
-    import cloud.daemon.durable as durable
-
-    monkeypatch.setattr(durable, "SNAPSHOT_MIN_RECORDS", 5)
     msgs = _messages(road)
     cloud = _cloud(road)
-    d = Durability(Journal(tmp_path), cloud)
+    d = Durability(Journal(tmp_path), cloud, min_records=5)
     d.recover()
     d.live = True
     _feed(cloud, msgs, d)
     assert d.since_snapshot == len(msgs) >= 5 and not d.maybe_snapshot()  # nothing to gain yet
     resent = 0
-    while d.since_snapshot < durable.COMPACT_RATIO * d.live_records():
+    while d.since_snapshot < d.compact_ratio * d.live_records():
         assert not d.maybe_snapshot()
         _feed(cloud, msgs, d)  # the edges resend: duplicates, journalled and garbage
         resent += 1

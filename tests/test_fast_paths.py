@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 from cloud.ingest.aggregator import Aggregator
 from cloud.road.gmrf_profile import GmrfProfile, segment_information
 from cloud.road.mean_profile import MeanProfile
-from cloud.daemon.node import Cloud
+from cloud.daemon.core import Cloud
+from cloud.daemon.settings import CloudSettings
 from edge.node import Edge, in_shard, parse_shard
 from edge.pipeline import EdgeConfig, PassProcessor, AxleGrid
 from shared import keys, schema
@@ -241,7 +242,7 @@ def test_a_batch_is_fused_like_its_segments_one_by_one(road):
 def test_status_counts_current_passes_incrementally(road):
     site = load_site(road / "site.toml")
     published = []
-    cloud = Cloud(NET, site, lambda k, p: published.append(k), calibration="nominal")
+    cloud = Cloud(NET, site, lambda k, p: published.append(k), CloudSettings(calibration="nominal"))
     key = keys.ap_key(NET, "R1", 0, "veh-1")
     for k, pass_id in enumerate(["p1", "p2", "p3"]):
         cloud.on_segment(key, _segment(0, 20, pass_id=pass_id, n_segments_in_pass=1).encode())
@@ -253,7 +254,7 @@ def test_status_counts_current_passes_incrementally(road):
     assert cloud.status()["passes_current"] == brute == 2 and agg.stats()["passes_complete"] == 2
     cloud.on_done(keys.done_key(NET, "veh-1"), PassDone("veh-1", "p2", "R1", 1, 1).encode())
     assert agg.stats()["passes_complete"] == 3 and cloud.status()["passes_current"] == 2  # p2 is at v1
-    # Status follows acks at most every STATUS_INTERVAL_S; a forced flush publishes what is held back.
+    # Status follows acks at most every status_interval_s; a forced flush publishes what is held back.
     status_key = keys.status_key(NET, cloud.node_id)
     assert 1 <= published.count(status_key) <= 4
     cloud.flush_status(force=True)

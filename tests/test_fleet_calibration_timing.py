@@ -8,70 +8,55 @@ cloud's clock is a simulated one so that "seconds later" is exact, not slept for
 """
 
 import collections
-import types
 
 import numpy as np
 import pytest
 
-import cloud.daemon.node as node
+from cloud.daemon.settings import CloudSettings
 from cloud.road.calibration import to_calibration
 from cloud.road.fleet_calibration import SIGNIFICANT
-from cloud.daemon.node import Cloud
-from edge.node import Edge
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
-from simfleet.replay import replay
+from simfleet.harness import Harness
 from simfleet.reproduce import write_sprung_mass_fleet
 
 TICK_S = 0.5  # the cloud's quiet-bus work every this many simulated seconds while the edge is busy
 
 
-def _run(logs, site, edge_s_per_pass: float, monkeypatch):
-    """The in-process daemons (as ``simfleet.reproduce.run_in_process``) with a simulated clock: the
-    edge takes ``edge_s_per_pass`` seconds per recalibrated pass (0: at once), and the cloud does its
+def _run(logs, site, edge_s_per_pass: float, settings: CloudSettings = CloudSettings(calibration="fleet")):
+    """The in-process daemons (:class:`simfleet.harness.Harness`) with a simulated clock: the edge
+    takes ``edge_s_per_pass`` seconds per recalibrated pass (0: at once), and the cloud does its
     quiet-bus work after each. Returns the cloud."""
     clock = [0.0]
-    fake = types.SimpleNamespace(monotonic=lambda: clock[0], time=lambda: 1.7e9 + clock[0],
-                                 thread_time=lambda: clock[0], perf_counter=lambda: clock[0])
-    monkeypatch.setattr(node, "time", fake)
-    queue, calibs = collections.deque(), collections.deque()
+    calibs = collections.deque()
     busy = [0.0]  # s the edge has spent on its current recomputation
 
-    def publish(key, payload):
-        (calibs if key.split("/")[2] == "calib" else queue).append((key, payload))
+    def hold(key, payload):  # calibrations reach the edge one per recomputation (below), not at once
+        if key.split("/")[2] == "calib":
+            calibs.append((key, payload))
+            return True
+        return False
 
-    edge = Edge("net", publish, site, "fleet")
-    cloud = Cloud("net", site, publish, calibration="fleet")
-    route = {"veh": lambda k, p: edge.on_chunk(p), "ap": cloud.on_segment, "done": cloud.on_done}
-
-    def pump():
-        while queue:
-            key, payload = queue.popleft()
-            handler = route.get(key.split("/")[2])
-            if handler is not None:
-                handler(key, payload)
-
-    replay(logs, publish, "net")
-    pump()
+    h = Harness(site, settings, clock=lambda: clock[0], on_publish=hold)
+    h.replay(logs)
     for _ in range(10_000):
-        cloud.fuse_pending()
-        ran = cloud.maybe_calibrate()
+        ran = h.idle()
         if calibs:  # the edge recomputes one vehicle's passes; the cloud looks in every TICK_S meanwhile
             if edge_s_per_pass > 0:
                 busy[0] += TICK_S
                 clock[0] += TICK_S
                 if busy[0] >= edge_s_per_pass - 1e-9:
                     busy[0] = 0.0
-                    edge.on_calibration(calibs.popleft()[1])
+                    h.edge.on_calibration(calibs.popleft()[1])
             else:
                 while calibs:
-                    edge.on_calibration(calibs.popleft()[1])
+                    h.edge.on_calibration(calibs.popleft()[1])
         elif not ran:
             break
-        pump()
+        h.pump()
     else:
         raise AssertionError("the calibration never settled")
-    return cloud
+    return h.cloud
 
 
 @pytest.fixture(scope="module")
@@ -81,22 +66,22 @@ def fleet(tmp_path_factory):
     write_sprung_mass_fleet(sim, seed=0, noise_pct=0.0)
     logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
     site = load_site(sim / "site.toml")
-    with pytest.MonkeyPatch.context() as mp:
-        fast = _run(logs, site, 0.0, mp).calibrator
+    fast = _run(logs, site, 0.0).calibrator
     return logs, site, fast
 
 
 @pytest.mark.parametrize("refresh_wait_s", [None, 0.5])
-def test_a_slow_edge_gives_the_calibration_of_a_fast_one(fleet, monkeypatch, refresh_wait_s):
+def test_a_slow_edge_gives_the_calibration_of_a_fast_one(fleet, refresh_wait_s):
     """``refresh_wait_s`` 0.5: shorter than the edge's 2 s per pass, so passes are left out of the rounds
     while the others come back; each rejoins when it is back."""
     logs, site, fast = fleet
     # 2 s per pass: six passes take 12 s to come back, longer than the cloud's re-issue and refresh
-    # waits (REISSUE_AFTER_S + REFRESH_WAIT_S), though the edge never stops returning them.
-    assert 6 * 2.0 > node.REISSUE_AFTER_S + node.REFRESH_WAIT_S
+    # waits (reissue_after_s + refresh_wait_s), though the edge never stops returning them.
+    settings = CloudSettings(calibration="fleet")
+    assert 6 * 2.0 > settings.reissue_after_s + settings.refresh_wait_s
     if refresh_wait_s is not None:
-        monkeypatch.setattr(node, "REFRESH_WAIT_S", refresh_wait_s)
-    slow = _run(logs, site, 2.0, monkeypatch).calibrator
+        settings = CloudSettings(calibration="fleet", refresh_wait_s=refresh_wait_s)
+    slow = _run(logs, site, 2.0, settings).calibrator
     assert fast.rounds > 1 and set(fast.vehicles) == set(slow.vehicles)
     for vid, st in fast.vehicles.items():
         names = st.fit.names

@@ -46,10 +46,11 @@ def test_production_path_on_short_passes_is_as_good_as_the_exact_posterior():
     slope error (~5 mm rms over 13 m) 30× its shape error; the cloud's per-pass drift nuisance
     removes it. Without it this was 4× (band) / 11× (detrended) the exact posterior's error; with
     it measured 0.83× / 1.40× (seeds 1–2: ≤ 0.74× / 0.81×)."""
-    from cloud.daemon.node import DRIFT_KNOT_M
+    from cloud.daemon.settings import CloudSettings
     from cloud.reference import exact_profile_posterior
     from simfleet.reproduce import METRICS, production_profile, small_road_problem
 
+    DRIFT_KNOT_M = CloudSettings().drift_knot_m
     assert DRIFT_KNOT_M is not None and DRIFT_KNOT_M >= 20.0  # one offset and slope per short pass
     p = small_road_problem(n_vehicles=12, length_m=20.0, spacing_m=0.1, seed=0)
     exact = exact_profile_posterior(p.model, p.channels, p.speeds, p.dt, p.grid, p.params, ridge=1.0).mean

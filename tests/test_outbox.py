@@ -80,7 +80,8 @@ def test_bad_settings_are_clear_errors(tmp_path):
 
 import numpy as np  # noqa: E402
 
-from cloud.daemon.node import Cloud  # noqa: E402
+from cloud.daemon.core import Cloud  # noqa: E402
+from cloud.daemon.settings import CloudSettings  # noqa: E402
 from edge.node import Edge  # noqa: E402
 from shared.drivelog import list_drive_logs, read_drive_log  # noqa: E402
 from shared.registry import load_site  # noqa: E402
@@ -107,7 +108,7 @@ def _drive(road, edge):
 
 def _cloud(road, sent):
     site = load_site(road / "site.toml")
-    return Cloud(NET, site, lambda k, p: sent.append((k, p)), calibration="nominal")
+    return Cloud(NET, site, lambda k, p: sent.append((k, p)), CloudSettings(calibration="nominal"))
 
 
 def _deliver(cloud, edge, msgs):

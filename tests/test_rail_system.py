@@ -1,4 +1,4 @@
-"""Carriage drive logs through edge and cloud (issue #6): ``driveby run`` over Zenoh calibrates the
+"""Carriage drive logs through edge and cloud: ``driveby run`` over Zenoh calibrates the
 batch's run properties in the cloud daemon, re-keys each run's AP with its calibrated speed, and the
 export and the Rerun recording carry the run estimates and the EN 13848 D1 track quality."""
 
@@ -177,11 +177,11 @@ def test_bridge_batches_give_d1_d2_and_the_alarm_state(bridge_runs, tmp_path):
 
     logs, site = bridge_runs
     cloud, _ = run_in_process(logs, site, None)
-    cloud.rail.batches = RailBatches(site, bridge_batch_runs=3)
+    cloud.rail = RailBatches(site, bridge_batch_runs=3)
     cloud.view = View(rrd_path=tmp_path / "bridge.rrd", routes={"L1": 90.0}, bridges=list(site.bridges))
     published = []
     cloud.publish = lambda key, payload: published.append((key, payload))
-    assert cloud.rail.step(cloud, force=True)
+    assert cloud.step_rail(force=True)
     bs = cloud.rail.bridges["C1"]
     assert bs.reference is not None and bs.latest is not None and bs.n_runs == 3
     row = next(r for r in cloud.rail.bridge_rows() if r["bridge_id"] == "C1")

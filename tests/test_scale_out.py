@@ -129,7 +129,8 @@ def test_each_vehicle_is_calibrated_by_one_shard_and_the_others_apply_it(shared_
     of its passes only; the other applies its calibrations, so every pass ends current everywhere."""
     import collections
 
-    from cloud.daemon.node import Cloud
+    from cloud.daemon.core import Cloud
+    from cloud.daemon.settings import CloudSettings
     from edge.node import Edge
     from simfleet.replay import replay
 
@@ -144,7 +145,8 @@ def test_each_vehicle_is_calibrated_by_one_shard_and_the_others_apply_it(shared_
             queue.append((key, payload))
         return publish
 
-    clouds = {r: Cloud("t", site, publisher(r), calibration="fleet", shard=frozenset({r})) for r in ("R1", "R2")}
+    clouds = {r: Cloud("t", site, publisher(r), CloudSettings(calibration="fleet", shard=frozenset({r})))
+              for r in ("R1", "R2")}
     edge = Edge("t", publisher("edge"), site, "fleet")
     for c in clouds.values():
         c.calibrator.max_rounds = 3  # the protocol, not convergence, is under test: keep it quick

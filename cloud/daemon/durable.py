@@ -9,12 +9,12 @@ These kinds of record rebuild the whole state, because everything else is a func
 * ``calibrator`` — the calibrator's whole state after a round (fits, step damping, round count),
   journalled before the round's calibrations are published,
 * ``epoch`` — the start of a calibration epoch (its size in completed passes and first round:
-  :meth:`Cloud.maybe_calibrate`),
+  :mod:`cloud.daemon.epochs`),
 * ``alarm`` — a bridge alarm (raised or cleared) the cloud published: a restarted cloud knows which
   alarms stand and does not raise them again.
 
-Replaying them in order through the same handlers (:meth:`Cloud.on_segment`, :meth:`Cloud.on_done`,
-the calibrator's ``restore``) gives the same aggregator state and the same exact posteriors (up to
+Replaying them in order through the same handlers (:meth:`~cloud.daemon.core.Cloud.on_segment`,
+:meth:`~cloud.daemon.core.Cloud.on_done`, the calibrator's ``restore``) gives the same aggregator state and the same exact posteriors (up to
 floating-point summation order after a compaction). A snapshot is the compacted record set: the
 segments the aggregator holds now, the latest pass-done of each pass and each vehicle's current
 calibration — so recovery costs one pass over live state, never over history.
@@ -35,13 +35,13 @@ from cloud.daemon.journal import Journal, Record
 log = logging.getLogger("driveby.cloud.durable")
 
 AP, DONE, CALIB, CALIBRATOR, EPOCH, ALARM = "ap", "done", "calib", "calibrator", "epoch", "alarm"
-#: Compaction policy. A snapshot rewrites the whole live state (every held segment), holding the
-#: serve loop for ~0.1 ms a record, and only pays where records have become garbage (superseded
-#: segments, rejected or duplicate input). So the daemon compacts when the records on disk (the last
-#: snapshot's and the journal since) reach ``COMPACT_RATIO`` × the live state and at least
-#: ``SNAPSHOT_MIN_RECORDS`` came since the last: restart replays at most that many times the live
-#: state, disk holds at most that, and the pauses cost O(1) per record. (A time trigger rewrote the
-#: same live state every 10 min for nothing when nothing is superseded.)
+#: Compaction policy (the defaults of :class:`Durability`). A snapshot rewrites the whole live state
+#: (every held segment), holding the serve loop for the while, and only pays where records have
+#: become garbage (superseded segments, rejected or duplicate input). So the daemon compacts when the
+#: records on disk (the last snapshot's and the journal since) reach ``COMPACT_RATIO`` × the live
+#: state and at least ``SNAPSHOT_MIN_RECORDS`` came since the last: restart replays at most that many
+#: times the live state, disk holds at most that, and the pauses cost O(1) per record. (A time
+#: trigger would rewrite the same live state for nothing when nothing is superseded.)
 COMPACT_RATIO = 2.0
 SNAPSHOT_MIN_RECORDS = 10_000
 
@@ -120,17 +120,22 @@ def compacted(cloud) -> Iterator[tuple[str, str, bytes]]:
         ps = agg.passes.get(key)
         if ps is not None and ps.done_payload is not None:
             yield DONE, keys.done_key(cloud.net, key[0]), ps.done_payload
-    ordered = cloud._ordered
     for key, ps in agg.passes.items():
-        if key not in ordered and ps.done_payload is not None:
+        if not cloud.in_completion_order(key) and ps.done_payload is not None:
             yield DONE, keys.done_key(cloud.net, key[0]), ps.done_payload
 
 
 class Durability:
-    """The journal, wired to one cloud: append before apply, sync before publishing, compact when due."""
+    """The journal, wired to one cloud: append before apply, sync before publishing, compact when due
+    (``compact_ratio``, ``min_records``: see :data:`COMPACT_RATIO`)."""
 
-    def __init__(self, journal: Journal, cloud):
+    def __init__(self, journal: Journal, cloud, compact_ratio: float = COMPACT_RATIO,
+                 min_records: int = SNAPSHOT_MIN_RECORDS):
+        if not compact_ratio > 1.0 or min_records < 0:
+            raise ValueError(f"Durability: expected compact_ratio > 1 and min_records >= 0, "
+                             f"got {compact_ratio}, {min_records}")
         self.journal, self.cloud = journal, cloud
+        self.compact_ratio, self.min_records = compact_ratio, min_records
         self.live = False  # False while recovering: replayed input is not journalled again
         self.since_snapshot = 0  # records journalled since the last snapshot (replayed ones included)
         self.snapshot_records = 0  # records the last snapshot holds
@@ -162,7 +167,7 @@ class Durability:
 
     def record_own(self, kind: str, payload: bytes) -> None:
         """A decision of the cloud itself (``epoch``, ``calibrator``, ``alarm``): journalled, written
-        through (the daemon sets it as ``Cloud.record``)."""
+        through (the daemon sets it as the cloud's ``record``)."""
         if self.live:
             self.record(kind, "", payload)
 
@@ -170,8 +175,8 @@ class Durability:
         self.journal.sync()
 
     def maybe_snapshot(self, force: bool = False) -> bool:
-        due = self.since_snapshot >= SNAPSHOT_MIN_RECORDS and \
-            self.snapshot_records + self.since_snapshot >= COMPACT_RATIO * self.live_records()
+        due = self.since_snapshot >= self.min_records and \
+            self.snapshot_records + self.since_snapshot >= self.compact_ratio * self.live_records()
         if not (force or due):
             return False
         t0 = time.monotonic()

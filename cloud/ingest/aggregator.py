@@ -3,12 +3,20 @@
 No transport here: the node hands it payloads and publishes what it returns, so every rule
 (reject and count, supersede by calibration version, acknowledge a complete pass) is testable
 without a network.
+
+The aggregator is the one writer of what the estimators hold. Besides ingest, three things change
+a held segment, each through a method here so that retraction stays exact: a re-keyed version in
+place of the edge's (:meth:`Aggregator.replace_held`, :meth:`Aggregator.drop_held`: chainage
+alignment, rail re-keying), the fused form one estimator takes in its place
+(:meth:`Aggregator.fuse`: the continuous-time AP of the profile posterior) and a leave-one-out
+view of an estimator (:meth:`Aggregator.left_out`).
 """
 
 from __future__ import annotations
 
 import collections
 import collections.abc
+import contextlib
 import dataclasses
 import logging
 import math
@@ -16,7 +24,7 @@ import pickle
 from pathlib import Path
 
 from shared.registry import Site
-from shared.schema import LEGACY_SAMPLE_INTERVAL_S, Ack, ApSegment, DecodeError, PassDone, decode_ap, decode_pass_done
+from shared.schema import LEGACY_SAMPLE_INTERVAL_S, Ack, ApSegment, DecodeError, decode_ap, decode_pass_done
 
 from cloud.ingest.estimator import Estimator
 from cloud.ingest.segment_store import SegmentStore
@@ -123,9 +131,14 @@ class Aggregator:
 
     def __init__(self, site: Site, estimators: list[Estimator], foreign_routes: frozenset[str] = frozenset(),
                  store: SegmentStore | None = None, max_resident_passes: int | None = None,
-                 spill_dir: str | Path | None = None):
+                 spill_dir: str | Path | None = None, fused: Estimator | None = None):
         self.site = site
         self.estimators = estimators
+        # The estimator that may hold a held segment's fused form (same identity) in its place; it
+        # keeps what it holds by identity in ``segments``, as GmrfProfile does.
+        if fused is not None and not any(fused is est for est in estimators):
+            raise ValueError("fused: expected one of the estimators")
+        self.fused = fused
         self.routes = {r.id: r.length_m for r in site.routes}
         self.foreign_routes = foreign_routes  # other shards' routes: their pass-dones are ignored here
         self.foreign = 0
@@ -215,7 +228,7 @@ class Aggregator:
             return self._reject(e.reason, str(e))
         if self.foreign_routes and (done.vehicle_id, done.pass_id) not in self._pass_route:
             # A shard counts every vehicle's passes per route, its own and the others': the shard
-            # with most of a vehicle's passes calibrates it (Cloud.owns).
+            # with most of a vehicle's passes calibrates it (cloud.daemon.sharding).
             self._pass_route[(done.vehicle_id, done.pass_id)] = done.route_id
             self.vehicle_routes.setdefault(done.vehicle_id, collections.Counter())[done.route_id] += 1
         if done.route_id in self.foreign_routes:
@@ -282,11 +295,12 @@ class Aggregator:
                 est.retract(held)
 
     def drop_held(self, slot: tuple) -> None:
-        """The estimators stop holding ``slot`` (the raw segment stays: e.g. re-keyed off the route)."""
+        """The estimators stop holding ``slot`` (the stored segment stays: e.g. re-keyed off the route)."""
         self._release(slot)
 
     def replace_held(self, slot: tuple, seg: ApSegment) -> None:
-        """Give the estimators ``seg`` (e.g. the chainage-aligned version) in place of what they hold."""
+        """Give the estimators ``seg`` (a chainage-aligned or re-keyed version, or the stored segment
+        again) in place of what they hold; a ``seg`` off the route leaves them as they are."""
         if not all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators) or \
                 seg.start_index * seg.spacing_m > self.routes.get(seg.route_id, 0.0):
             return  # moved off the route: keep what the estimators hold
@@ -297,6 +311,37 @@ class Aggregator:
         self.held[slot] = seg
         for est in self.estimators:
             est.update(seg)
+
+    def fuse(self, slot: tuple, seg: ApSegment) -> None:
+        """The fused estimator takes ``seg``, the fused form of what is held for ``slot`` (same
+        identity), in its place; the others keep the held segment. A later release retracts it
+        exactly, by identity, as it would the held segment."""
+        if self.fused is None:
+            raise ValueError("fuse: this aggregator has no fused estimator")
+        if slot not in self.held:
+            raise KeyError(slot)
+        self.fused.update(seg)
+
+    def as_fused(self, segs) -> list[ApSegment]:
+        """``segs`` (held segments) as the fused estimator holds them: the fused form where one was
+        given (:meth:`fuse`), else the segment itself."""
+        if self.fused is None:
+            return list(segs)
+        store = self.fused.segments
+        return [store.get(seg.identity) if seg.identity in store else seg for seg in segs]
+
+    @contextlib.contextmanager
+    def left_out(self, estimator: Estimator, slots):
+        """``estimator`` without what it holds for ``slots`` while the block runs (a leave-one-out
+        view), then holding it again."""
+        held = [self.held[sl] for sl in slots if sl in self.held]
+        for h in held:
+            estimator.retract(h)
+        try:
+            yield estimator
+        finally:
+            for h in held:
+                estimator.update(h)
 
     def _maybe_ack(self, vehicle_id: str, pass_id: str) -> list[Ack]:
         ps = self.passes.get((vehicle_id, pass_id))

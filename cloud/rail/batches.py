@@ -1,4 +1,4 @@
-"""Rail batches in the cloud daemon (issue #6): a carriage's runs over a route, calibrated together.
+"""Rail batches in the cloud daemon: a carriage's runs over a route, calibrated together.
 
 The cloud holds each carriage pass as AP segments under its four wheels (the edge's inverse with the
 class-mean properties, keyed on GNSS chainage; the trailing bogie's wheels from before chainage 0 on,
@@ -23,9 +23,13 @@ from the calibrated masses) and D1/D2 (eq. 3.24) of the latest batch against the
 element-posterior of :mod:`cloud.bridge.monitor` models single-contact vehicles on a rigid deck, not a
 carriage on ballasted track, so the rail indicators take its place in the bridge summary and alarm).
 
-Results: ``vehicles.parquet`` rows per run (``pass_id``), ``bridge_summary.parquet`` rows of rail
-bridges, alarms on ``alarm/<bridge>``, and a Rerun view of the run estimates, of the route's
-EN 13848 D1 track quality and of the bridges' MR-IL and D1/D2.
+Transport-free, like :class:`~cloud.bridge.monitor.BridgeMonitor`: :meth:`RailBatches.step` takes the
+aggregator's passes and stored segments and returns a :class:`RailStep` — the re-keyed segments
+the estimators are to hold, and the rail bridges' alarms whose state changed — which the daemon
+applies through the aggregator and publishes. Results besides: ``vehicles.parquet`` rows per run
+(``pass_id``), ``bridge_summary.parquet`` rows of rail bridges, and the rows of the view's rail
+panels (:meth:`RailBatches.view_rows`: run estimates, EN 13848 D1 track quality, bridges' MR-IL
+and D1/D2).
 """
 
 from __future__ import annotations
@@ -34,11 +38,11 @@ import dataclasses
 import datetime
 import logging
 import math
+from collections.abc import Callable, Mapping
 
 import numpy as np
 from scipy.interpolate import make_interp_spline
 
-from shared import keys
 from shared.dynamics.forward import channels_from_ap
 from shared.dynamics.newmark import newmark_constants
 from shared.schema import Alarm, ApSegment
@@ -185,20 +189,87 @@ class RailBridgeState:
                     midspan_mril=mid, damaged=self.damaged)
 
 
+@dataclasses.dataclass(frozen=True)
+class RailStep:
+    """What one :meth:`RailBatches.step` changed, for the daemon to apply and publish.
+
+    ``replacements``: slot → the run's re-keyed segment for the estimators to hold in place of the
+    edge's, or None where nothing of it is left on the route (in the order they are to be applied);
+    ``alarms``: rail bridges whose alarm state changed; ``fitted``: the (vehicle, route) batches
+    fitted (their passes' held segments and the view's rows changed).
+    """
+
+    replacements: dict = dataclasses.field(default_factory=dict)
+    alarms: tuple[Alarm, ...] = ()
+    fitted: tuple[tuple[str, str], ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackQualityRows:
+    """A rail route's EN 13848 D1 longitudinal level for the view: level (m) against chainage (m),
+    its quality per 200 m and the isolated defects."""
+
+    route_id: str
+    chainage_m: np.ndarray
+    d1_m: np.ndarray
+    segments: list  # shared.track_quality.SegmentQuality
+    defects: list  # (chainage m, D1 mm) beyond the isolated-defect alert limit
+    alert_isolated_mm: float = ALERT_ISOLATED_MM
+    alert_sd_mm: float = ALERT_SD_MM
+
+
+@dataclasses.dataclass(frozen=True)
+class RailBridgeRows:
+    """A rail bridge for the view: its latest and reference bogie MR-IL and D1/D2."""
+
+    bridge_id: str
+    x_m: np.ndarray
+    J: np.ndarray
+    reference_J: np.ndarray
+    d1_pct: float
+    d2_pct: float
+    damaged: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class RailViewRows:
+    """What the rail panels of :class:`cloud.view.View` show (:meth:`~cloud.view.View.log_rail`)."""
+
+    runs: tuple  # (vehicle, route, [RunEstimate]) per fitted batch, sorted
+    bridges: tuple[RailBridgeRows, ...]
+    track: tuple[TrackQualityRows, ...]
+    run_names: tuple[str, ...] = RUN_NAMES
+
+    @property
+    def routes(self) -> list[str]:
+        """The rail routes (those of some batch)."""
+        return sorted({route for _, route, _ in self.runs} | {t.route_id for t in self.track})
+
+    @property
+    def vehicles(self) -> list[str]:
+        """The carriages with a fitted batch."""
+        return sorted({vid for vid, _, _ in self.runs})
+
+
+def _utc_now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+
+
 class RailBatches:
     """Carriage runs per (vehicle, route): calibrated as a batch when the bus is quiet, re-keyed;
-    the registry's bridges on the route get the batches' bogie MR-IL and D1/D2."""
+    the registry's bridges on the route get the batches' bogie MR-IL and D1/D2. ``clock`` stamps
+    alarms (ISO 8601 UTC)."""
 
     def __init__(self, site, min_runs: int = MIN_RUNS, bridge_batch_runs: int = BRIDGE_BATCH_RUNS,
-                 alarm_pct: float = BRIDGE_ALARM_PCT):
+                 alarm_pct: float = BRIDGE_ALARM_PCT, clock: Callable[[], str] = _utc_now):
         self.site = site
         self.min_runs = min_runs
         self.bridge_batch_runs = bridge_batch_runs
         self.alarm_pct = alarm_pct
+        self.clock = clock
         self.batches: dict[tuple[str, str], BatchState] = {}
         self.bridges: dict[str, RailBridgeState] = {}
         self.failed = 0
-        self._blueprint_sent = False
 
     def _groups(self, passes) -> dict[tuple[str, str], list]:
         groups: dict[tuple[str, str], list] = {}
@@ -209,8 +280,8 @@ class RailBatches:
 
     def due(self, passes, force: bool = False) -> list[tuple[str, str]]:
         """Batches whose acknowledged runs changed since their last fit (and are enough): while
-        runs stream in, only once a batch has grown by ``REFIT_GROWTH`` (a fit of n runs costs
-        ~0.3·n s, under the daemon's lock); with ``force`` (the export) on any change."""
+        runs stream in, only once a batch has grown by ``REFIT_GROWTH`` (a fit's cost grows with its
+        runs, and it runs under the daemon's lock); with ``force`` (the export) on any change."""
         out = []
         for key, items in self._groups(passes).items():
             runs = frozenset((pid, ps.calib_version) for pid, ps in items)
@@ -221,26 +292,22 @@ class RailBatches:
                 out.append(key)
         return out
 
-    def step(self, cloud, force: bool = False) -> bool:
-        """Fit every batch that is due, give the estimators its re-keyed runs and log the view.
-        ``cloud``: the :class:`cloud.daemon.node.Cloud` (its aggregator, site and view); ``force``: fit
-        every batch that changed at all (:meth:`due`). True if any ran."""
-        agg = cloud.aggregator
-        due = self.due(agg.passes, force)
-        for key in due:
-            self._fit(key, agg, cloud)
-        if due:
-            cloud.bridge_sync_due = True
-            if cloud.view is not None:
-                try:
-                    self.log_view(cloud.view, cloud.snapshot(), cloud.passes_complete)
-                except Exception:  # the view is a side subscriber: never let it take the daemon down
-                    log.exception("rerun rail view update failed")
-        return bool(due)
+    def step(self, passes: Mapping, segments: Mapping, force: bool = False) -> RailStep:
+        """Fit every batch that is due; return its runs' re-keyed segments and the bridges' alarms.
 
-    def _fit(self, key: tuple[str, str], agg, cloud) -> None:
+        ``passes``: the aggregator's passes ((vehicle, pass) → PassState); ``segments``: the stored
+        segments by slot (the edge's, not what the estimators hold); ``force``: fit every batch that
+        changed at all (:meth:`due`)."""
+        due = self.due(passes, force)
+        replacements: dict = {}
+        alarms: list[Alarm] = []
+        for key in due:
+            self._fit(key, passes, segments, replacements, alarms)
+        return RailStep(replacements, tuple(alarms), tuple(due))
+
+    def _fit(self, key: tuple[str, str], passes, segments, replacements: dict, alarms: list) -> None:
         vid, route = key
-        items = self._groups(agg.passes)[key]  # in the order the passes first arrived
+        items = self._groups(passes)[key]  # in the order the passes first arrived
         st = BatchState(vid, route, frozenset((pid, ps.calib_version) for pid, ps in items))
         self.batches[key] = st
         model = items[0][1].model
@@ -254,7 +321,7 @@ class RailBatches:
             params = ps.params if ps.params is not None else (dict(cls.mean) if ps.calib_version == 0 else None)
             if params is None:
                 continue
-            segs = [agg.segments[sl] for sl in ps.slots if sl in agg.segments]
+            segs = [segments[sl] for sl in ps.slots if sl in segments]
             rb = rebuild_pass(pid, segs, model, params)
             if rb is not None:
                 rebuilt.append(rb)
@@ -275,30 +342,30 @@ class RailBatches:
             return
         log.info("rail batch %s/%s: %d runs calibrated in %.1f s", vid, route, len(rebuilt), st.fit.seconds)
         fixed = {k: float(cls.mean[k]) for k in FIXED}
-        length = agg.routes[route]
+        length = {r.id: r.length_m for r in self.site.routes}[route]
         for rb, est in zip(rebuilt, st.fit.runs):
             params = {**fixed, **st.fit.globals_, **est.mean}
             new = {(s.vehicle_id, s.pass_id, s.route_id, s.tile, s.axle): s
                    for s in rekey_pass(rb, model, params, est.mean["v"], est.shift_m)}
-            for slot in sorted(agg.passes[(vid, rb.run.pass_id)].slots):
+            for slot in sorted(passes[(vid, rb.run.pass_id)].slots):
                 seg = new.get(slot)
-                if seg is not None and seg.start_index * seg.spacing_m <= length:
-                    agg.replace_held(slot, seg)
-                else:  # nothing of it left on the route under the calibrated chainage
-                    agg.drop_held(slot)
+                # None: nothing of it left on the route under the calibrated chainage
+                replacements[slot] = seg if seg is not None and seg.start_index * seg.spacing_m <= length else None
         for b in bridges:
-            self._bridge(b, vid, rebuilt, st.fit, cls, cloud)
+            alarm = self._bridge(b, vid, rebuilt, st.fit, cls)
+            if alarm is not None:
+                alarms.append(alarm)
 
-    def _bridge(self, bridge, vid: str, rebuilt: list[RebuiltPass], fit: BatchFit, cls, cloud) -> None:
-        """The bridge's reference (first complete batch of runs) and latest batch MR-IL, D1/D2 and
-        the alarm state (published when it changes)."""
+    def _bridge(self, bridge, vid: str, rebuilt: list[RebuiltPass], fit: BatchFit, cls) -> Alarm | None:
+        """The bridge's reference (first complete batch of runs) and latest batch MR-IL, D1/D2; the
+        alarm when its state changes."""
         bs = self.bridges.setdefault(bridge.id, RailBridgeState(bridge.id, vid))
         if bs.vehicle_id != vid:
-            return  # one carriage's batches per bridge (another's loads and calibration differ)
+            return None  # one carriage's batches per bridge (another's loads and calibration differ)
         B = self.bridge_batch_runs
         blocks = [list(range(i, i + B)) for i in range(0, len(rebuilt) - B + 1, B)]
         if not blocks:
-            return
+            return None
         est = {r.pass_id: r for r in fit.runs}
 
         def influence(block):
@@ -310,26 +377,22 @@ class RailBatches:
             if bs.reference is None:
                 bs.reference = influence(blocks[0])
             if len(blocks) < 2:
-                return
+                return None
             bs.latest, bs.n_runs = influence(blocks[-1]), B
         except ValueError as e:
             bs.error = str(e)
             log.warning("rail bridge %s: %s", bridge.id, e)
-            return
+            return None
         ind = damage_indicators(bs.reference, bs.latest)
         bs.d1_pct, bs.d2_pct = ind.D1_pct, ind.D2_pct
         damaged = bool(ind.D1_pct > self.alarm_pct)
-        if damaged != bs.damaged:
-            bs.damaged = damaged
-            now = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
-            alarm = Alarm(bridge_id=bridge.id, time_utc=now, kind="global" if damaged else CLEARED, element=-1,
-                          x_m=0.5 * bridge.span_m, severity=max(ind.D1_pct, 0.0) / 100.0,
-                          probability=1.0 if damaged else 0.0,
-                          message=f"rail batch D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} % against the first batch")
-            cloud.publish(keys.alarm_key(cloud.net, bridge.id), alarm.encode())
-            log.warning("bridge %s: %s", bridge.id, alarm.message)
-            if cloud.view is not None:
-                cloud.view.log_alarm(bridge.id, alarm.message, "ERROR" if damaged else "INFO")
+        if damaged == bs.damaged:
+            return None
+        bs.damaged = damaged
+        return Alarm(bridge_id=bridge.id, time_utc=self.clock(), kind="global" if damaged else CLEARED, element=-1,
+                     x_m=0.5 * bridge.span_m, severity=max(ind.D1_pct, 0.0) / 100.0,
+                     probability=1.0 if damaged else 0.0,
+                     message=f"rail batch D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} % against the first batch")
 
     def bridge_rows(self, road_rows: list[dict] = ()) -> list[dict]:
         """``bridge_summary.parquet`` rows: the road estimator's, with the rail batches' in place of
@@ -346,93 +409,22 @@ class RailBatches:
                 out.extend(st.fit.rows(vid))
         return out
 
-    # -- view ----------------------------------------------------------------------------------
-    def blueprint(self, routes: list[str], vehicles: list[str]):
-        """The cloud view's default layout (:func:`cloud.view.blueprint`) with a ``rail`` row: per
-        route its D1 level, sd per 200 m and alert limits (mm, up) against chainage and the table;
-        per carriage its runs' estimates."""
-        import rerun.blueprint as rrb
-
-        from cloud.view import blueprint
-
-        base = blueprint({r.id: r.length_m for r in self.site.routes}, list(self.site.bridges))
-        tabs = []
-        for route in routes:
-            root = f"rail/{route}/track_quality"
-            tabs.append(rrb.Horizontal(
-                rrb.Spatial2DView(origin=root, contents=["$origin/d1", "$origin/sd_per_200m", "$origin/alert_limits"],
-                                  name=f"{route}: EN 13848 D1 (mm, up) vs chainage (m)"),
-                rrb.TextDocumentView(origin=f"{root}/table", name=f"{route}: D1 per 200 m"),
-                column_shares=[3, 2], name=f"{route} track"))
-        for vid in vehicles:
-            tabs.append(rrb.Horizontal(
-                rrb.TextDocumentView(origin=f"rail/{vid}/runs", name=f"{vid}: runs (95 %)"),
-                *[rrb.Spatial2DView(origin=f"rail/{vid}/runs/{k}", contents=["$origin/**"], name=f"{vid}: {k} per run")
-                  for k in RUN_NAMES], name=f"{vid} runs"))
-        return rrb.Blueprint(rrb.Vertical(base.root_container, rrb.Tabs(*tabs, name="rail"), row_shares=[3, 1]),
-                             auto_views=False)
-
-    def log_view(self, view, snapshots: dict, pass_count: int) -> None:
-        """Rerun: the run estimates of every batch, and each rail route's D1 track quality."""
-        import rerun as rr
-
-        from cloud.view import SCREEN_Y, finite_runs
-
-        rail_routes = {route for (_, route), st in self.batches.items()}
-        with view._lock:
-            if view._closed:
-                return
-            if not self._blueprint_sent:  # the default layout, with the rail panels added
-                view._rec.send_blueprint(self.blueprint(sorted(rail_routes), sorted({v for v, _ in self.batches})))
-                self._blueprint_sent = True
-            view.set_pass(pass_count)
-            view._stamp()
-            rec = view._rec
-            for (vid, route), st in sorted(self.batches.items()):
-                if st.fit is None:
-                    continue
-                lines = [f"### {vid} on {route}: {len(st.fit.runs)} runs", "",
-                         "| run | mv (t) | Iv (t·m²) | v (m/s) |", "|---|---|---|---|"]
-                for r in st.fit.runs:
-                    cells = [f"{r.mean[k] / s:.4g} [{r.lo95[k] / s:.4g}, {r.hi95[k] / s:.4g}]"
-                             for k, s in (("mv", 1e3), ("Iv", 1e3), ("v", 1.0))]
-                    lines.append(f"| {r.pass_id} | " + " | ".join(cells) + " |")
-                rec.log(f"rail/{vid}/runs", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN))
-                for j, k in enumerate(RUN_NAMES):
-                    idx = np.arange(len(st.fit.runs), dtype=float)
-                    mean = np.array([r.mean[k] for r in st.fit.runs])
-                    lo = np.array([r.lo95[k] for r in st.fit.runs])
-                    hi = np.array([r.hi95[k] for r in st.fit.runs])
-                    rec.log(f"rail/{vid}/runs/{k}", rr.Points2D(np.stack([idx, mean], axis=1), radii=0.1))
-                    rec.log(f"rail/{vid}/runs/{k}/ci95",
-                            rr.LineStrips2D([np.array([[i, a], [i, b]]) for i, a, b in zip(idx, lo, hi)]))
-            for bid, bs in sorted(self.bridges.items()):
-                if bs.latest is not None:
-                    view.log_bridge_mril(bid, bs.latest.x_m, bs.latest.J, bs.reference.J)
-                    view.log_bridge_indicators(bid, bs.d1_pct, bs.d2_pct, float(bs.damaged))
-            for route in sorted(rail_routes):
-                snap = snapshots.get(route)
-                if snap is None:
-                    continue
-                x = np.asarray(snap.chainage_m, float)
-                spacing = float(x[1] - x[0]) if x.size > 1 else 0.05
-                d1 = d1_longitudinal_level(snap.elevation_m, spacing)
-                segs = segment_quality(x, d1)
-                defects = isolated_defects(x, d1, ALERT_ISOLATED_MM)
-                root = f"rail/{route}/track_quality"
-                rec.log(f"{root}/d1", rr.LineStrips2D(finite_runs(x, SCREEN_Y * 1e3 * d1)))
-                steps = [np.array([[s.start_m, SCREEN_Y * s.sd_d1_mm], [s.end_m, SCREEN_Y * s.sd_d1_mm]])
-                         for s in segs if math.isfinite(s.sd_d1_mm)]
-                rec.log(f"{root}/sd_per_200m", rr.LineStrips2D(steps))
-                rec.log(f"{root}/alert_limits", rr.LineStrips2D(
-                    [np.array([[0.0, SCREEN_Y * lim], [x[-1], SCREEN_Y * lim]]) for lim in
-                     (ALERT_ISOLATED_MM, -ALERT_ISOLATED_MM)]))
-                lines = [f"### {route}: EN 13848 D1 (3–25 m)", "",
-                         "| start m | end m | sd mm | max abs mm | alert |", "|---|---|---|---|---|"]
-                for s in segs:
-                    alert = "sd" if s.sd_d1_mm > ALERT_SD_MM else ""
-                    if any(s.start_m <= d[0] < s.end_m for d in defects):
-                        alert = (alert + " isolated").strip()
-                    lines.append(f"| {s.start_m:.0f} | {s.end_m:.0f} | {s.sd_d1_mm:.3f} | {s.max_abs_d1_mm:.3f} "
-                                 f"| {alert} |")
-                rec.log(f"{root}/table", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN))
+    def view_rows(self, snapshots: Mapping) -> RailViewRows:
+        """What the view shows: every fitted batch's run estimates, the rail bridges' MR-IL and D1/D2,
+        and each rail route's D1 track quality from its profile snapshot (``snapshots``: route →
+        :class:`~cloud.road.mean_profile.ProfileSnapshot`)."""
+        runs = tuple((vid, route, list(st.fit.runs)) for (vid, route), st in sorted(self.batches.items())
+                     if st.fit is not None)
+        bridges = tuple(RailBridgeRows(bid, bs.latest.x_m, bs.latest.J, bs.reference.J, bs.d1_pct, bs.d2_pct,
+                                       bs.damaged)
+                        for bid, bs in sorted(self.bridges.items()) if bs.latest is not None)
+        track = []
+        for route in sorted({route for _, route in self.batches}):
+            snap = snapshots.get(route)
+            if snap is None:
+                continue
+            x = np.asarray(snap.chainage_m, float)
+            spacing = float(x[1] - x[0]) if x.size > 1 else 0.05
+            d1 = d1_longitudinal_level(snap.elevation_m, spacing)
+            track.append(TrackQualityRows(route, x, d1, segment_quality(x, d1), isolated_defects(x, d1, ALERT_ISOLATED_MM)))
+        return RailViewRows(runs, bridges, tuple(track))

@@ -1,0 +1,107 @@
+"""Chainage alignment of complete passes against the consensus of the others (GNSS bias, odometry stretch).
+
+Each sweep estimates every pass's alignment against a leave-one-out consensus, centres the fleet's
+shifts and stretches (the fleet's GNSS errors average out: the consensus frame is the mean of the
+passes' frames) and gives the estimators the re-gridded segments through the aggregator
+(:meth:`~cloud.ingest.aggregator.Aggregator.replace_held`), so the next sweep sees the improved
+consensus.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.schema import ApSegment
+
+from cloud.daemon.settings import CloudSettings
+from cloud.road.alignment import Alignment, estimate_alignment, realign
+
+PassKey = tuple[str, str]  # (vehicle, pass)
+
+
+def _slot(s: ApSegment) -> tuple:
+    return (s.vehicle_id, s.pass_id, s.route_id, s.tile, s.axle)
+
+
+class ChainageAligner:
+    """The alignment found for each pass, and whether passes completed since the last sweep."""
+
+    def __init__(self, settings: CloudSettings):
+        self.settings = settings
+        self.alignments: dict[PassKey, Alignment] = {}
+        self.due = False  # passes completed since the last sweeps
+
+    def _within(self, al: Alignment, raw: list[ApSegment]) -> bool:
+        """Whether ``al`` moves the pass by less than ``align_apply_m`` everywhere: within what
+        alignment can resolve, where re-gridding would only blur the pass."""
+        x_span = np.array([al.x_ref_m, max(r.end_index for r in raw) * raw[0].spacing_m])
+        return np.max(np.abs(al.true_to_reported(x_span) - x_span)) < self.settings.align_apply_m
+
+    def reapply(self, aggregator, key: PassKey) -> None:
+        """A recomputed pass keeps the alignment found for it (until the next sweep): the estimators
+        get its stored segments re-gridded."""
+        al = self.alignments.get(key)
+        ps = aggregator.passes.get(key)
+        if al is None or ps is None:
+            return
+        slots = sorted(ps.slots)
+        raw = [aggregator.segments[sl] for sl in slots]
+        if self._within(al, raw):
+            return
+        aligned = {_slot(s): s for s in realign(raw, al)}
+        for sl in slots:
+            if sl in aligned:
+                aggregator.replace_held(sl, aligned[sl])
+
+    def has_new_passes(self, aggregator) -> bool:
+        """Some acknowledged pass has no alignment yet."""
+        return any(key not in self.alignments for key, ps in aggregator.passes.items() if ps.acked)
+
+    def sweep(self, aggregator, consensus) -> float | None:
+        """One sweep, the estimators given the re-gridded segments (a pass alignment moves too little
+        gets its stored segments back); the largest change of any pass's implied position (m), or
+        None when too few passes align (nothing changed then)."""
+        s, agg = self.settings, aggregator
+        found: dict[PassKey, tuple[Alignment, list]] = {}
+        for key, ps in agg.passes.items():
+            if not ps.acked or not ps.slots:
+                continue
+            slots = sorted(ps.slots)
+            with agg.left_out(consensus, slots):
+                snap = consensus.snapshot(ps.route_id).get(ps.route_id)
+            raw = [agg.segments[sl] for sl in slots]
+            lead = [r for r in raw if r.axle == 1]
+            if snap is None or not lead:
+                continue
+            lo, hi = min(r.start_index for r in lead), max(r.end_index for r in lead)
+            ap = np.full(hi - lo, np.nan)
+            for r in lead:
+                ap[r.start_index - lo : r.end_index - lo] = r.values
+            al = estimate_alignment(np.arange(lo, hi) * lead[0].spacing_m, ap, snap.chainage_m, snap.elevation_m,
+                                    max_stretch=s.align_max_stretch)
+            if al is not None and al.score >= s.align_min_score:
+                found[key] = (al, slots)
+        if len(found) < s.align_min_passes:
+            return None
+        mean_shift = float(np.mean([a.shift_m for a, _ in found.values()]))
+        mean_stretch = float(np.mean([a.stretch for a, _ in found.values()]))
+        moved = 0.0
+        for key, (al, slots) in found.items():
+            al = Alignment(al.shift_m - mean_shift, al.stretch - mean_stretch, al.x_ref_m, al.score)
+            old = self.alignments.get(key)
+            x_probe = np.array([al.x_ref_m, al.x_ref_m + 100.0])
+            moved = max(moved, float(np.max(np.abs(al.true_to_reported(x_probe) - (
+                old.true_to_reported(x_probe) if old is not None else x_probe)))))
+            self.alignments[key] = al
+            raw = [agg.segments[sl] for sl in slots]
+            if self._within(al, raw):
+                for sl, r in zip(slots, raw):
+                    if agg.held.get(sl) is not r:
+                        agg.replace_held(sl, r)
+                continue
+            aligned = {_slot(r): r for r in realign(raw, al)}
+            for sl in slots:
+                new = aligned.get(sl)
+                if new is not None:
+                    agg.replace_held(sl, new)
+        return moved

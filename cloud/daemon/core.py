@@ -1,0 +1,595 @@
+"""The cloud's transport-free core: message handlers and the idle work the daemon runs when the bus is quiet.
+
+:class:`Cloud` takes payloads (``on_segment``, ``on_done``, ``on_calibration``) and publishes
+through the ``publish`` callable it is given; its clock is given too, so every rule is testable
+in process with a clock the test moves. The aggregator is the one writer of what the estimators
+hold; alignment, the continuous-time correction and rail re-keying all go through it. Domains
+return what changed (the bridge monitor and the rail batches return alarms, rail its re-keyed
+segments), and the core applies and publishes it.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from shared import keys
+from shared.registry import Site
+from shared.schema import decode_alarm
+
+from cloud.bridge.estimator import BridgeSettings
+from cloud.bridge.monitor import CLEARED, BridgeMonitor
+from cloud.bridge.vehicle_error import class_log_sd, fit_log_sd
+from cloud.daemon.chainage import ChainageAligner
+from cloud.daemon.epochs import Epochs
+from cloud.daemon.queries import TILE_M, bridge_state, tile_points, tile_state
+from cloud.daemon.settings import CloudSettings
+from cloud.daemon.sharding import Ownership, shard_site
+from cloud.export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
+                          profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
+from cloud.ingest.aggregator import Aggregator
+from cloud.ingest.segment_store import SegmentStore
+from cloud.road.calibration import CONTINUOUS_MODELS, continuous_segments
+from cloud.road.fleet_calibration import FleetCalibrator
+from cloud.road.gmrf_profile import GmrfProfile
+from cloud.road.long_wave import drift_of, with_long_wave_band
+from cloud.road.mean_profile import MeanProfile
+
+log = logging.getLogger("driveby.cloud")
+
+RAIL_MODELS = frozenset({"carriage", "bogie_half_car"})  # vehicle models whose passes are rail runs
+
+
+class Cloud:
+    """One cloud aggregator: the aggregator, its estimators, calibration, bridges, rail and the view.
+
+    Parameters
+    ----------
+    net : the Zenoh key space's network name (keys of what is published).
+    site : the registry.
+    publish : ``publish(key, payload)``, called for acks, status, calibrations and alarms.
+    settings : how it behaves.
+    view : a :class:`cloud.view.View` to log to, or None.
+    clock : monotonic seconds (scheduling and calibration waits only: estimates never read it).
+    node_id : this cloud's id (its status key).
+    """
+
+    def __init__(self, net: str, site: Site, publish: Callable[[str, bytes], None],
+                 settings: CloudSettings = CloudSettings(), view=None, clock: Callable[[], float] = time.monotonic,
+                 node_id: str = "cloud-1"):
+        s = self.settings = settings
+        site, foreign = shard_site(site, s.shard)
+        self.net, self.site, self.publish, self.view, self.clock, self.node_id = net, site, publish, view, clock, node_id
+        routes = {r.id: r.length_m for r in site.routes}
+        self.profile = GmrfProfile(routes, s.spacing_m, drift_knot_m=s.drift_knot_m)
+        # The vehicle step compares against the data alone (the flat-prior limit of the posterior):
+        # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
+        self.consensus = MeanProfile(routes, s.spacing_m)
+        # Segments and passes beyond the resident bounds live on disk, read back when needed, so
+        # memory does not grow with the passes.
+        self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign,
+                                     store=SegmentStore(s.max_resident, s.spill_dir),
+                                     max_resident_passes=s.max_resident_passes, spill_dir=s.spill_dir,
+                                     fused=self.profile if s.continuous_aps else None)
+        if s.max_resident is not None and isinstance(getattr(self.profile, "segments", None), dict):
+            # The profile estimator keeps each segment it holds too (exact retraction, the per-pass
+            # drift assembled at snapshot time): bounded the same way.
+            self.profile.segments = SegmentStore(s.max_resident, s.spill_dir)
+        self.calibrator = FleetCalibrator(site, self.consensus) if s.calibration == "fleet" else None
+        if self.calibrator is not None:
+            self.calibrator.continuous_aps = s.continuous_aps
+        self.epochs = Epochs(self.calibrator, s, clock)
+        self.ownership = Ownership(s.shard, self.aggregator.vehicle_routes)
+        self.aligner = ChainageAligner(s)
+        self._unfused: dict[tuple[str, str], None] = {}  # acknowledged passes whose correction is due (ordered)
+        #: ``record(kind, payload)``: the daemon's journal for the cloud's own decisions (an epoch's start,
+        #: the calibrator's state after a round, an alarm), written before what they cause is published.
+        self.record: Callable[[str, bytes], None] | None = None
+        self.vehicles: dict[str, dict] = collections.defaultdict(
+            lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
+        self.passes_complete = 0
+        self.status_due = False  # acks were published since the last status
+        # Bridges are fed and estimated when the bus is quiet (maybe_estimate_bridges), never per segment.
+        self.bridges = BridgeMonitor(site, s.bridge)
+        self.bridge_sync_due = False  # passes were acknowledged (or re-keyed) since the last sync
+        self.alarms: dict[str, bytes] = {}  # bridge → the last alarm message published (raised or cleared)
+        self._bridge_cost_s = 0.0  # how long the last bridge update took
+        self._bridge_done_at = -math.inf  # when it ended
+        self._status_at = -math.inf  # when the status was last published
+        self.rail = None
+        if any(vc.model in RAIL_MODELS for vc in site.vehicle_classes):
+            # Imported here, not at module top: rail is numba-heavy code that a road-only daemon
+            # (no rail vehicle class in its registry) never needs to load or compile.
+            from cloud.rail.batches import RailBatches
+
+            self.rail = RailBatches(site)
+
+    # -- input -----------------------------------------------------------------------------------
+    def on_segment(self, key: str, payload: bytes) -> None:
+        try:
+            _, _, _, vehicle = keys.parse_ap_key(key)
+        except ValueError:
+            self.aggregator.rejected["bad_key"] += 1
+            return
+        self._acks(self.aggregator.on_segment(payload, vehicle))
+
+    def on_done(self, key: str, payload: bytes) -> None:
+        acks = self.aggregator.on_pass_done(payload)
+        if acks:
+            self._acks(acks)
+            return
+        again = self.aggregator.repeat_ack(payload)
+        if again is not None:  # a pass sent again: its acknowledgement was lost (e.g. a router restart)
+            self.publish(keys.ack_key(self.net, again.vehicle_id), again.encode())
+            self.status_due = True  # the status published with it may be lost too
+
+    def on_calibration(self, key: str, payload: bytes) -> None:
+        """A calibration on the bus (sharded: the owner's, for a vehicle another shard calibrates),
+        made this cloud's state of the vehicle if newer (:meth:`Ownership.take`)."""
+        if self.calibrator is None:
+            return
+        taken = self.ownership.take(self.calibrator, key, payload)
+        if taken is None:
+            self.aggregator.rejected["bad_calibration"] += 1
+        elif taken:
+            self.status_due = True
+
+    def _acks(self, acks) -> None:
+        if acks and self.settings.align:
+            self.aligner.due = True
+        if acks:
+            self.bridge_sync_due = True
+        for ack in acks:
+            key = (ack.vehicle_id, ack.pass_id)
+            if self.settings.align:
+                self.aligner.reapply(self.aggregator, key)
+            if self.settings.continuous_aps:
+                self._unfused[key] = None
+            ps = self.aggregator.passes.get(key)
+            first = ps is not None and ps.times_acked == 1
+            if ps is not None and ps.times_acked > 1:
+                self.epochs.recomputed()
+                if self.epochs.rejoin(key, ps):
+                    self._record_epoch()
+            if self.calibrator is not None and ps is not None and ps.model:
+                try:
+                    self.calibrator.initial(ack.vehicle_id, ps.model)  # rounds: see maybe_calibrate
+                except KeyError:  # no vehicle class for this model in the registry: not calibrated
+                    pass
+            if first:
+                self.epochs.first_acknowledged(key)
+            v = self.vehicles[ack.vehicle_id]
+            v["passes"] += first
+            v["last_pass"] = ack.pass_id
+            v["calib_version"] = ack.calib_version
+            v["segments"] += ack.n_segments_accepted
+            self.publish(keys.ack_key(self.net, ack.vehicle_id), ack.encode())
+            if first:  # the `pass` timeline counts distinct passes; recalibrated ones update in place
+                self.passes_complete += 1
+                if self.view is not None:
+                    self._log_view()
+        if acks:
+            self.status_due = True
+            self.flush_status()
+
+    # -- what the estimators hold ----------------------------------------------------------------
+    def _continuous_pass(self, key: tuple[str, str]) -> dict | None:
+        """A complete road pass's held segments as continuous-time APs, {slot: segment}, or None (not
+        a corrected model, no parameters). Computed afresh: nothing kept per pass."""
+        agg = self.aggregator
+        ps = agg.passes.get(key)
+        if not self.settings.continuous_aps or ps is None or not ps.acked or ps.model not in CONTINUOUS_MODELS:
+            return None
+        slots = [sl for sl in sorted(ps.slots) if sl in agg.held]
+        params = ps.params or self._bridge_params(key[0], ps.model, ps.calib_version)
+        if not slots or params is None:
+            return None
+        try:
+            fixed = continuous_segments(ps.model, params, [agg.held[sl] for sl in slots], ps.sample_interval_s)
+        except (ValueError, np.linalg.LinAlgError) as e:
+            log.warning("continuous-time AP of %s/%s failed: %s", key[0], key[1], e)
+            return None
+        return dict(zip(slots, fixed))
+
+    def fuse_pending(self, budget_s: float | None = None) -> int:
+        """Idle work: the profile posterior takes acknowledged passes' continuous-time APs in place of
+        the edge's (:meth:`Aggregator.fuse`), in acknowledgement order, within ``budget_s`` (None:
+        all). Returns how many passes remain."""
+        t0 = self.clock()
+        self.status_due = self.status_due or bool(self._unfused)  # "settled" waits for these
+        while self._unfused and (budget_s is None or self.clock() - t0 < budget_s):
+            key = next(iter(self._unfused))
+            del self._unfused[key]
+            for slot, seg in (self._continuous_pass(key) or {}).items():
+                self.aggregator.fuse(slot, seg)
+        return len(self._unfused)
+
+    def fused_segments(self) -> list:
+        """The held segments as the profile posterior holds them (continuous-time where corrected)."""
+        return self.aggregator.as_fused(self.aggregator.held.values())
+
+    def flush_spill(self, budget_s: float | None = None) -> None:
+        """Idle work: encode resident segments into the spill index ahead of time, so that neither
+        spilling them under load nor a snapshot (every segment) has to. ``budget_s`` defaults to
+        the settings' ``flush_budget_s``."""
+        budget_s = self.settings.flush_budget_s if budget_s is None else budget_s
+        for store in (self.aggregator.segments, self.profile.segments):
+            if isinstance(store, SegmentStore):
+                store.flush(budget_s / 2)
+
+    def maybe_align(self) -> bool:
+        """Align every complete pass in chainage against the consensus of the others and centre the
+        fleet's shifts (:class:`~cloud.daemon.chainage.ChainageAligner`). Runs when passes completed
+        since the last time; True if the passes moved."""
+        aligner = self.aligner
+        if not aligner.due:
+            return False
+        aligner.due = False
+        new_passes = aligner.has_new_passes(self.aggregator)
+        swept = False
+        for _ in range(self.settings.align_iterations if new_passes else 2):  # against the others' improving consensus
+            moved = aligner.sweep(self.aggregator, self.consensus)
+            if moved is None:
+                break
+            swept = True
+            if moved < self.settings.align_tol_m:
+                break
+        if swept and self.settings.continuous_aps:  # re-gridded (or restored) passes: their continuous-time APs afresh
+            self._unfused.update(dict.fromkeys(self.aggregator.passes))
+        if moved is None:
+            self.publish_status()
+            return False
+        if self.calibrator is not None:
+            self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
+        self.publish_status()
+        return True
+
+    @property
+    def alignments(self) -> dict:
+        """(vehicle, pass) → the chainage alignment found for it."""
+        return self.aligner.alignments
+
+    # -- passes, status --------------------------------------------------------------------------
+    @property
+    def completed(self) -> set[tuple[str, str]]:
+        """Every pass acknowledged at least once (reads every pass: for tests and tools)."""
+        return {key for key, ps in self.aggregator.passes.items() if ps.times_acked}
+
+    @property
+    def completion_order(self) -> list[tuple[str, str]]:
+        """Passes in the order they were first acknowledged (kept under fleet calibration only)."""
+        return self.epochs.order
+
+    def in_completion_order(self, key: tuple[str, str]) -> bool:
+        return self.epochs.in_order(key)
+
+    def has_rail(self) -> bool:
+        """Whether any pass is a rail run: the batches look at every pass, so not without one."""
+        return not self.aggregator.models.isdisjoint(RAIL_MODELS)
+
+    def current_version(self, vehicle_id: str) -> int:
+        st = self.calibrator.vehicles.get(vehicle_id) if self.calibrator is not None else None
+        return st.version if st is not None else 0
+
+    @property
+    def calibrations_applied(self) -> int:
+        """Sharded: calibrations of vehicles another shard owns, applied here."""
+        return self.ownership.applied
+
+    @property
+    def calibration_conflicts(self) -> int:
+        """Sharded: calibrations at a version this shard had issued differently, or of a vehicle it owns."""
+        return self.ownership.conflicts
+
+    def owns(self, vehicle_id: str) -> bool:
+        """Whether this cloud calibrates the vehicle (:meth:`Ownership.owns`)."""
+        return self.ownership.owns(vehicle_id)
+
+    def status(self) -> dict:
+        passes = self.aggregator.passes
+        current = sum(n for (vid, version), n in self.aggregator.acked.items() if version == self.current_version(vid))
+        busy = self.calibrator is not None and (self.epochs.pending() or not self.epochs.finished())
+        busy = busy or self.aligner.due or bool(self._unfused)  # (estimates still to take their corrected passes)
+        return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
+                "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0,
+                "calibration_epoch_passes": self.epochs.size,
+                "unfused_passes": len(self._unfused),  # acknowledged, their corrected APs not yet in the estimates
+                **({"calibrations_applied": self.calibrations_applied,
+                    "calibration_conflicts": self.calibration_conflicts} if self.settings.shard is not None else {})}
+
+    def publish_status(self) -> None:
+        self.status_due = False
+        self._status_at = self.clock()
+        self.publish(keys.status_key(self.net, self.node_id), json.dumps(self.status()).encode())
+
+    def flush_status(self, force: bool = False) -> None:
+        """Publish the status if acks changed it, at most every ``status_interval_s`` unless ``force``.
+
+        Computing it costs O(vehicles), after every acknowledged pass of a busy fleet: so a status
+        held back is published by the next call after the interval (the daemon calls with ``force``
+        whenever the bus goes quiet).
+        """
+        if self.status_due and (force or self.clock() - self._status_at >= self.settings.status_interval_s):
+            self.publish_status()
+
+    # -- calibration -----------------------------------------------------------------------------
+    def since_new_pass_s(self) -> float:
+        """Seconds since a pass was first acknowledged (or since start)."""
+        return self.epochs.since_new_pass_s()
+
+    def epoch_finished(self) -> bool:
+        return self.epochs.finished()
+
+    def start_epoch(self, size: int, round0: int) -> None:
+        """Begin (or, replaying the journal, restore) the epoch of the first ``size`` completed passes."""
+        self.epochs.start(size, round0)
+
+    def epoch_state(self, order: bool = False) -> dict:
+        return self.epochs.state(order)
+
+    def restore_order(self, order: list) -> None:
+        """Replaying a snapshot: the passes' completion order as it was."""
+        self.epochs.restore_order(order)
+
+    def _record_epoch(self) -> None:
+        if self.record is not None:
+            self.record("epoch", json.dumps(self.epochs.state()).encode())
+
+    def maybe_calibrate(self, tail: bool | None = None) -> bool:
+        """Run one calibration round if one is due; publish what changed. True if a round ran.
+
+        A round is due when the current epoch has not finished and all of its passes are at their
+        vehicle's current calibration; it sees those passes only, against a consensus of them alone
+        built afresh in a fixed order, so it is a function of the data. A new epoch starts when the
+        last has finished and the completed passes reach the next boundary (or, ``tail``, whenever
+        some have completed beyond the epoch: the daemon passes ``tail`` once no new pass has
+        completed for ``epoch_tail_s``). ``tail=None`` (an in-process caller that has given all of
+        its input) skips the boundaries: one epoch of every completed pass.
+        """
+        c = self.calibrator
+        if c is None:
+            return False
+        epochs = self.epochs
+        size = epochs.next_size(tail)
+        if size is not None:
+            epochs.tail += tail is not None and size != epochs.boundary()
+            epochs.start(size, c.rounds)
+            self._record_epoch()
+        if epochs.finished() or not c.dirty:
+            return False
+        segs, reissued = epochs.segments(self.aggregator, self.owns)
+        for cal in reissued:  # the edge recomputes every spooled pass of the vehicle with these
+            self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
+        if segs is None:
+            return False
+        if self.settings.align:  # a pass not (yet) placed in chainage would teach the vehicles a shifted road
+            # (Too few placed passes: the round fits nothing and waits for new data, never spins.)
+            segs = {sl: s for sl, s in segs.items() if (s.vehicle_id, s.pass_id) in self.alignments}
+        # The vehicle step sees what the posterior fuses: continuous-time APs (FleetCalibrator.continuous_aps).
+        self.fuse_pending()
+        segs = dict(zip(segs, self.aggregator.as_fused(segs.values())))
+        # The leave-one-out consensus of the round: the epoch's passes only, summed in a fixed order
+        # (the running consensus holds passes beyond the epoch and rounding from its history).
+        consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
+        for seg in segs.values():
+            consensus.update(seg)
+        if self.settings.shard is not None:  # the others' vehicles inform the consensus; their owners calibrate them
+            segs = {sl: seg for sl, seg in segs.items() if self.owns(seg.vehicle_id)}
+        c.estimator = consensus
+        # each round pass's sample interval at the edge (its pass-done's), for the models of the passes
+        c.sample_intervals = {key: ps.sample_interval_s for key in {(s.vehicle_id, s.pass_id) for s in segs.values()}
+                              if (ps := self.aggregator.passes.get(key)) is not None}
+        try:
+            cals = c.round(segs)
+        finally:
+            c.estimator = self.consensus
+        if self.record is not None:  # the round's outcome is on disk before any of it is published
+            self.record("calibrator", json.dumps(c.state()).encode())
+        for cal in cals:
+            self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
+            epochs.issued(cal.vehicle_id)
+        if self.view is not None:
+            self._log_view()  # the profile as the round left it, at the current pass count
+        self.publish_status()
+        return True
+
+    def vehicle_rows(self) -> list[dict]:
+        """Rows of ``vehicles.parquet`` from the calibrator: a shard's own vehicles only (a vehicle it
+        calibrated before its passes elsewhere made another shard its owner is that one's now)."""
+        if self.calibrator is None:
+            return []
+        return [r for r in self.calibrator.table() if self.owns(r["vehicle_id"])]
+
+    # -- bridges ---------------------------------------------------------------------------------
+    def _bridge_uncertainty(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
+        """How well the parameters of a pass are known, as log-sd per calibration quantity (the bridge
+        likelihood integrates that error out): under fleet calibration, the class prior's spread for a
+        vehicle still at the class mean (version 0), else the calibrator's interval, floored at the
+        estimator's default (the interval does not see the fleet-common error); None (the default)
+        for parameters the edge brought itself (nominal calibration)."""
+        if self.calibrator is None:
+            return None
+        st = self.calibrator.vehicles.get(vehicle_id)
+        try:
+            if calib_version == 0 and (st is None or st.fit is None):
+                return class_log_sd(self.site, model)
+        except KeyError:
+            return None
+        if st is None or st.fit is None or st.version != calib_version:
+            return None
+        floor = BridgeSettings().calibration_log_sd or 0.0
+        return {n: max(v, floor) for n, v in fit_log_sd(st.fit).items()}
+
+    def _bridge_params(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
+        """The parameters the edge computed a pass with: its calibration ``calib_version``.
+
+        Fleet calibration: the calibrator's current parameters when the pass is at the vehicle's
+        current version (None while a newer calibration is on its way: wait for the recomputed
+        pass); version 0 is the class mean, the edge's cold start. Only a fallback: edges say in each
+        pass-done which parameters they used (e.g. a log's nominal ones), and those come first.
+        """
+        st = self.calibrator.vehicles.get(vehicle_id) if self.calibrator is not None else None
+        if st is not None:
+            return dict(st.params) if st.version == calib_version and st.model == model else None
+        if calib_version != 0:
+            return None
+        try:
+            return dict(self.site.vehicle_class(model).mean)
+        except KeyError:
+            return None
+
+    def maybe_estimate_bridges(self, force: bool = False) -> bool:
+        """Feed the bridges the passes completed (or recomputed, re-keyed) since the last time,
+        estimate those with new data, publish alarms whose state changed and log the view.
+        True if any bridge was estimated."""
+        if not self.bridges.bridges or not (self.bridge_sync_due or force):
+            return False
+        t0 = self.clock()
+        self.bridge_sync_due = False
+        self.bridges.sync(self.aggregator.passes, self.aggregator.held, self._bridge_params, self._bridge_uncertainty)
+        if not self.bridges.due:
+            return False
+        alarms = self.bridges.estimate()
+        for alarm in alarms:
+            payload = alarm.encode()
+            # The alarm state is durable: a restarted cloud does not raise a standing alarm again.
+            self.alarms[alarm.bridge_id] = payload
+            if self.record is not None:
+                self.record("alarm", payload)
+            self.publish(keys.alarm_key(self.net, alarm.bridge_id), payload)
+            log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
+        if self.view is not None:
+            self._log_bridges(alarms)
+        self._bridge_done_at = self.clock()
+        self._bridge_cost_s = self._bridge_done_at - t0
+        return True
+
+    def bridges_may_run(self) -> bool:
+        """Whether a bridge update now keeps bridges within ``bridge_duty`` of the cloud's time."""
+        duty = self.settings.bridge_duty
+        wait = self._bridge_cost_s * (1.0 - duty) / duty
+        return self.bridge_sync_due and self.clock() - self._bridge_done_at >= wait
+
+    def restore_alarm(self, payload: bytes) -> None:
+        """Replaying the journal: the bridge's alarm state as the alarm last published left it."""
+        alarm = decode_alarm(payload)
+        st = self.bridges.bridges.get(alarm.bridge_id)
+        if st is not None:
+            st.alarmed = alarm.kind != CLEARED
+            self.alarms[alarm.bridge_id] = bytes(payload)
+
+    def bridge_state(self, bridge_id: str) -> bytes:
+        """The answer to ``state/bridge/<bridge>`` (:func:`cloud.daemon.queries.bridge_state`), as of
+        the last estimate (made when the bus was quiet)."""
+        return bridge_state(self.bridges, bridge_id)
+
+    # -- rail ------------------------------------------------------------------------------------
+    def step_rail(self, force: bool = False) -> bool:
+        """Fit the carriage batches that are due (``force``: every one that changed), give the
+        estimators their re-keyed runs, publish the rail bridges' alarms and log the view. True if
+        any batch was fitted."""
+        if self.rail is None or not self.has_rail():
+            return False
+        agg = self.aggregator
+        step = self.rail.step(agg.passes, agg.segments, force)
+        for slot, seg in step.replacements.items():
+            if seg is None:
+                agg.drop_held(slot)
+            else:
+                agg.replace_held(slot, seg)
+        for alarm in step.alarms:
+            self.publish(keys.alarm_key(self.net, alarm.bridge_id), alarm.encode())
+            log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
+            if self.view is not None:
+                self.view.log_alarm(alarm.bridge_id, alarm.message, "INFO" if alarm.kind == CLEARED else "ERROR")
+        if not step.fitted:
+            return False
+        self.bridge_sync_due = True
+        if self.view is not None:
+            try:
+                self.view.set_pass(self.passes_complete)
+                self.view.log_rail(self.rail.view_rows(self.snapshot()))
+            except Exception:  # the view is a side subscriber: never let it take the daemon down
+                log.exception("rerun rail view update failed")
+        return True
+
+    # -- estimates out ---------------------------------------------------------------------------
+    def tile_state(self, route_id: str, tile: int) -> bytes | None:
+        """The answer to ``state/profile/<route>/<tile>`` (:func:`cloud.daemon.queries.tile_state`)."""
+        return tile_state(self.profile, route_id, tile)
+
+    def snapshot(self) -> dict:
+        """The profile posterior per route; its band also holds the passes' non-white error (the
+        drift and calibration error each pass adds beyond the likelihood's white noise, measured band
+        by band from their disagreement: :mod:`cloud.road.long_wave`)."""
+        segs = self.fused_segments()  # what the posterior holds (chainage-aligned, continuous-time)
+        # With the drift nuisance on, the passes' scatter adds only what exceeds its learnt level.
+        return {rid: with_long_wave_band(s, segs, drift=drift_of(self.profile, rid))
+                for rid, s in self.profile.snapshot().items()}
+
+    def export(self, out_dir: Path) -> list[Path]:
+        """Every estimate as Parquet tables in ``out_dir`` (interfaces.md §3), a function of the held
+        segments: pending idle work (fusion, rail batches, bridge estimates) is done first."""
+        self.fuse_pending()
+        self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
+        snaps = self.snapshot()
+        tables = {"profile": profile_table(snaps)}
+        segs = self.fused_segments()
+        rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0), self.profile.spacing_m)
+                 for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
+        if rough:
+            tables["roughness"] = pa.concat_tables(rough)
+        rail_rows = self.rail.rows() if self.rail is not None else []
+        vehicle_rows = self.vehicle_rows() + rail_rows
+        if self.calibrator is not None or vehicle_rows:
+            tables["vehicles"] = vehicles_table(vehicle_rows)
+        # Track geometry quality of the routes carriages ran on.
+        rail = {ps.route_id for ps in self.aggregator.passes.values() if ps.model in RAIL_MODELS} \
+            if self.has_rail() else set()
+        if rail:
+            tables["track_quality"] = track_quality_table({r: s for r, s in snaps.items() if r in rail})
+        if self.bridges.bridges:
+            self.maybe_estimate_bridges(force=True)  # every acknowledged pass is in the export
+            tables["bridge_elements"] = bridge_elements_table(self.bridges.element_rows())
+            tables["bridge_bearings"] = bridge_bearings_table(self.bridges.bearing_rows())
+            tables["bridge_summary"] = bridge_summary_table(self.bridges.summary_rows())
+        if self.rail is not None and self.rail.bridge_rows():  # rail batches' D1/D2 in place of a bridge's road row
+            tables["bridge_summary"] = bridge_summary_table(self.rail.bridge_rows(self.bridges.summary_rows()))
+        written = write_export(out_dir, tables)
+        if self.view is not None:
+            self.view.flush()
+        return written
+
+    # -- the view --------------------------------------------------------------------------------
+    def _log_view(self) -> None:
+        try:
+            self.view.set_pass(self.passes_complete)
+            P = tile_points(self.profile.spacing_m)
+            for snap in self.snapshot().values():
+                self.view.log_profile(snap)
+                counts = [int(snap.n_passes[i : i + P].max(initial=0)) for i in range(0, snap.n_passes.size, P)]
+                self.view.log_tile_counts(snap.route_id, TILE_M, np.asarray(counts))
+            self.view.log_vehicle_status(dict(self.vehicles))
+            self.view.log_stats(self.aggregator.stats())
+        except Exception:  # the view is a side subscriber: never let it take the daemon down
+            log.exception("rerun view update failed")
+
+    def _log_bridges(self, alarms) -> None:
+        try:
+            self.view.set_pass(self.passes_complete)
+            for st in self.bridges.bridges.values():
+                if st.latest is not None:
+                    baseline = getattr(getattr(st.estimator, "baseline", None), "mril", None)
+                    self.view.log_bridge_estimate(st.latest, baseline)
+            for alarm in alarms:
+                self.view.log_alarm(alarm.bridge_id, alarm.message, "INFO" if alarm.kind == CLEARED else "ERROR")
+        except Exception:  # the view is a side subscriber: never let it take the daemon down
+            log.exception("rerun bridge view update failed")
