@@ -19,6 +19,7 @@ drive it stays bounded and the scale error is learnt. The first sample lands on 
 from __future__ import annotations
 
 import numpy as np
+
 from shared.jit import kernel
 
 MIN_SPEED_MPS = 0.5  # below this the GNSS residual says nothing about the odometer scale

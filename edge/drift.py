@@ -10,6 +10,7 @@ transfer is sinc²-like, 2 % at a wavelength of half_width/1.5.
 from __future__ import annotations
 
 import numpy as np
+
 from shared.jit import kernel
 
 

@@ -10,10 +10,11 @@ import dataclasses
 import math
 
 import numpy as np
-from shared.jit import kernel
 
 from shared.dynamics.inverse import InverseModel, InverseStream
+from shared.jit import kernel
 from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
+from shared.vehicles import RAIL_MODELS
 
 from .chainage import ChainageTracker
 from .drift import drift_trend
@@ -349,12 +350,6 @@ def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
     return float(max(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0), 1e-7))
 
 
-#: Rail vehicles: the cloud re-runs their dynamics over the whole record (batch calibration of the
-#: run's properties, cloud.rail.batches), which needs every wheel's AP from the first sample. So their
-#: warm-up is sent flagged (none dropped), and so is the AP of wheels still behind chainage 0 when
-#: the log starts (a carriage's trailing bogie starts Lv + Lb behind the body's centre): those
-#: points belong to tile 0, at negative grid indices; the cloud fuses only chainage >= 0.
-RAIL_MODELS = frozenset({"carriage", "bogie_half_car"})
 
 
 class PassProcessor:
@@ -369,6 +364,10 @@ class PassProcessor:
         self.calib_version = calib_version
         self.min_index = 0  # the first grid index kept (tile 0 takes every index below P)
         if model_name in RAIL_MODELS:
+            # The cloud re-runs a train run's dynamics over the whole record, which needs every wheel's AP
+            # from the first sample: the warm-up is sent flagged (none dropped), and so is the AP of wheels
+            # still behind chainage 0 when the log starts (a carriage's trailing bogie starts Lv + Lb behind
+            # the body's centre), at negative grid indices of tile 0; the cloud fuses only chainage >= 0.
             config = dataclasses.replace(config, hard_warmup_s=0.0)
             behind = max(0.0, -float(np.min(self.system.offsets_m)))
             self.min_index = -int(math.ceil(behind / config.spacing_m)) - 1

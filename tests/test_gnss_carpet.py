@@ -1,7 +1,7 @@
 """Issue #4 item 4 on small, fast versions of the scenarios: GNSS chainage error removed by aligning
 each pass against the consensus; the 3-D carpet's fleet-mean profile under lane scatter.
 
-Everything runs the daemons' cores (``edge.node.Edge``, ``cloud.daemon.node.Cloud``) wired by an in-memory
+Everything runs the daemons' cores (``edge.node.Edge``, ``cloud.daemon.core.Cloud``) wired by an in-memory
 queue instead of Zenoh, sequenced as ``cloud.daemon.node.serve`` does when the bus is quiet: align, else
 calibrate. Truth is read only here, to score.
 """

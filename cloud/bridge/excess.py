@@ -30,9 +30,9 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from shared.jit import kernel
 
 from shared.fe.beam import Beam, BeamSystem, assemble, contact_matrix, influence_line, moving_load_deflection
+from shared.jit import kernel
 
 from cloud.bridge.passdata import PassData, Window
 from cloud.bridge.static import Setup, WhitenedPass, design_beam

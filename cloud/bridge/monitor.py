@@ -1,6 +1,6 @@
 """Bridge monitoring in the cloud: the site's bridges fed from completed passes, estimated, alarmed.
 
-Transport-free, like :class:`cloud.daemon.node.Cloud` which owns it. One
+Transport-free, like :class:`cloud.daemon.core.Cloud` which owns it. One
 :class:`~cloud.bridge.estimator.BridgeEstimator` per bridge of the registry. The daemon calls
 :meth:`BridgeMonitor.sync` and :meth:`BridgeMonitor.estimate` when the bus is quiet, never per
 segment: a pass's bridge data costs a forward simulation of the vehicle (~50 ms) and an estimate

@@ -24,6 +24,7 @@ import pyarrow as pa
 from shared import keys
 from shared.registry import Site
 from shared.schema import decode_alarm
+from shared.vehicles import RAIL_MODELS
 
 from cloud.bridge.estimator import BridgeSettings
 from cloud.bridge.monitor import CLEARED, BridgeMonitor
@@ -45,7 +46,6 @@ from cloud.road.mean_profile import MeanProfile
 
 log = logging.getLogger("driveby.cloud")
 
-RAIL_MODELS = frozenset({"carriage", "bogie_half_car"})  # vehicle models whose passes are rail runs
 
 
 class Cloud:

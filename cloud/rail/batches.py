@@ -2,7 +2,7 @@
 
 The cloud holds each carriage pass as AP segments under its four wheels (the edge's inverse with the
 class-mean properties, keyed on GNSS chainage; the trailing bogie's wheels from before chainage 0 on,
-see ``edge.pipeline.RAIL_MODELS``). What :func:`cloud.rail.calibration.calibrate_batch` needs — each
+see ``shared.vehicles.RAIL_MODELS``). What :func:`cloud.rail.calibration.calibrate_batch` needs — each
 run's bogie channels in time — is rebuilt from them: the carriage's forward model under the
 parameters the edge used, driven by the four APs. The edge's inverse is the exact inverse of that
 discretisation (Newmark γ = 0.8, trapezoidal contact rate), so the calibration's inverse under trial
@@ -45,6 +45,7 @@ from scipy.interpolate import make_interp_spline
 
 from shared.dynamics.forward import channels_from_ap
 from shared.dynamics.newmark import newmark_constants
+from shared.dynamics.population import population_aps
 from shared.schema import Alarm, ApSegment
 from shared.track_quality import (ALERT_ISOLATED_MM, ALERT_SD_MM, d1_longitudinal_level, isolated_defects,
                                   segment_quality)
@@ -121,8 +122,6 @@ def rekey_pass(rebuilt: RebuiltPass, model: str, params: dict, speed_mps: float,
     """The run's AP under ``params`` (its calibrated properties), keyed in chainage with its
     calibrated speed and chainage shift (:attr:`~cloud.rail.calibration.RunEstimate.shift_m`), as replacements of its raw segments (same identities; each keeps the grid
     points from where it now starts to where the next one starts, as :func:`cloud.road.alignment.realign`)."""
-    from shared.dynamics.population import population_aps
-
     run = rebuilt.run
     aps, offs = population_aps(model, [params], run.channels, run.dt, gamma=GAMMA)
     ap, offsets = aps[0], offs[0]

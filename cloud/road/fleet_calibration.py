@@ -32,7 +32,7 @@ vehicle shares: a discrete inverse and vehicle step add numerical damping that, 
 continuous physics, moves a quarter-car's fit by several per cent at Newmark γ = 0.8 and 2 ms
 (c/M −4.4 %, m/M +4.7 %, k/M +6.8 %, noise-free, true profile) and by one to two per cent at the
 edge's γ = 0.6. So quarter-car rounds run on continuous-time APs (the cloud corrects each pass,
-cloud.daemon.node.CONTINUOUS_APS; the step reconstructs and predicts at γ ½, unbiased to 0.25 %,
+CloudSettings.continuous_aps; the step reconstructs and predicts at γ ½, unbiased to 0.25 %,
 tests/test_discretisation.py); the common error that remains is not the step's model.
 """
 

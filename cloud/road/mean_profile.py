@@ -12,8 +12,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from shared.jit import kernel
 
+from shared.jit import kernel
 from shared.schema import SIGMA_SCALE, ApSegment
 
 

@@ -51,10 +51,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from shared.jit import kernel
 from scipy.linalg import LinAlgError, cho_solve_banded, cholesky_banded
 from scipy.optimize import minimize_scalar
 
+from shared.jit import kernel
 from shared.schema import ApSegment
 
 from cloud.road.banded import band_cholesky, band_solve, draw_into, selected_inverse

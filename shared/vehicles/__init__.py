@@ -12,6 +12,10 @@ MODELS: dict[str, type[Vehicle]] = {
     cls.model: cls for cls in (SprungMass, QuarterCar, HalfCar, BogieHalfCar, Carriage)
 }
 
+#: Vehicle models whose passes are train runs: the cloud re-runs their dynamics over the whole record
+#: (a batch calibration of each run's properties) instead of fusing the edge's AP pass by pass.
+RAIL_MODELS = frozenset({"carriage", "bogie_half_car"})
+
 
 def vehicle_from_params(model: str, params: dict[str, float]) -> Vehicle:
     """The vehicle of ``model`` with ``params``; unknown model or bad parameters raise ValueError."""
