@@ -134,7 +134,7 @@ def read_drive_log(path: str | os.PathLike) -> DriveLog:
     DriveLogError
         If the file is unreadable, not Parquet, or breaks the contract in any way.
     """
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow only where a file is read or written (see the module top)
     import pyarrow.parquet as pq
 
     name = str(path)
@@ -197,7 +197,7 @@ def drive_log_to_table(log: DriveLog, name: str = "<drive log>") -> pa.Table:
     metadata as JSON under the schema key ``driveby``. A derived speed is not written, so reading
     the table back derives it again.
     """
-    import pyarrow as pa
+    import pyarrow as pa  # pyarrow only where a table is built (see the module top)
 
     meta = _check_meta(log.meta, name)
     _check_arrays(log, name)
@@ -231,7 +231,7 @@ def write_drive_log(path: str | os.PathLike, log: DriveLog) -> None:
     The file appears atomically (written beside it, then renamed), so a directory watcher never
     sees half a log. Raises `DriveLogError` (and writes nothing) if ``log`` is invalid.
     """
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # pyarrow only where a file is written (see the module top)
 
     path = Path(path)
     table = drive_log_to_table(log, str(path))

@@ -27,6 +27,7 @@ import numpy as np
 
 from shared.registry import Bridge, Site
 from shared.schema import ApSegment
+from shared.vehicles import GRAVITY, vehicle_from_params
 from shared.vehicles.calibration import calibration_names
 
 from cloud.bridge.dynamic import GlobalLevel, fit_elements_dynamic
@@ -37,6 +38,7 @@ from cloud.bridge.static import (ElementPosterior, Setup, Stacked, StiffnessPrio
                      common_calibration_columns, consensus_distortion, driven_road, fit_elements,
                      marginal_loglik_batch, model_columns, mu_basis, pass_distortion, road_sensitivity, step_basis,
                      vehicle_stats, whiten_pass)
+from cloud.bridge.vehicle_error import class_log_sd
 
 LOAD_FACTORS = ("road", "own")
 #: A pass's wheel-load factor from the consensus road is recomputed when the passes behind the
@@ -100,10 +102,6 @@ def class_weight_prior(site: Site, model: str) -> WeightPrior:
     Absolute masses are not identifiable from road data: the class mean is the scale
     (thesis §4.5.5); a vehicle's ratio m/M does not change the prior mean to first order.
     """
-    from shared.vehicles import GRAVITY, vehicle_from_params
-
-    from cloud.bridge.vehicle_error import class_log_sd
-
     vc = site.vehicle_class(model)
     mean = vehicle_from_params(model, dict(vc.mean)).system().static_contact_forces()
     if mean.size != 1:

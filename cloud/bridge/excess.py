@@ -30,8 +30,11 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
+from scipy import linalg
 
-from shared.fe.beam import Beam, BeamSystem, assemble, contact_matrix, influence_line, moving_load_deflection
+from shared.dynamics.newmark import effective_stiffness, integrate, newmark_constants
+from shared.fe.beam import (Beam, BeamSystem, assemble, contact_entries, contact_matrix, element_matrices, influence_line,
+                            moving_load_deflection)
 from shared.jit import kernel
 
 from cloud.bridge.passdata import PassData, Window
@@ -96,10 +99,6 @@ class StiffnessDerivatives:
 
     @classmethod
     def of(cls, beam: Beam, system: BeamSystem) -> "StiffnessDerivatives":
-        from scipy import linalg
-
-        from shared.fe.beam import element_matrices
-
         ne = beam.n_elements
         ke, _ = element_matrices(beam.element_length_m, beam.element_ei(), beam.mass_per_m)
         full_to_free = np.full(2 * (ne + 1), -1, dtype=np.int64)
@@ -120,8 +119,6 @@ class StiffnessDerivatives:
 
     def influence(self, beam: Beam, system: BeamSystem, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """J(x) and ∂J/∂θ_z = −Uᵀ·∂K/∂θ_z·U (U = K⁻¹Nᵀ) on ``xs``; (n_x,), (n_x, n_e)."""
-        from scipy import linalg
-
         N = contact_matrix(beam, xs)
         U = linalg.solve(system.K, N.T, assume_a="pos")  # (n_dof, n_x)
         J = np.einsum("ij,ji->i", N, U)
@@ -224,9 +221,6 @@ def excess_sensitivity(beam: Beam, p: PassData, substeps: int = SUBSTEPS, system
     exact derivative of the discretised ε (checked against finite differences in
     ``tests/test_bridge_dynamic.py``). ``influence``: (J, ∂J/∂θ) on the span points, to share.
     """
-    from shared.dynamics.newmark import effective_stiffness, integrate, newmark_constants
-    from shared.fe.beam import contact_entries
-
     w: Window = p.window
     on = w.on_span
     system = assemble(beam) if system is None else system

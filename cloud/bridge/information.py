@@ -50,8 +50,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from shared.fe.beam import Beam, crack_ei_factor
+from shared.fe.beam import Beam, crack_ei_factor, influence_line
 from shared.vbi import simulate_vbi
+from shared.vehicles import vehicle_from_params
+
+from cloud.bridge.passdata import VehicleFilter
+from cloud.bridge.vehicle_error import distortion_of
 
 #: finite-difference step in log EI and log wheel load
 FD_STEP = 1e-3
@@ -88,9 +92,6 @@ class PassSensitivity:
     def calibration_columns(self, mean_u: np.ndarray, span_m: float) -> tuple[np.ndarray, np.ndarray]:
         """The whitened channel columns of the fleet-common error (``F_p[u_p − 1_off·ū]``) and of the
         pass's own (``F_p[u_p]``), (n, K) each, at the channel samples."""
-        from cloud.bridge.passdata import VehicleFilter
-        from shared.vehicles import vehicle_from_params
-
         c = self.case
         spacing = float(self.grid_x[1] - self.grid_x[0])
         vf = VehicleFilter(vehicle_from_params(c.model, dict(c.params)).system(), c.speed_mps, spacing)
@@ -120,8 +121,6 @@ def pass_sensitivity(case: PassCase, beam: Beam, pre_m: float = 5.0, post_m: flo
     no longer reaches the vehicle). ``calibration``: the calibration quantities whose error is a
     nuisance (module docstring); their AP distortion is computed over the road from ``approach_m``
     before the span on a ``spacing_m`` grid (the estimator's window)."""
-    from shared.vehicles import vehicle_from_params
-
     system = vehicle_from_params(case.model, dict(case.params)).system()
     start = pre_m  # route chainage of the first support
     base = _run(beam, system, case.speed_mps, start, pre_m, post_m, sample_rate_hz)
@@ -138,10 +137,6 @@ def pass_sensitivity(case: PassCase, beam: Beam, pre_m: float = 5.0, post_m: flo
     s_w = (_run(beam, heavy, case.speed_mps, start, pre_m, post_m, sample_rate_hz) - base) / step
     if not calibration:
         return PassSensitivity(case, S / case.noise_sd, s_w / case.noise_sd)
-    from shared.fe.beam import influence_line
-
-    from cloud.bridge.vehicle_error import distortion_of
-
     grid = np.arange(-approach_m, beam.span_m + post_m + 0.5 * spacing_m, spacing_m)
     road = np.zeros(grid.size) if case.road is None else np.asarray(case.road(grid), dtype=float)
     on = (grid >= 0.0) & (grid <= beam.span_m)

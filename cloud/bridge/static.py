@@ -55,13 +55,16 @@ import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
+from scipy.interpolate import BSpline
+from scipy.linalg import solve_toeplitz
+from scipy.signal import butter, lfilter, sosfiltfilt
 
-from shared.fe.beam import Beam, compliance_kernel
+from shared.fe.beam import Beam, compliance_kernel, influence_line
 from shared.fe.design import design_beam
 from shared.registry import Bridge
 
 from cloud.bridge.passdata import PassData, Reference, Window, consensus_end, consensus_used, residual
-from cloud.bridge.vehicle_error import FD_STEP, CalibrationMarginal, perturbed_params
+from cloud.bridge.vehicle_error import FD_STEP, CalibrationMarginal, ap_distortion, perturbed_params
 
 #: The likelihood window starts this far before the first support (m); the noise is estimated on
 #: the approach before it, after a burn-in of the forward model.
@@ -86,8 +89,6 @@ BAND_HZ = {"smooth": 20.0, "rough": 8.0}  # band limit of the likelihood per dec
 
 def ar_prewhitener(x: np.ndarray, order: int = AR_ORDER) -> np.ndarray:
     """FIR coefficients ``[1, −φ_1, …, −φ_p]`` of the Yule–Walker AR(p) model of ``x``."""
-    from scipy.linalg import solve_toeplitz
-
     x = np.asarray(x, dtype=float) - np.mean(x)
     n = x.size
     r = np.array([x[: n - k] @ x[k:] for k in range(order + 1)]) / n
@@ -127,8 +128,6 @@ def element_band_sigma(noise: np.ndarray, directions: np.ndarray) -> float:
 
 def _fir(coef: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """Apply an FIR filter down the rows of ``cols`` (causal, zero initial state)."""
-    from scipy.signal import lfilter
-
     return lfilter(coef, [1.0], cols, axis=0)
 
 
@@ -151,8 +150,6 @@ class SpanBasis:
 
     @classmethod
     def of(cls, window: Window, n_elements: int) -> "SpanBasis":
-        from scipy.interpolate import BSpline
-
         L = window.span_m
         x = np.clip(window.x[window.on_span], 0.0, L)
         knots = np.linspace(0.0, L, n_elements + 1)
@@ -254,8 +251,6 @@ class Whitener:
         white = np.zeros(cols.shape)
         white[first:] = self.data.vehicle_filter().whiten(cols[first:])
         if self.sos is not None:
-            from scipy.signal import sosfiltfilt
-
             white = sosfiltfilt(self.sos, white, axis=0)
         return white[:: self.step]
 
@@ -337,8 +332,6 @@ def model_columns(p: PassData, basis: SpanBasis, deck: str = "smooth", band_hz: 
     fs = p.speed_mps / w.spacing_m  # grid points per second
     sos, step = None, 1
     if band_hz and band_hz < 0.4 * fs:
-        from scipy.signal import butter
-
         sos = butter(6, band_hz / (0.5 * fs), output="sos")
         step = max(1, int(fs / (2.5 * band_hz)))
     skeleton = Whitener(p, sos, step, np.ones(1), np.zeros(0, dtype=int), 1.0)
@@ -513,8 +506,6 @@ def common_calibration_columns(passes: Sequence[PassData], ref: Reference, names
 def pass_distortion(p: PassData, ref: Reference, names: Sequence[str], deck: str, deflection: np.ndarray) -> np.ndarray:
     """``u_p`` of :func:`common_calibration_columns`: the pass's AP distortion (n_window, K) over
     the consensus road plus its deflection ``deflection`` (m)."""
-    from cloud.bridge.vehicle_error import ap_distortion
-
     return ap_distortion(p, driven_road(p, ref, deck) + deflection, names)
 
 
@@ -875,8 +866,6 @@ class BearingElementModel:
         return Q
 
     def influence(self, params: np.ndarray) -> np.ndarray:
-        from shared.fe.beam import influence_line
-
         theta, kap = params[: self.n_elements], params[self.n_elements :]
         k = 10.0 ** np.clip(kap, -3.0, 16.0)
         krot = (float(k[0]), float(k[-1]))
@@ -1151,8 +1140,6 @@ def _fit_elements(S: "Stacked", model, theta0: np.ndarray | None) -> ElementPost
 
 def design_influence(model) -> np.ndarray:
     """The design bridge's J on the span points (pinned supports), m/N."""
-    from shared.fe.beam import influence_line
-
     b = model.bridge if hasattr(model, "bridge") else None
     if b is not None:
         return influence_line(design_beam(b), model.basis.x)

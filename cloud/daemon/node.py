@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     view = None
     if args.rrd or args.viewer:
-        from cloud.view import View
+        from cloud.view import View  # rerun: loaded only by a daemon that draws
 
         view = View(rrd_path=args.rrd, spawn_viewer=args.viewer, routes={r.id: r.length_m for r in site.routes},
                     bridges=list(site.bridges))

@@ -20,8 +20,9 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg import cho_solve_banded, cholesky_banded
 
-from ..fe.beam import Beam, assemble, element_matrices, hermite_shape
+from ..fe.beam import Beam, assemble, contact_matrix, element_matrices, hermite_shape
 from .random_fields import stiffness_factors
 
 
@@ -153,8 +154,6 @@ class Track(NamedTuple):
 
     def bridge_deflection(self, u: np.ndarray, x_m: np.ndarray) -> np.ndarray:
         """Deck deflection (m, up) at chainages ``x_m`` from a track displacement ``u`` (…, n_dof)."""
-        from ..fe.beam import contact_matrix
-
         if self.bridge_beam is None:
             raise ValueError("bridge_deflection: this track has no bridge")
         N = contact_matrix(self.bridge_beam, np.atleast_1d(np.asarray(x_m, float)) - self.bridge.start_m)
@@ -300,8 +299,6 @@ def band_to_dense(ab: np.ndarray) -> np.ndarray:
 
 def static_rail_deflection(track: Track, loads_n: np.ndarray, x_load_m: np.ndarray, x_eval_m: np.ndarray) -> np.ndarray:
     """Static rail deflection (m, up) at ``x_eval_m`` under downward loads ``loads_n`` (N) at ``x_load_m``."""
-    from scipy.linalg import cho_solve_banded, cholesky_banded
-
     loads = np.atleast_1d(np.asarray(loads_n, float))
     dofs, values = track.contact_entries(x_load_m)
     f = np.zeros(track.n_dof)
