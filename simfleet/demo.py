@@ -5,6 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import pyarrow.parquet as pq
+
 from shared.registry import load_site
 
 from .evaluate import load_truth, score_profile
@@ -17,8 +19,6 @@ DEMO_SCENARIO = "bridge-crack10-10m-rough"
 
 def bridge_lines(export: Path, truth: dict, deck: str = "rough") -> list[str]:
     """The bridge's state from the export, beside the simulation's truth (the demo may read it)."""
-    import pyarrow.parquet as pq
-
     summary, elements = export / "bridge_summary.parquet", export / "bridge_elements.parquet"
     if not summary.exists() or not elements.exists():
         return []

@@ -11,6 +11,12 @@ import numpy as np
 import pyarrow.parquet as pq
 from scipy.signal import butter, sosfiltfilt
 
+from cloud.road.alignment import FINE_BAND_M, estimate_alignment
+from cloud.road.calibration import to_calibration
+from edge.drift import local_linear_trend
+from edge.pipeline import EdgeConfig
+from shared.roughness import iri_segments
+
 
 @dataclass(frozen=True)
 class ProfileScore:
@@ -46,8 +52,6 @@ def score_profile(export_dir: Path, truth: dict, trim_m: float = 10.0, fit_frame
     tx = p["start_m"] + h * np.arange(len(p["elevation_m"]))
     true = np.interp(x, tx, p["elevation_m"])
     if fit_frame:
-        from cloud.road.alignment import FINE_BAND_M, estimate_alignment
-
         # The frame that fits inside the scored band (the cloud's last step fits above wheel hop,
         # where the fused profile's phase against the truth is a few mm off: 3x the 2-5 m error).
         al = estimate_alignment(x, est, x, true, max_shift_m=3.0, max_stretch=0.02, refine_band_m=FINE_BAND_M)
@@ -90,9 +94,6 @@ def drift_controlled_truth(true: np.ndarray, n_passes: np.ndarray) -> np.ndarray
     what this returns (the trend at full resolution, the ideal the edge's lattice approximates).
     Pass stretches are recovered from the exported ``n_passes`` (:func:`pass_extents`).
     """
-    from edge.drift import local_linear_trend
-    from edge.pipeline import EdgeConfig
-
     H = EdgeConfig().drift_points
     total = np.zeros(true.size)
     count = np.zeros(true.size)
@@ -116,8 +117,6 @@ def load_truth(path: Path) -> dict:
 
 def score_vehicles(export_dir: Path, truth: dict) -> dict[str, tuple[float, float]]:
     """Per calibrated quantity: (median, max) relative error of the exported means against truth."""
-    from cloud.road.calibration import to_calibration
-
     t = pq.read_table(Path(export_dir) / "vehicles.parquet").to_pydict()
     model = truth["vehicle_model"]
     errs: dict[str, list[float]] = {}
@@ -143,8 +142,6 @@ def score_iri(export_dir: Path, truth: dict, length_m: float = 100.0, trim_m: fl
     as for the profile score. The IRI is a slope statistic and blind to the absolute level and
     linear trend, so no frame or offset is fitted.
     """
-    from shared.roughness import iri_segments
-
     t = pq.read_table(Path(export_dir) / "roughness.parquet").to_pydict()
     route = truth["route"]["id"]
     rows = [i for i, (r, L) in enumerate(zip(t["route_id"], t["length_m"])) if r == route and L == length_m]

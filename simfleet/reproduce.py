@@ -12,18 +12,36 @@ Fig. 2.12 the report describes the thesis's trend. Nothing here is imported by t
 
 from __future__ import annotations
 
-import argparse
 import collections
 import dataclasses
 import datetime
 import json
 import logging
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
+
+from cloud.daemon.settings import CloudSettings
+from cloud.reference import cross_entropy_fleet, exact_profile_posterior, fleet_objective, mcmc_profile_and_vehicles
+from cloud.reference.cross_entropy import LOWPASS_M
+from cloud.reference.mcmc import THESIS_N_ITER
+from cloud.road.calibration import REMAP_GAMMA, PassAp, PassChannels, to_calibration
+from shared.drivelog import MODEL_CHANNELS, DriveLog, DriveLogMeta, list_drive_logs, read_drive_log
+from shared.dynamics.forward import simulate_on_profile
+from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
+from shared.profiles import iso8608_profile, tyre_filter
+from shared.registry import Route, Site, VehicleClass, load_site
+from shared.sensors import add_noise
+from shared.vehicles import QuarterCar, SprungMass
+
+from . import harness
+from .evaluate import band_pass, score_profile, score_vehicles
+from .run import RunError, run
+from .scenarios import SCENARIOS, TABLE_4_1, draw_fleet
+from .sim import PassPlan, build_truth, generate, simulate_pass, surfaces, write_site
 
 log = logging.getLogger(__name__)
 
@@ -84,11 +102,6 @@ def run_in_process(logs, site, export_dir: Path | None, calibration: str = "flee
     """The edge and cloud cores wired by an in-memory bus instead of Zenoh (:mod:`simfleet.harness`);
     returns (cloud, rounds). ``settings`` (a :class:`cloud.daemon.settings.CloudSettings`) replaces
     ``calibration``, ``spacing_m`` and ``align`` when given."""
-    # Imported here: the harness loads the cloud core, which ``driveby reproduce --help`` does not need.
-    from cloud.daemon.settings import CloudSettings
-
-    from . import harness
-
     if settings is None:
         settings = CloudSettings(calibration=calibration, spacing_m=spacing_m, align=align)
     return harness.run_in_process(logs, site, export_dir, settings)
@@ -96,11 +109,6 @@ def run_in_process(logs, site, export_dir: Path | None, calibration: str = "flee
 
 def run_system(sim_dir: Path, export_dir: Path, calibration: str = "fleet") -> SystemRun:
     """The logs of ``sim_dir`` through the daemons over Zenoh; in process if the daemons fail."""
-    from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.registry import load_site
-
-    from .run import RunError, run
-
     t0 = time.perf_counter()
     try:
         res = run(sim_dir / "logs", sim_dir / "site.toml", export_dir, calibration=calibration, progress=False)
@@ -118,8 +126,6 @@ def run_system(sim_dir: Path, export_dir: Path, calibration: str = "fleet") -> S
 
 def exported_vehicles(export_dir: Path) -> dict[str, dict[str, float]]:
     """vehicle → calibration quantity → exported mean."""
-    import pyarrow.parquet as pq
-
     path = Path(export_dir) / "vehicles.parquet"
     if not path.exists():
         return {}
@@ -132,10 +138,6 @@ def exported_vehicles(export_dir: Path) -> dict[str, dict[str, float]]:
 
 def profile_rmse(export_dir: Path, truth: dict, trim_m: float = 10.0) -> float:
     """RMSE (m) of the exported profile against the truth, both band-passed to 0.5–50 m (ends trimmed)."""
-    import pyarrow.parquet as pq
-
-    from .evaluate import band_pass
-
     t = pq.read_table(Path(export_dir) / "profile.parquet").to_pydict()
     x = np.asarray(t["chainage_m"], float)
     est = np.asarray(t["elevation_m"], float)
@@ -152,8 +154,6 @@ def profile_rmse(export_dir: Path, truth: dict, trim_m: float = 10.0) -> float:
 
 def _log_inputs(sim_dir: Path):
     """(model, channels, speeds, x0, dt, vehicle ids) of the logs, as the references take them."""
-    from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
-
     logs = [read_drive_log(p) for p in list_drive_logs(sim_dir / "logs")]
     model = logs[0].meta.vehicle_model
     names = MODEL_CHANNELS[model]
@@ -174,9 +174,6 @@ def write_sprung_mass_fleet(out_dir: Path, seed: int = 0, noise_pct: float = 0.0
     simulator's own :func:`~simfleet.sim.simulate_pass`; the registry's class is Table 2.2's mean
     and spread.
     """
-    from .scenarios import SCENARIOS
-    from .sim import PassPlan, build_truth, simulate_pass, surfaces, write_site
-
     scenario = dataclasses.replace(SCENARIOS["road-qc"], name="road-sm", description="Table 2.2 sprung masses",
                                    vehicle_model="sprung_mass", n_vehicles=6, route_length_m=100.0,
                                    noise_pct=noise_pct)
@@ -229,13 +226,6 @@ class RoadProblem:
 def small_road_problem(n_vehicles: int = 3, length_m: float = 40.0, spacing_m: float = 0.1, noise_pct: float = 2.0,
                        seed: int = 0, dt: float = 0.002) -> RoadProblem:
     """Simulated 4× finer than the sensor rate (the references' forward model runs at ``dt``)."""
-    from shared.dynamics.forward import simulate_on_profile
-    from shared.profiles import iso8608_profile, tyre_filter
-    from shared.sensors import add_noise
-    from shared.vehicles import QuarterCar
-
-    from .scenarios import SCENARIOS, TABLE_4_1, draw_fleet
-
     rng = np.random.default_rng(seed)
     road = tyre_filter(iso8608_profile(length_m + 20.0, 0.01, "A", seed=seed))
     params = draw_fleet(SCENARIOS["road-qc"], n_vehicles, rng)
@@ -268,9 +258,6 @@ def production_profile(problem: RoadProblem, params_list=None) -> tuple[np.ndarr
     The vehicles' parameters are given (nominal calibration), as for the posterior given vehicles.
     Returns the posterior mean at the grid points and the wall time (s) from raw chunks to snapshot.
     """
-    from shared.drivelog import DriveLog, DriveLogMeta
-    from shared.registry import Route, Site, VehicleClass
-
     params_list = problem.params if params_list is None else params_list
     logs = []
     for i, (z, v, p) in enumerate(zip(problem.channels, problem.speeds, params_list)):
@@ -299,8 +286,6 @@ def band_rmse(est: np.ndarray, truth: np.ndarray, x: np.ndarray, window: tuple[f
     The band the accelerations of vehicles at 15–22 m/s determine best: the scoring convention of
     :func:`simfleet.evaluate.score_profile` (0.5–50 m) shortened to fit a short stretch.
     """
-    from .evaluate import band_pass
-
     sel = (x >= window[0]) & (x <= window[1]) & np.isfinite(est)
     e = est[sel] - truth[sel]
     h = float(x[1] - x[0])
@@ -332,8 +317,6 @@ def time_to_equal_accuracy(problem: RoadProblem, n_iter: int = 2000, seed: int =
     error comes within ``tolerance`` of ours; if it never does within ``n_iter`` iterations or
     ``time_budget_s``, the ratio is a lower bound (``reached`` False).
     """
-    from cloud.reference import exact_profile_posterior, mcmc_profile_and_vehicles
-
     p = problem
     if n_iter < 2:
         raise ValueError("n_iter: at least 2 iterations")
@@ -421,12 +404,6 @@ def vehicle_step_landscape(vehicle: int = 1, ratios=None, seed: int = 4) -> tupl
     :class:`cloud.road.calibration.PassChannels` as k/m varies (the start-state coefficients solved
     for at each k/m, as the fit does). Returns (k/m values, rms misfit in m, true k/m).
     """
-    from cloud.road.calibration import REMAP_GAMMA, PassAp, PassChannels
-    from shared.dynamics.forward import simulate_on_profile
-    from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
-    from shared.profiles import iso8608_profile, tyre_filter
-    from shared.vehicles import SprungMass
-
     profile = tyre_filter(iso8608_profile(300.0, 0.01, "A", seed=seed))
     m, k = TABLE_2_2[vehicle]
     start = {"m": float(np.mean([v[0] for v in TABLE_2_2])), "k": float(np.mean([v[1] for v in TABLE_2_2]))}
@@ -451,8 +428,6 @@ def vehicle_step_landscape(vehicle: int = 1, ratios=None, seed: int = 4) -> tupl
 
 
 def _section_sprung_mass(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
-    from cloud.reference import cross_entropy_fleet
-
     sim = work / "sprung-mass"
     truth = write_sprung_mass_fleet(sim, seed=seed, noise_pct=0.0)
     run = run_system(sim, work / "sprung-mass-export")
@@ -520,12 +495,6 @@ def _section_sprung_mass(work: Path, quick: bool, seed: int) -> tuple[list[str],
 
 def _half_car_run(work: Path, quick: bool, seed: int, noise_pct: float) -> dict:
     """road-hc at ``noise_pct`` through the system and through the CE reference; errors per vehicle."""
-    from cloud.road.calibration import to_calibration
-    from cloud.reference import cross_entropy_fleet, fleet_objective
-
-    from .scenarios import SCENARIOS
-    from .sim import generate
-
     sim = work / f"road-hc-noise{noise_pct:g}"
     truth = generate(SCENARIOS["road-hc"], sim, seed=seed, noise_pct=noise_pct, workers=1, progress=False)
     run = run_system(sim, work / f"road-hc-noise{noise_pct:g}-export")
@@ -560,8 +529,6 @@ def _half_car_run(work: Path, quick: bool, seed: int, noise_pct: float) -> dict:
 
 
 def _section_half_car(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
-    from cloud.reference.cross_entropy import LOWPASS_M
-
     levels = [0.0] if quick else [0.0, 1.0]
     runs = [_half_car_run(work, quick, seed, pct) for pct in levels]
     first = runs[0]
@@ -635,10 +602,6 @@ def _section_half_car(work: Path, quick: bool, seed: int) -> tuple[list[str], di
 
 
 def _section_noise(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
-    from .evaluate import score_profile, score_vehicles
-    from .scenarios import SCENARIOS
-    from .sim import generate
-
     levels = [1.0, 5.0] if quick else [0.0, 1.0, 2.0, 5.0, 10.0]
     passes = 10 if quick else None
     rows, out = [], {}
@@ -682,10 +645,6 @@ def _section_noise(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]
 
 
 def _section_mcmc(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
-    from cloud.road.calibration import to_calibration
-    from cloud.reference import mcmc_profile_and_vehicles
-    from cloud.reference.mcmc import THESIS_N_ITER
-
     size = dict(n_vehicles=3, length_m=40.0, spacing_m=0.1) if quick else dict(n_vehicles=8, length_m=60.0,
                                                                              spacing_m=0.05)
     budget = 20.0 if quick else 300.0
@@ -862,50 +821,3 @@ def _json_default(x):
     if isinstance(x, Path):
         return str(x)
     return str(x)
-
-
-# ---------------------------------------------------------------------------------------------
-# Command line
-
-
-def _arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    p.add_argument("what", choices=("road", "bridge", "rail"),
-                   help="which results: road (Tables 2.3, 2.6, Fig. 2.12, §4.3 MCMC), bridge (Table 3.3, "
-                        "Table 4.2, Fig. 4.12, Cramér–Rao bound) or rail (Table 3.6 blind test, batch "
-                        "calibration, Fig. 3.10)")
-    p.add_argument("--out", default="driveby-reproduce", help="output directory (default ./driveby-reproduce)")
-    p.add_argument("--quick", action="store_true", help="smaller fleets, fewer noise levels and iterations")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--large", action="store_true", help="bridge: also the 300-pass cracks, fleet-large and the "
-                   "rough decks at 30/100/300 passes (hours on a loaded machine)")
-    return p
-
-
-def add_reproduce_arguments(subparsers) -> argparse.ArgumentParser:
-    """``driveby reproduce road|bridge|rail [--out DIR] [--quick] [--seed N]`` on the ``driveby`` command line."""
-    return _arguments(subparsers.add_parser(
-        "reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))
-
-
-def run_reproduce(args) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    if getattr(args, "what", "road") == "bridge":
-        from .reproduce_bridge import reproduce_bridge
-
-        report = reproduce_bridge(args.out, quick=args.quick, seed=args.seed, large=getattr(args, "large", False))
-    elif getattr(args, "what", "road") == "rail":
-        from .reproduce_rail import reproduce_rail
-
-        report = reproduce_rail(args.out, quick=args.quick, seed=args.seed)
-    else:
-        report = reproduce_road(args.out, quick=args.quick, seed=args.seed)
-    print(f"driveby reproduce: report written to {report}")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    return run_reproduce(_arguments(argparse.ArgumentParser(prog="python -m simfleet.reproduce")).parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

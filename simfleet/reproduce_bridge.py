@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import fcntl
 import json
 import logging
 import math
@@ -28,6 +29,22 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from cloud.bridge.bearings import krot_reading
+from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
+from cloud.bridge.information import PassCase, fleet_information, largest_error, noise_sd_of, pass_sensitivity
+from cloud.bridge.passdata import group_segments
+from cloud.bridge.static import StiffnessPrior, design_beam
+from cloud.bridge.vehicle_error import class_log_sd
+from cloud.daemon.settings import CloudSettings
+from shared.drivelog import list_drive_logs, read_drive_log
+from shared.fe.beam import influence_line
+from shared.registry import load_site
+
+from . import sim
+from .harness import run_in_process
+from .scenarios import SCENARIOS
+from .sim import bridge_beam, deck_window, surfaces
 
 log = logging.getLogger(__name__)
 
@@ -78,8 +95,6 @@ def simulate_case(name: str, work: Path, passes: int = 30, seed: int = 0, noise_
     """Simulate ``name`` (``nominal``: the class-mean parameters in the logs, or each vehicle's
     true ones — for tests where calibration is not the point), run edge + cloud in process with
     ``calibration`` and return the calibrated segments. Cached under ``work``."""
-    import fcntl
-
     d = simulate_dir(work, name, passes, seed, noise_pct, nominal)
     cache = d / f"case-{calibration}.pkl"
     d.mkdir(parents=True, exist_ok=True)
@@ -102,9 +117,6 @@ def simulate_subset(name: str, work: Path, passes: int, of: int, seed: int = 0, 
         return simulate_case(name, work, passes=of, seed=seed, noise_pct=noise_pct)
     full = simulate_dir(work, name, of, seed, noise_pct)
     if not (full / "truth.json").exists():
-        from . import sim
-        from .scenarios import SCENARIOS
-
         sim.generate(SCENARIOS[name], full, seed=seed, passes=of, noise_pct=noise_pct, workers=2, progress=False)
     d = simulate_dir(work, name, passes, seed, noise_pct)
     if not (d / "truth.json").exists():
@@ -128,14 +140,6 @@ def simulate_dir(work: Path, name: str, passes: int, seed: int = 0, noise_pct: f
 
 
 def _simulate_case(name, d: Path, cache: Path, passes, seed, noise_pct, calibration, nominal) -> Case:
-    from cloud.daemon.settings import CloudSettings
-    from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.registry import load_site
-
-    from . import sim
-    from .harness import run_in_process
-    from .scenarios import SCENARIOS
-
     t0 = time.perf_counter()
     if not (d / "truth.json").exists():
         sim.generate(SCENARIOS[name], d, seed=seed, passes=passes, noise_pct=noise_pct, nominal=nominal,
@@ -159,9 +163,6 @@ def _simulate_case(name, d: Path, cache: Path, passes, seed, noise_pct, calibrat
 
 def estimate_case(case: Case, settings=None, model: str = "quarter_car"):
     """The bridge estimate of a case (all passes), and the seconds the final estimate took."""
-    from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
-    from cloud.bridge.passdata import group_segments
-
     bridge = case.site.bridges[0]
     # The registry's word on the deck, as the daemon (cloud.bridge.monitor.BridgeMonitor) takes it.
     settings = dataclasses.replace(settings or BridgeSettings(), deck=bridge.deck)
@@ -175,19 +176,11 @@ def estimate_case(case: Case, settings=None, model: str = "quarter_car"):
 
 def true_ratio(case: Case) -> np.ndarray:
     """The true EI/EI_design per element of the case's bridge."""
-    from .sim import bridge_beam
-    from .scenarios import SCENARIOS
-
     return bridge_beam(SCENARIOS[case.name]).element_ei_factor()
 
 
 def true_effective(case: Case) -> float:
     """The true 'effective' ratio: design MR-IL area over the true one (what the estimator reports)."""
-    from shared.fe.beam import influence_line
-
-    from .sim import bridge_beam
-    from .scenarios import SCENARIOS
-
     beam = bridge_beam(SCENARIOS[case.name])
     x = np.linspace(0.0, beam.span_m, 401)
     design = dataclasses.replace(beam, ei_factor=None, supports="simply_supported", krot_nm_per_rad=None)
@@ -247,18 +240,6 @@ def weakest_element(case: Case, e) -> dict:
 
 def case_information(case: Case, sample: int = 6, noise_pct: float = 2.0):
     """Fisher information of the case's fleet (``sample`` passes computed, scaled to all)."""
-    from cloud.bridge.information import PassCase, fleet_information, noise_sd_of, pass_sensitivity
-    from cloud.bridge.static import design_beam
-    from shared.drivelog import list_drive_logs, read_drive_log
-
-    from .sim import bridge_beam
-    from .scenarios import SCENARIOS
-
-    from cloud.bridge.estimator import BridgeSettings
-    from cloud.bridge.vehicle_error import class_log_sd
-
-    from .sim import deck_window, surfaces
-
     sc = SCENARIOS[case.name]
     beam = bridge_beam(sc)
     if beam.supports != "simply_supported":
@@ -296,8 +277,6 @@ def healthy_bound_pts(passes: int) -> float:
 
 def largest_error_entry(info, prior_precision: np.ndarray, bound_pts: float, seed: int) -> dict:
     """:func:`cloud.bridge.information.largest_error` of ``info`` as a JSON-able dict."""
-    from cloud.bridge.information import largest_error
-
     le = largest_error(info, prior_precision, bound_pts, rng=np.random.default_rng(seed))
     d = dataclasses.asdict(le)
     return {k: ([float(x) for x in v] if isinstance(v, np.ndarray) else v) for k, v in d.items()}
@@ -327,8 +306,6 @@ def reproduce_bridge(out_dir: str | Path, quick: bool = False, seed: int = 0, la
     """Run the bridge scenarios and write ``out_dir/bridge.md`` (+ ``bridge.json``). ``large``: also
     the 300-pass cracks, fleet-large and the rough decks at 30/100/300 passes (:data:`LARGE`: hours
     on a loaded machine, so not in the default run); ``only_large``: those alone."""
-    from cloud.bridge.static import StiffnessPrior
-
     out = Path(out_dir)
     work = out / "work-bridge"
     work.mkdir(parents=True, exist_ok=True)
@@ -415,8 +392,6 @@ def reproduce_bridge(out_dir: str | Path, quick: bool = False, seed: int = 0, la
             entry["largest_error"] = {str(k): largest_error_entry(info.scaled(k), prior, healthy_bound_pts(k), seed)
                                       for k in (30, 300)}
         if "crack" in n:
-            from .scenarios import SCENARIOS
-
             spec = SCENARIOS[n].bridge
             b = cases[(n, seed, 30)].site.bridges[0]
             at = (b.n_elements, b.span_m, b.depth_m, spec.crack_x_m, spec.crack_phi)
@@ -483,8 +458,6 @@ def _report(r: dict) -> str:
           "| state | thesis log10 Krot (1/2) | ours log10 Krot mean (95 %) | reading | thesis I/I_true | "
           "ours mean EI ratio % | ours effective ratio (truth) | P(healthy) / P(bearings) | alarm |",
           "|---|---|---|---|---|---|---|---|---|"]
-    from cloud.bridge.bearings import krot_reading
-
     row = {"pinned": 0, "bearing-1e9": 1, "bearing-1e10": 2, "bearing-1e12": 3}
     for n, s in sorted(r["bearings"].items(), key=lambda kv: row.get(kv[0], 9)):
         k = (s.get("log10_krot") or [[float("nan")] * 3])[0]

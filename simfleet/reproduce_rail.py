@@ -46,6 +46,20 @@ from pathlib import Path
 
 import numpy as np
 
+from cloud.bridge.mril import DamageIndicators, MrIl, damage_indicators
+from cloud.rail.bridge import (calibration_draw, calibration_sds, damage_from_batch_means, design_scale,
+                               influence_of_aps, pooled_healthy, readable_line, registered_runs, resampled_runs,
+                               run_aps)
+from cloud.rail.calibration import GLOBAL_FIT, RailRun, calibrate_batch, cross_entropy_batch
+from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
+from shared.fe.beam import influence_line
+from shared.registry import load_site
+from shared.track import BridgeSpan
+
+from .rail import SLEEPER_M, RailBridgeSpec
+from .scenarios import SCENARIOS
+from .sim import generate
+
 log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------------------
@@ -153,8 +167,6 @@ CALIBRATION_MARGIN_M = 2.0  # the calibration window ends this far before the sp
 
 
 def scenario_of(state: int, profile: int, quick: bool):
-    from .scenarios import SCENARIOS
-
     s = SCENARIOS[f"rail-bridge-state{state}-profile{profile}"]
     if quick:  # a 40 m approach instead of 120 m (the tests' quick batch)
         s = dataclasses.replace(s, route_length_m=70.0, bridge=dataclasses.replace(s.bridge, start_m=40.2))
@@ -167,8 +179,6 @@ def batch_dir(cache: Path, state: int, profile: int, passes: int, seed: int, qui
 
 def simulate_batch(state: int, profile: int, cache: Path, passes: int, seed: int, quick: bool) -> Path:
     """The batch's logs, site and truth (simulated once, then reused)."""
-    from .sim import generate
-
     d = batch_dir(cache, state, profile, passes, seed, quick)
     if not (d / "truth.json").exists():
         t0 = time.perf_counter()
@@ -180,10 +190,6 @@ def simulate_batch(state: int, profile: int, cache: Path, passes: int, seed: int
 def load_runs(d: Path):
     """The batch's runs as the cloud sees them (GNSS speed, chainage of the first sample), and the
     site's carriage class and bridge (None without one)."""
-    from cloud.rail.calibration import RailRun
-    from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
-    from shared.registry import load_site
-
     site = load_site(d / "site.toml")
     runs = []
     for path in list_drive_logs(d / "logs"):
@@ -229,9 +235,6 @@ def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str,
     ``healthy``: the healthy batch of the track, whose registered wheel-difference line every run of
     this batch is registered to (:func:`registered`).
     """
-    from cloud.rail.bridge import calibration_sds, influence_of_aps, run_aps
-    from cloud.rail.calibration import GLOBAL_FIT, calibrate_batch
-
     # The calibration is the slow part, cached; the influences are recomputed.
     # (v2: the calibration's inverse at γ = 0.5 and the held globals' covariance; v3: its low-pass in
     # space, after the inverse; v4: each run's initial state and chainage shift; v5: the shift reported;
@@ -271,8 +274,6 @@ def registered(aps: list, span: tuple[float, float], healthy=None, dynamic: bool
     (on the synthetic batches of tests/test_rail_bridge_registration.py, per-run speed changes of
     0.03 % then moved the pooled readings by ≤ 0.13 points in three draws, up to 0.2 with each batch
     registered to its own mean and then to the healthy batch's; unregistered, up to 1.6)."""
-    from cloud.rail.bridge import influence_of_aps, registered_runs
-
     ref = None if healthy is None else healthy.difference_line
     return influence_of_aps(registered_runs(aps, *span, reference=ref), *span, dynamic=dynamic)
 
@@ -288,8 +289,6 @@ def read_batches(influence: dict, variant: str) -> dict:
     """state → D1/D2 (cloud.bridge.mril.DamageIndicators) of every state of one profile by a
     ``batch_means``-family ``variant`` (without ``_design``), from the batches' influences (state →
     BogieInfluence; the healthy state's included)."""
-    from cloud.rail.bridge import damage_from_batch_means, pooled_healthy
-
     healthy = influence[HEALTHY_STATE]
     ref = pooled_healthy(healthy, list(influence.values())) if variant.endswith("_pooled") else healthy
     return {s: _read_or_nan(lambda b=b: damage_from_batch_means(ref, b, fundamental="difference" in variant), variant)
@@ -306,8 +305,6 @@ def _worst(errors: list[float]) -> tuple[float, bool]:
 def _read_or_nan(read, what: str):
     """``read()`` (DamageIndicators), or NaN for both when its lines are not a deflection
     (cloud.rail.bridge.readable_line): a cell that is not read, logged and shown as nan, never a number."""
-    from cloud.bridge.mril import DamageIndicators
-
     try:
         return read()
     except ValueError as e:
@@ -326,8 +323,6 @@ def reading_spread(batches: dict, model: str, variant: str, rng: np.random.Gener
     (cloud.rail.bridge.resampled_runs) and on ``draws`` draws of every run's speed and wheel load from
     its calibration's intervals (cloud.rail.bridge.calibration_draw). No truth: this is what the
     reading itself says about how sure it is. ``batches``: state → BatchResult of one profile."""
-    from cloud.rail.bridge import calibration_draw, influence_of_aps, resampled_runs
-
     is_registered = variant.startswith("registered_")
     out = {}
     for kind in ("noise", "calibration"):
@@ -355,12 +350,6 @@ def true_effective_levels(truth: dict, x_m: np.ndarray, against_healthy: bool = 
     loss against the drawings, per-element scatter included), or with ``against_healthy`` against
     the same bridge's healthy span (``EI_healthy`` in the truth: the level an exact method finds
     from a healthy and a damaged batch; the nominal loss when the states differ only by it)."""
-    from cloud.bridge.mril import MrIl, damage_indicators
-    from shared.fe.beam import influence_line
-    from shared.track import BridgeSpan
-
-    from .rail import SLEEPER_M, RailBridgeSpec
-
     b = truth["bridge"]
     spec = RailBridgeSpec()
     ei = np.asarray(b["EI"], float)
@@ -392,8 +381,6 @@ def calibration_errors(fit, truth: dict) -> dict:
 def ce_reference(d: Path, seed: int, quick: bool) -> dict:
     """The thesis's Cross-Entropy batch calibration on the same batch and window (cached; with
     ``quick`` at most 40 generations and one restart)."""
-    from cloud.rail.calibration import cross_entropy_batch
-
     cached = d / "cross_entropy-v2.pkl"  # v2: the inverse at γ = 0.5 (rail_calibration.INVERSE_GAMMA)
     if cached.exists():
         with open(cached, "rb") as f:
@@ -436,10 +423,6 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
                                                     held and held.globals_log_cov,
                                                     batches.get((HEALTHY_STATE, profile)))
             truths[state, profile] = json.loads((d / "truth.json").read_text())
-    from cloud.bridge.mril import damage_indicators
-    from cloud.rail.bridge import damage_from_batch_means, design_scale, pooled_healthy, readable_line
-    from shared.registry import load_site
-
     rng = np.random.default_rng([seed, 6])
     for profile in profiles:
         healthy = batches[HEALTHY_STATE, profile]

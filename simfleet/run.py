@@ -21,6 +21,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import pyarrow as pa
+import pyarrow.parquet as pq
 import zenoh
 
 from shared import keys
@@ -253,9 +255,6 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
 
 def _merge_exports(parts: list[Path], export_dir: Path) -> list[str]:
     """One export from the shards' exports: each table is the concatenation of the shards' rows."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-
     names = sorted({p.name for d in parts for p in d.glob("*.parquet")})
     written = []
     for name in names:

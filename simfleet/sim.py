@@ -19,6 +19,7 @@ from shared.sensors import add_noise
 from shared.vbi import simulate_vbi
 from shared.vehicles import vehicle_from_params
 
+from .rail import generate_rail
 from .scenarios import Scenario, draw_fleet, fleet_class
 
 ROUTE_ID = "R1"
@@ -172,8 +173,6 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
     for old in (out_dir / "logs").glob("*.parquet"):
         old.unlink()
     if getattr(scenario, "kind", "road") == "rail":  # a carriage's batch of runs: simfleet.rail
-        from .rail import generate_rail
-
         return generate_rail(scenario, out_dir, seed, passes, noise_pct, nominal, workers, progress)
     rng = np.random.default_rng(seed)
     n_veh = vehicles if vehicles is not None else scenario.n_vehicles
