@@ -54,25 +54,23 @@ from pathlib import Path
 
 import numpy as np
 
+from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
+from cloud.bridge.passdata import group_segments
+from cloud.reference.mcmc import mcmc_bridge_elements
+from shared.fe.beam import compliance_kernel
+from shared.vbi import simulate_vbi
+from shared.vehicles import vehicle_from_params
+from simfleet.reproduce_bridge import simulate_case, true_effective
+
 SCENARIO = "bridge-global10"
 PASSES = 30
 
 
 def _case(work: Path):
-    from simfleet.reproduce_bridge import simulate_case
-
     return simulate_case(SCENARIO, work, passes=PASSES, seed=0)
 
 
 def run(work: Path | None = None):
-    from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
-    from cloud.bridge.passdata import group_segments
-    from cloud.reference.mcmc import mcmc_bridge_elements
-    from shared.fe.beam import compliance_kernel
-    from shared.vbi import simulate_vbi
-    from shared.vehicles import vehicle_from_params
-    from simfleet.reproduce_bridge import true_effective
-
     work = Path(work or Path(tempfile.gettempdir()) / "driveby-bench-bridge")
     case = _case(work)
     bridge = case.site.bridges[0]

@@ -50,6 +50,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
+import zenoh
+
+from shared import keys
+from shared.schema import decode_ack
+from shared.transport import run_router, zenoh_config
+from simfleet.run import RunError
+from simfleet.run import run as run_daemons
+from simfleet.scenarios import SCENARIOS
+from simfleet.sim import generate
 
 SCENARIO = "road-qc"
 PASSES = 8
@@ -117,9 +127,6 @@ class Killer:
 
 
 def _simulate(work: Path) -> Path:
-    from simfleet.scenarios import SCENARIOS
-    from simfleet.sim import generate
-
     road = work / f"{SCENARIO}-{PASSES}"
     if not (road / "site.toml").exists():
         generate(SCENARIOS[SCENARIO], road, seed=SEED, passes=PASSES, workers=1, progress=False)
@@ -127,8 +134,6 @@ def _simulate(work: Path) -> Path:
 
 
 def _read(export: Path) -> dict:
-    import pyarrow.parquet as pq
-
     out = {k: np.asarray(v) for k, v in pq.read_table(export / "profile.parquet").to_pydict().items()
            if k != "route_id"}
     vehicles = export / "vehicles.parquet"
@@ -169,13 +174,6 @@ def _rel_diff(ref: dict, got: dict) -> float:
 
 
 def _crash_run(road: Path, export: Path, calibration: str, rng: random.Random, kills: int):
-    import zenoh
-
-    from shared import keys
-    from shared.schema import decode_ack
-    from shared.transport import run_router, zenoh_config
-    from simfleet.run import run
-
     shutil.rmtree(export, ignore_errors=True)
     killer = Killer(export / ".run", PASSES, rng, kills, after_acks=rng.randint(1, PASSES - 2))
     with run_router() as endpoint, zenoh.open(zenoh_config("client", connect=[endpoint])) as s:
@@ -189,7 +187,7 @@ def _crash_run(road: Path, export: Path, calibration: str, rng: random.Random, k
 
         subs = [s.declare_subscriber(keys.ack_keyexpr(NET), on_ack),
                 s.liveliness().declare_subscriber(keys.alive_key(NET, "cloud", "cloud-1"), on_alive)]
-        result = run(road / "logs", road / "site.toml", export, calibration=calibration, progress=False,
+        result = run_daemons(road / "logs", road / "site.toml", export, calibration=calibration, progress=False,
                      rate=RATE, connect=endpoint)
         for sub in subs:
             sub.undeclare()
@@ -197,11 +195,9 @@ def _crash_run(road: Path, export: Path, calibration: str, rng: random.Random, k
 
 
 def _variant(work: Path, road: Path, calibration: str, trials: int, seed: int):
-    from simfleet.run import RunError, run
-
     ref_dir = work / f"ref-{calibration}"
     shutil.rmtree(ref_dir, ignore_errors=True)
-    ref = run(road / "logs", road / "site.toml", ref_dir, calibration=calibration, progress=False, rate=RATE)
+    ref = run_daemons(road / "logs", road / "site.toml", ref_dir, calibration=calibration, progress=False, rate=RATE)
     reference = _read(ref_dir)
     exact = calibration == "nominal"
     # Segments held = distinct (vehicle, pass, tile) the estimator holds. With exact posteriors every
@@ -215,7 +211,7 @@ def _variant(work: Path, road: Path, calibration: str, trials: int, seed: int):
         for _ in range(trials):
             again = work / f"ref2-{calibration}"
             shutil.rmtree(again, ignore_errors=True)
-            run(road / "logs", road / "site.toml", again, calibration=calibration, progress=False, rate=RATE)
+            run_daemons(road / "logs", road / "site.toml", again, calibration=calibration, progress=False, rate=RATE)
             spreads.append((_rel_diff(reference, _read(again)), not _cells(reference, _read(again))[2]))
         spread = max(d for d, _ in spreads)
         spread_cells = sum(bad for _, bad in spreads)

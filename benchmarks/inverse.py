@@ -84,7 +84,7 @@ def feeder(target, z: np.ndarray, chunk: int) -> Callable[[], None]:
 def plain_loop_rate(name: str, vehicle, z: np.ndarray) -> float | None:
     """Samples/s of the literal Python loop of tests/naive.py (None when tests is not importable)."""
     try:
-        from tests import naive
+        from tests import naive  # optional: importable only from the repository root
     except ImportError:
         log.warning("tests.naive is not importable (run from the repository root): no plain_loop ratio")
         return None

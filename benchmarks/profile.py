@@ -44,11 +44,27 @@
 
 from __future__ import annotations
 
+import ctypes
+import glob
 import math
+import os
 import time
 from typing import Iterator
 
 import numpy as np
+import scipy
+
+from cloud.reference import exact_profile_posterior, mcmc_profile_and_vehicles
+from cloud.reference.mcmc import THESIS_N_ITER, VehiclePass
+from cloud.road.calibration import PassAp, class_prior, fit_vehicle
+from cloud.road.gmrf_profile import GmrfProfile, iso8608_tau
+from shared.dynamics.forward import simulate_on_profile
+from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
+from shared.profiles import iso8608_profile, tyre_filter
+from shared.schema import ApSegment
+from shared.vehicles import QuarterCar
+from simfleet.reproduce import METRICS, production_profile, small_road_problem
+from simfleet.scenarios import TABLE_4_1
 
 RATE_HZ = 500.0
 SPACING_M = 0.05
@@ -67,8 +83,6 @@ def _best(fn, repeats: int = 5) -> float:
 
 
 def _segments(route_m: float, n_passes: int, rng: np.random.Generator) -> list:
-    from shared.schema import ApSegment
-
     n_tiles = int(round(route_m / (TILE_POINTS * SPACING_M)))
     out = []
     for p in range(n_passes):
@@ -82,8 +96,6 @@ def _segments(route_m: float, n_passes: int, rng: np.random.Generator) -> list:
 
 
 def _estimator(route_m: float, segments: list):
-    from cloud.road.gmrf_profile import GmrfProfile, iso8608_tau
-
     est = GmrfProfile({"R1": route_m}, SPACING_M, tau=iso8608_tau(SPACING_M))
     for s in segments:
         est.update(s)
@@ -154,8 +166,6 @@ def gmrf_results(rng: np.random.Generator) -> Iterator[dict]:
 
 
 def drift_results(rng: np.random.Generator) -> Iterator[dict]:
-    from cloud.road.gmrf_profile import GmrfProfile, iso8608_tau
-
     passes = [1, 10, 30, 60]
     snaps, ups = [], []
     _estimator(200.0, _segments(200.0, 1, rng))  # load the compiled update kernel before timing it
@@ -188,12 +198,6 @@ def one_blas_thread() -> bool:
     threaded), and on a shared machine a threaded BLAS oversubscribes: the same exact posterior
     took 0.13 s on one thread and 0.4–3 s threaded under load.
     """
-    import ctypes
-    import glob
-    import os
-
-    import scipy
-
     done = False
     for pkg, fns in ((np, ("scipy_openblas_set_num_threads64_",)), (scipy, ("scipy_openblas_set_num_threads",))):
         libs = os.path.join(os.path.dirname(os.path.dirname(pkg.__file__)), f"{pkg.__name__}.libs")
@@ -252,9 +256,6 @@ def equal_accuracy(problem, n_iter: int, time_budget_s: float | None = None, tol
     extrapolate from only the first fraction of the run and compare with what the run then did
     (how far the extrapolation can be trusted).
     """
-
-    from cloud.reference import exact_profile_posterior, mcmc_profile_and_vehicles
-    from simfleet.reproduce import METRICS, production_profile
 
     p = problem
     ridge = 1.0  # 1/m²: makes the level proper (the accelerations do not see it), negligible otherwise
@@ -369,9 +370,6 @@ def thesis_chain_results(cpu_budget_s: float = 100.0) -> Iterator[dict]:
     came within 10 % of the exact posterior's error at iteration 2 928 (208×); with the long waves
     kept (detrended) it had not (0.046 mm against 0.040 mm): ≥ 4 490×.
     """
-    from cloud.reference.mcmc import THESIS_N_ITER
-    from simfleet.reproduce import small_road_problem
-
     one_blas_thread()
     problem = small_road_problem(n_vehicles=30, length_m=20.0, spacing_m=0.1, seed=0)
     r = equal_accuracy(problem, n_iter=40_000, cpu_budget_s=cpu_budget_s)
@@ -381,13 +379,6 @@ def thesis_chain_results(cpu_budget_s: float = 100.0) -> Iterator[dict]:
 
 
 def calibration_results() -> Iterator[dict]:
-    from cloud.road.calibration import PassAp, class_prior, fit_vehicle
-    from shared.dynamics.forward import simulate_on_profile
-    from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
-    from shared.profiles import iso8608_profile, tyre_filter
-    from shared.vehicles import QuarterCar
-    from simfleet.scenarios import TABLE_4_1
-
     true = dict(M=4450.0, m=420.0, K=5.0e5, k=1.95e6, c=2.0e4)
     start = {**true, "K": 5.5e5, "k": 1.8e6, "c": 2.3e4, "m": 450.0}
     profile = tyre_filter(iso8608_profile(800.0, 0.01, "A", seed=4))
@@ -409,8 +400,6 @@ def calibration_results() -> Iterator[dict]:
 
 
 def accuracy_results(budget_s: float = 60.0) -> Iterator[dict]:
-    from simfleet.reproduce import small_road_problem
-
     one_blas_thread()
     sizes = (dict(n_vehicles=3, length_m=40.0, spacing_m=0.1), dict(n_vehicles=6, length_m=60.0, spacing_m=0.05))
     for size in sizes:
@@ -423,8 +412,6 @@ def literal_seconds_per_iteration(problem) -> float:
     """CPU seconds one iteration of the thesis's chain costs done literally: every profile proposal
     (P per sweep) re-simulates every vehicle (timed: one simulation of each, its model and geometry
     built beforehand, the best of 5)."""
-    from cloud.reference.mcmc import VehiclePass
-
     p = problem
     vehicles = []
     for z, v, prm in zip(p.channels, p.speeds, p.params):
@@ -442,9 +429,6 @@ def literal_seconds_per_iteration(problem) -> float:
 
 
 def literal_results() -> Iterator[dict]:
-    from cloud.reference import mcmc_profile_and_vehicles
-    from simfleet.reproduce import small_road_problem
-
     p = small_road_problem(n_vehicles=3, length_m=40.0, spacing_m=0.1, seed=0)
     res = mcmc_profile_and_vehicles(p.model, p.channels, p.speeds, p.dt, p.grid, p.prior_mean, p.prior_sd,
                                     np.random.default_rng(0), 200, init_params=p.params, update_vehicles=False)

@@ -45,12 +45,19 @@ When ours is at least as accurate on every property, the ratio is a lower bound 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.profile import one_blas_thread
+from cloud.rail.calibration import calibrate_batch, cross_entropy_batch
+from simfleet.reproduce_rail import calibration_errors, load_runs
+from simfleet.scenarios import SCENARIOS
+from simfleet.sim import generate
 
 SCENARIO = "rail-track"
 PASSES = 50
@@ -61,10 +68,6 @@ CHEAP = {"stages_m": (16.0, 6.0), "max_iter": 3}
 
 
 def _batch(work: Path, passes: int):
-    from simfleet.reproduce_rail import load_runs
-    from simfleet.scenarios import SCENARIOS
-    from simfleet.sim import generate
-
     d = work / f"{SCENARIO}-seed0-n{passes}"
     if not (d / "truth.json").exists():
         generate(SCENARIOS[SCENARIO], d, seed=0, passes=passes, progress=False)
@@ -75,8 +78,6 @@ def _batch(work: Path, passes: int):
 def started_mid_motion(runs, seed: int = 0, lo_s: float = 0.3, hi_s: float = 1.0):
     """The runs without their first ``lo_s``–``hi_s`` s (uniform per run): records that start
     mid-motion, their first chainage the log's (reported speed × time, as the simulator's logs have it)."""
-    import dataclasses
-
     rng = np.random.default_rng(seed)
     out = []
     for r in runs:
@@ -92,10 +93,6 @@ def _timed(fn):
 
 
 def run(work: Path | None = None, passes: int = PASSES):
-    from benchmarks.profile import one_blas_thread
-    from cloud.rail.calibration import calibrate_batch, cross_entropy_batch
-    from simfleet.reproduce_rail import calibration_errors
-
     pinned = one_blas_thread()
     work = Path(work or Path(tempfile.gettempdir()) / "driveby-bench-rail")
     runs, cls, truth = _batch(work, passes)
