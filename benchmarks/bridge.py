@@ -17,28 +17,21 @@ self-calibrated by the system (edge + cloud cores in process). Accuracy = |error
 
 The reference's data are each pass's drift-controlled deflection as our estimator's per-pass MR-IL
 reads it (fleet-common consensus trend, support steps and the bridge's dynamic excess modelled out —
-a favour to the reference). Until session 6 the raw AP − consensus went in: its mm step at the
-supports drove the class weights to 5× their mean by iteration 300, and the "0.92 at 2 000
-iterations" was a chain in transit (0.45 from 5 000 on, end elements at 0.1–0.25 % of I).
+a favour to the reference: the raw AP − consensus carries a mm step at the supports that drives the
+chain's class weights far from their mean within a few hundred iterations).
 
-Why the chain still does not settle on the truth — a property of the thesis's model on these data,
-not a sampler bug (the sampler matches a closed-form posterior in tests/test_bridge_reference.py).
-At 2 % acceleration noise each pass's deflection carries ~100 µm of correlated error against a
-0.2 mm signal (σ₃² = 1e-11 assumes 3 µm): fitted alone at the true I, the 30 passes' loads read
-−0.55…2.92 × the class mean (sd 0.80). The likelihood is exactly invariant along W → cW, I → cI, so
-the scale c is set by the priors alone, and both pull it down: (a) each one-pass vehicle's weight
-absorbs its pass's error (spread 7–10 class sds, some at W ≈ 0), and a Gaussian class prior on so
-spread a fleet is smallest at c* = Σr/Σr² ≈ 0.53–0.75 (r = W/w̄), not 1; (b) with σ₃² that small
-the end elements take the near-support errors (I → 0.3–0.6 % of design from 20 000 iterations on) and
-the GMRF prior (eq. 4.34), being on I in m⁴ rather than on relative changes, charges these steps
-τ₂/2·ΣΔI² ≈ 2 000–6 000 nats, which shrink as c². Measured d log p/d ln c at iterations 2 000 /
-20 000 / 60 000 / 120 000: weight prior −3 654 / −927 / −1 / +309, GMRF −12 318 / −8 491 /
-−5 566 / −4 180 (volume +49). The chain crawls down the ridge (s_I = 0.001 m⁴ is 0.08 % of I): the running
-mean of the effective ratio over the chain's second half is 1.009 at 2 000 iterations, 0.900 at
-5 000, 0.81 at 10 000, 0.72 at 20 000, 0.55 at 60 000, 0.46 at 120 000, still falling (σ₃² = 1e-8,
-the margins' noise, or τ₂ = 1 drift as well; weights pinned at the class mean hold it at 0.97). Its
-2 000-iteration answer is its start (design I, class-mean weights) plus drift, and it is within our
-accuracy only in transit (iterations 4 764–5 281), so the ratio is reported as a lower bound.
+Why the chain does not settle on the truth — a property of the thesis's model on these data, not a
+sampler bug (the sampler matches a closed-form posterior in tests/test_bridge_reference.py). At 2 %
+acceleration noise each pass's deflection carries correlated error of about half its signal (σ₃² =
+1e-11 assumes 3 µm), so the passes' loads, each fitted alone at the true I, scatter by about a class
+mean. The likelihood is exactly invariant along W → cW, I → cI, so the scale c is set by the priors
+alone, and both pull it down: (a) each one-pass vehicle's weight absorbs its pass's error, and a
+Gaussian class prior on so spread a fleet is smallest at c* = Σr/Σr² < 1 (r = W/w̄), not at 1; (b) with
+σ₃² that small the end elements take the near-support errors, and the GMRF prior (eq. 4.34), being on I
+in m⁴ rather than on relative changes, charges these steps τ₂/2·ΣΔI², which shrinks as c². The chain
+crawls down the ridge (s_I = 0.001 m⁴ is 0.08 % of I) and its running mean keeps falling: its
+2 000-iteration answer is its start (design I, class-mean weights) plus drift, within our accuracy only
+in transit, so the ratio is reported as a lower bound. The measurements are in docs/results.md (Bridge).
 
 Timings are wall-clock on a shared machine; ratios are measured in the same run. The simulated and
 self-calibrated passes are not what is timed: they are kept in ``$TMPDIR/driveby-bench-bridge`` and

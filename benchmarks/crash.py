@@ -19,7 +19,7 @@ Per trial, against the reference (``--calibration nominal``: exact posteriors):
 * every pass acknowledged.
 
 ``DRIVEBY_CRASH_FLEET_TRIALS`` (default 3; 0 skips) repeats it with ``--calibration fleet``
-(iterative self-calibration; the issue's bound is 1e-6 relative after it settles), adding the
+(iterative self-calibration; the bound is 1e-6 relative after it settles), adding the
 vehicles.parquet means to the comparison (on the cells both profiles have: the aligned extent can
 move by a cell). Calibration rounds run in epochs, fixed prefixes of the passes in completion order
 (:meth:`cloud.daemon.core.Cloud.maybe_calibrate`), journalled with the calibrator's state before a round's
@@ -28,9 +28,8 @@ rounds on the same data. There ``accepted`` is not comparable (an edge resubmits
 calibration version, and a restarted cloud may re-issue a calibration to get a pass recomputed that
 an edge finished with older parameters); lost/double-counted segments are counted by
 ``segments_held`` instead, and further uninterrupted runs (as many as crash trials) give the noise
-floor (``uninterrupted_spread``; before epochs, rounds started when the bus happened to be quiet and
-two runs without any crash differed by 0.2–0.9 % in vehicle means; measured with epochs: ~1e-12,
-the profile's summation order).
+floor (``uninterrupted_spread``: since rounds run in epochs, not when the bus happens to be quiet, it
+is the profile's summation order).
 
 Timings are wall-clock on a shared machine (noisy). Data are simulated into
 ``$TMPDIR/driveby-bench-crash`` and the runs' exports are written there too.

@@ -22,7 +22,7 @@
   beside it. The production path is not told the vehicles' initial state (the edge drops each
   pass's inverse warm-up, ~7 m of a 20 m pass at 15–22 m/s); the exact posterior and the chain are
   (the thesis's passes start at rest in static equilibrium). Scores: RMSE band-passed to 0.5–50 m — the
-  issues' convention for profile error, and the score the ≥ 1 000× target is read on (on the thesis's
+  accuracy targets' convention for profile error, and the score the ≥ 1 000× target is read on (on the thesis's
   12 m window it keeps every wave but the level) —, to 0.5–10 m (the band the accelerations determine
   best, where the chain mixes fastest), and with only a line removed. The value is *measured* when the chain gets
   there within its run, else its whole run over ours, a lower bound (``lower_bound`` true); beside
@@ -190,13 +190,12 @@ def drift_results(rng: np.random.Generator) -> Iterator[dict]:
            "ratio_to": {"snapshot_60_vs_1_pass": snaps[-1] / snaps[0]}}
 
 
-
 def one_blas_thread() -> bool:
     """Pin numpy's and scipy's OpenBLAS to one thread; True if it could.
 
     Both sides of the comparison then run on one core (the chain's numba kernels are single-
     threaded), and on a shared machine a threaded BLAS oversubscribes: the same exact posterior
-    took 0.13 s on one thread and 0.4–3 s threaded under load.
+    runs several times slower threaded under load than on one thread.
     """
     done = False
     for pkg, fns in ((np, ("scipy_openblas_set_num_threads64_",)), (scipy, ("scipy_openblas_set_num_threads",))):
@@ -364,12 +363,7 @@ def _equal_accuracy_results(prefix: str, r: dict) -> Iterator[dict]:
 
 def thesis_chain_results(cpu_budget_s: float = 100.0) -> Iterator[dict]:
     """The thesis's setting (§4.2–4.3: 30 quarter-cars, 20 m, 2 % noise): the chain runs at least its
-    n_iter = 2000 and on to ``cpu_budget_s`` of CPU time (~20 000 iterations).
-
-    Measured with 60 000 iterations (303 CPU s, 40 min on a loaded machine): band-passed, the chain
-    came within 10 % of the exact posterior's error at iteration 2 928 (208×); with the long waves
-    kept (detrended) it had not (0.046 mm against 0.040 mm): ≥ 4 490×.
-    """
+    n_iter = 2000 and on to ``cpu_budget_s`` of CPU time (~20 000 iterations)."""
     one_blas_thread()
     problem = small_road_problem(n_vehicles=30, length_m=20.0, spacing_m=0.1, seed=0)
     r = equal_accuracy(problem, n_iter=40_000, cpu_budget_s=cpu_budget_s)

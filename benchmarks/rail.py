@@ -1,4 +1,4 @@
-"""Batch self-calibration of a carriage's run properties (issue #6): 50 runs of ``rail-track``
+"""Batch self-calibration of a carriage's run properties: 50 runs of ``rail-track``
 (150 m of ballasted track, 2 % noise, GNSS speed ~2 % off), ours (:func:`cloud.rail.calibration.
 calibrate_batch`) against the thesis's Cross-Entropy with restarts (:func:`cloud.rail.calibration.
 cross_entropy_batch`) on the same runs, window and low-pass band, with the same primitives (the
@@ -25,8 +25,7 @@ found to start at rest there and on the clean batch.
 
 The accuracy also gives what no calibration at all scores (``no_calibration_median_abs_pct``: the
 class means of mv and Iv, the GNSS speed), the floor any calibration should beat: CE at the
-settings below does not beat it on mv and Iv on this batch (measured: CE 7.1 / 7.0 %, class means
-6.7 / 6.9 %; CE's speed 0.28 % against GNSS 1.35 %).
+settings below does not beat it on mv and Iv on this batch (docs/results.md, Rail).
 
 CE (:func:`cloud.rail.calibration.cross_entropy_batch` defaults) against thesis §3.4.1: the objective
 (3.11)–(3.12), normal sampling, the 10 % elite, restarts that keep the mean and reset the sd to its

@@ -295,7 +295,7 @@ def band_rmse(est: np.ndarray, truth: np.ndarray, x: np.ndarray, window: tuple[f
 
 
 def issue_band_rmse(est: np.ndarray, truth: np.ndarray, x: np.ndarray, window: tuple[float, float]) -> float:
-    """:func:`band_rmse` in the issues' own convention, wavelengths 0.5–50 m (as
+    """:func:`band_rmse` in the accuracy targets' convention for profile error, wavelengths 0.5–50 m (as
     :func:`simfleet.evaluate.score_profile`); on a window shorter than 50 m it keeps every wave the
     window holds but its level."""
     return band_rmse(est, truth, x, window, band_m=(0.5, 50.0))
@@ -312,10 +312,10 @@ def time_to_equal_accuracy(problem: RoadProblem, n_iter: int = 2000, seed: int =
     The MCMC runs with the thesis's settings (τ₁ = 1e5, σ₁² = 0.001, s_profile = 1 mm) and the
     vehicles held at their true parameters, so its target is exactly the exact posterior's. Its
     estimate after i iterations is the mean of iterations i/2..i. Three scores (:data:`METRICS`): the
-    error band-passed to 0.5–10 m, to 0.5–50 m (the issues' convention), and with only a line
-    removed (the last two keep the long waves, where single-site updates mix slowest). "Equal accuracy" is reached when the MCMC's
-    error comes within ``tolerance`` of ours; if it never does within ``n_iter`` iterations or
-    ``time_budget_s``, the ratio is a lower bound (``reached`` False).
+    error band-passed to 0.5–10 m, to 0.5–50 m (the accuracy targets' convention), and with only a
+    line removed (the last two keep the long waves, where single-site updates mix slowest). "Equal
+    accuracy" is reached when the MCMC's error comes within ``tolerance`` of ours; if it never does
+    within ``n_iter`` iterations or ``time_budget_s``, the ratio is a lower bound (``reached`` False).
     """
     p = problem
     if n_iter < 2:
@@ -481,9 +481,9 @@ def _section_sprung_mass(work: Path, quick: bool, seed: int) -> tuple[list[str],
     start = float(np.mean([v[1] for v in TABLE_2_2]) / np.mean([v[0] for v in TABLE_2_2]))
     lines += [
         "How the system's vehicle step finds it: all vehicles are fitted at once with the profile profiled out "
-        "(`cloud/calibration.py`, `fit_fleet`), by how well their APs agree in the 1–30 m band. An earlier "
-        "version fitted each vehicle alone in acceleration space, where an *undamped* sprung mass has a local "
-        "minimum at every resonance match and a start at the class mean settled in the wrong one (~86 % off). "
+        "(`cloud/road/calibration.py`, `fit_fleet`), by how well their APs agree in the 1–30 m band. Fitted "
+        "alone in acceleration space instead, an *undamped* sprung mass has a local minimum at every resonance "
+        "match, and a start at the class mean settles in a wrong one. "
         "In AP space the sprung mass's AP is linear in m/k. Scanned for vehicle 2 in ideal conditions (one "
         f"noise-free pass, the true profile as the consensus; true k/m = {true:.0f} s⁻², class-mean start "
         f"{start:.0f} s⁻², k/m from {q[0]:.0f} to {q[-1]:.0f}), the misfit has "
@@ -580,19 +580,18 @@ def _section_half_car(work: Path, quick: bool, seed: int) -> tuple[list[str], di
                   "above the wheel hop — at 1 % noise the AP under the *true* parameters is ~140 mm rms of noise "
                   "against a road of a few mm, nearly all at wavelengths under 0.5 m, and the literal objective is "
                   "smallest for stiff tyres and light wheels (about 1/700 of its value at the truth for K_t × 3, "
-                  "m_u × 0.1); run that way, this reference scored 85.6 % (averaged median) at 1 % noise on seed 0. "
-                  "It now "
+                  "m_u × 0.1), so run that way this reference reads noise, not the vehicles. It therefore "
                   f"compares the APs above {LOWPASS_M:g} m wavelength (each vehicle's channels low-passed in time, "
                   "`cloud.reference.cross_entropy.LOWPASS_M`; above every wheel hop at these speeds), where the "
                   "objective at the truth is a few times its noise-free value. Our system's step compares channels, "
-                  "where the sensor noise is white, not APs: the joint AP-space step it replaced for half-cars (seed "
-                  "0, 1 % noise: profile error 46 %, medians up to 72 %) weighed an AP whose noise swamps the road "
-                  "at short wavelengths. Two details make the channel comparison work on a noisy half-car AP "
-                  "(`cloud.road.calibration.RemapSettings`): each pass's unknown start state is profiled out (the forward "
-                  "model's start on a noisy AP left a free response of 1–3 channel sd), and the prediction keeps the "
+                  "where the sensor noise is white, not APs: a joint step in AP space weighs a half-car AP whose noise "
+                  "swamps the road at short wavelengths. Two details make the channel comparison work on a noisy "
+                  "half-car AP (`cloud.road.calibration.RemapSettings`): each pass's unknown start state is profiled "
+                  "out (a start fixed on a noisy AP leaves a free response of its own in the channels), and the "
+                  "prediction keeps the "
                   "edge inverse's Newmark γ (the consensus is made of APs from that inverse and carries its "
-                  "numerical damping at the wheel hop; predicting with the exact γ = ½ let every vehicle settle off "
-                  "the same way, Kt2/m_s −22 %). What is left is the distortion of the other vehicles' APs, unlike "
+                  "numerical damping at the wheel hop; predicted with the exact γ = ½, every vehicle settles off "
+                  "the same way). What is left is the distortion of the other vehicles' APs, unlike "
                   "each vehicle's own."]
     lines.append("")
     out = {f"noise_{r['noise_pct']:g}": {"median_error": r["median"], "ce_seconds": r["ce_seconds"],
@@ -717,7 +716,7 @@ def _section_mcmc(work: Path, quick: bool, seed: int) -> tuple[list[str], dict]:
         "Time to equal accuracy (the MCMC's error within 10 % of ours):",
         "",
     ]
-    for metric, what_m in ((band, "0.5–10 m"), ("band_0.5_50m", "0.5–50 m (the issues' convention)"),
+    for metric, what_m in ((band, "0.5–10 m"), ("band_0.5_50m", "0.5–50 m (the accuracy targets' convention)"),
                            (det, "detrended")):
         for name, what in (("exact", "exact posterior"), ("production", "production path")):
             v = tte["ratios"][metric][name]

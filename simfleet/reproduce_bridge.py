@@ -1,8 +1,8 @@
 """``driveby reproduce bridge``: the thesis's bridge results (Table 3.3, Table 4.2, Fig. 4.12) beside
 ours, and our error beside the Cramér–Rao bound.
 
-Conditions are the issue's: 2 % sensor noise, smooth deck (as the thesis), vehicle parameters from
-the system's own fleet self-calibration (the edge and cloud cores wired in process,
+Conditions are those the accuracy targets are stated for: 2 % sensor noise, smooth deck (as the
+thesis), vehicle parameters from the system's own fleet self-calibration (the edge and cloud cores wired in process,
 :func:`simfleet.harness.run_in_process`, ``calibration="fleet"``: the parameters each pass's AP
 was computed with), wheel loads from the registry's vehicle class (the class mean mass fixes the
 scale, thesis §4.5.5). The bridge estimator (:class:`cloud.bridge.estimator.BridgeEstimator`) gets
@@ -270,8 +270,8 @@ def case_information(case: Case, sample: int = 6, noise_pct: float = 2.0):
 
 
 def healthy_bound_pts(passes: int) -> float:
-    """The issue's bound on every element of bridge-healthy (points): ±5 at 30 passes, ±3 at 300
-    (and from 100 on, where the issue states none)."""
+    """The target bound on every element of bridge-healthy (points): ±5 at 30 passes, ±3 at 300
+    (and from 100 on, where no target is stated)."""
     return 5.0 if passes < 100 else 3.0
 
 
@@ -387,7 +387,7 @@ def reproduce_bridge(out_dir: str | Path, quick: bool = False, seed: int = 0, la
         entry = dict(global_sd=info.global_sd(), global_sd_300=info.scaled(300).global_sd(),
                      element_sd_free=[float(v) for v in info.element_sd()],
                      element_sd_gmrf=[float(v) for v in info.element_sd(StiffnessPrior().precision(20))])
-        if n == "bridge-healthy":  # the issue's "every element within ±5 / ±3" against the efficient estimator
+        if n == "bridge-healthy":  # the target "every element within ±5 / ±3" against the efficient estimator
             prior = StiffnessPrior().precision(info.F.shape[0])
             entry["largest_error"] = {str(k): largest_error_entry(info.scaled(k), prior, healthy_bound_pts(k), seed)
                                       for k in (30, 300)}
@@ -494,7 +494,7 @@ def _report(r: dict) -> str:
     eff = np.array([s["effective"] for s in sp])
     bound = crb["global_sd"]
     spread = (f"spread (sd) {100 * np.std(eff, ddof=1):.2f} points (ratio to the bound "
-              f"{np.std(eff, ddof=1) / bound:.1f}×; the issue asks ≤ 1.5×)" if eff.size > 1 else
+              f"{np.std(eff, ddof=1) / bound:.1f}×; the target is ≤ 1.5×)" if eff.size > 1 else
               "spread: needs several seeds (run without --quick)")
     L += ["", f"**Efficiency** (bridge-global10, {len(sp)} seed(s)): estimates "
           + ", ".join(f"{100 * (1 - v):.1f}" for v in eff) + " % loss (truth 10 %); "
@@ -505,8 +505,8 @@ def _report(r: dict) -> str:
           "nuisances (wheel loads, the calibration error common to the fleet and each pass's own), not the same "
           "noise level: the bound has white sensor noise at 2 % of the channel's sd; the estimator reads each "
           "pass's level on its approach, in the band of its element directions (cloud.bridge.static."
-          "element_band_sigma; read from the whole band, it was 1.19× low there against noise-free twins — 0.99–1.00 "
-          "now — and the 10-seed spread 0.86 points against 0.70 now, session 9), and the approach's noise holds more "
+          "element_band_sigma, which reads the level there as noise-free twins do, where the whole band's level reads "
+          "it low), and the approach's noise holds more "
           "than sensor noise (the AP's processing, a low-frequency excess near the record's start).", ""]
     return "\n".join(L) + "\n"
 
@@ -518,7 +518,7 @@ def largest_error_report(r: dict) -> list[str]:
         return []
     ours = {"30": r["scenarios"].get("bridge-healthy", {}).get("element_err_max_pts")}
     ours.update({k: s.get("element_err_max_pts") for k, s in (r.get("large") or {}).get("bridge-healthy", {}).items()})
-    L = ["", "**bridge-healthy: every element within ±b** (the issue's bounds) for an estimator at the information "
+    L = ["", "**bridge-healthy: every element within ±b** (the target bounds) for an estimator at the information "
          "bound with the estimator's GMRF prior (`StiffnessPrior()`, τ = 1; the estimator itself weighs scales τ by "
          "their evidence): on a healthy span the prior's smoothness is exact, so such an estimator is unbiased and "
          "its error covariance is A·F·A (A = (F + Q)⁻¹), below the posterior's A "
@@ -539,7 +539,7 @@ def _large_report(large: dict) -> list[str]:
         return []
     L = ["", "## Large fleets and rough decks: error against the number of passes", "",
          "The first 30, 100 and 300 passes of one simulation each (fleet calibration on those passes only). "
-         "Cracks (issue, 300 passes): the weakest element within one element of the crack, its loss within "
+         "Cracks (the targets at 300 passes): the weakest element within one element of the crack, its loss within "
          "±5 points of the truth, an alarm — read from the damage the hypotheses report (the crack's location "
          "and its model's peak element loss: 'reported'), with the per-element GMRF view beside it (its "
          "smoothness prior spreads a crack over its neighbours). Rough decks: the registry says "

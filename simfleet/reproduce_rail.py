@@ -113,7 +113,7 @@ VARIANT_NAME = {
     "unseparated": "thesis-style: mean AP per unit load, profile not separated",
 }
 HEALTHY_STATE = 7
-#: The issue's bounds on |ours − true| in points, per model (thesis: ~2 and ~4).
+#: The target bounds on |ours − true| in points, per model (thesis: ~2 and ~4).
 BOUND_PTS = {"carriage": 2.0, "bogie_half_car": 3.0, "leading_bogie": 3.0}
 #: Our reading per model. The half-car's own AP is off by the body's force on the bogie, which it
 #: does not model and which grows with the body mass (cloud.rail.bridge), so it is read as the thesis
@@ -121,44 +121,23 @@ BOUND_PTS = {"carriage": 2.0, "bogie_half_car": 3.0, "leading_bogie": 3.0}
 #: that force (the half-car's and the carriage's differences are the same), registered on the
 #: difference too — one bogie's two channels and the calibrated run properties are all it needs.
 #: The leading bogie with the body modelled (the same two channels) is read as the carriage is.
-#: Session 8: every reading before was chosen by looking at the blind test's errors (the history: the
-#: carriage's pooled line adopted after seeing seed 2 profile 1, the half-car's on all three seeds) and
-#: the half-car's swung by points with sub-per-mille changes of the calibration (seed 2 profile 2
-#: state 2: 14.2 → 7.8). The cause, measured without the truth (draws as :func:`reading_spread`'s, seeds
-#: 0/1/2 × profiles 1/2, /tmp/H3/s8): each run's calibrated speed is off by ~0.01 %, ~15 mm of chainage
-#: at the span (11–16 mm rms per batch against the true speeds, 1.6–2.3 mm once registered), and the
-#: load regression over the batch's ~7 % load spread turns the profile's slope times that into the
-#: healthy line's scale: each batch's estimate of the healthy line moved by 0.4–11 % (AP) and 5–62 %
-#: (J⁰) under per-run speed draws of the calibration's own sd (registered: ≤ 0.4 % and 0.2–5 %), and
-#: 10–16 % / 25–45 % under the 0.03 % that two calibrations differed by (seed 0 profile 1). The
-#: readings' sd from those speed draws, rms over the states, per seed × profile: healthy batch alone
-#: 0.1–0.8 (carriage), 1.2–269 (half-car J⁰: its healthy J⁰ can come out near zero); pooled 0.06–0.28
-#: and 0.6–1.3; each run registered first (cloud.rail.bridge.registered_runs) 0.01–0.02 and 0.06–0.18.
-#: The choice, made on the sd alone (bootstrap noise and speed draws together, rms over all 72 cells of
-#: a model; smallest wins, within 5 % the simpler): carriage — registered + pooled 0.46, registered +
-#: inverse-variance weights 0.46, pooled 0.49, registered healthy-alone 0.57, healthy-alone 0.74;
-#: half-car J⁰ — registered + pooled 1.68, registered + inverse-variance 1.71, pooled 1.97, registered
-#: healthy-alone 20.8, healthy-alone 110. So: runs registered, healthy line pooled with the load-spread
-#: weights, for both. Only then were the blind test's errors read (seeds 0/1/2, largest: carriage
-#: 1.1/0.9/2.2, half-car 3.7/2.7/4.4; the readings chosen before, on the same fits: 0.9/1.4/2.6 and
-#: 4.1/3.1/5.2). What the sd does not hold: seed 2 profile 2 reads low in every state in proportion to
-#: the level (carriage −0.4 … −2.2 points, 13–18 % of D), a common scale error of the healthy line.
-#: The swing itself, on the two calibrations of seed 2 profile 2 that differed by 0.02 % (masses) and
-#: 0.03 % (speeds) per run (H7, session 7): the half-car's reading chosen before moved by up to 6.4
-#: points between them (rms 3.0 over the states × D1/D2), this one by ≤ 0.37 (rms 0.27); the
-#: carriage's 1.0 → 0.18.
-#: Session 9: J⁰ fitted in the span's first sine modes (cloud.rail.fundamental), not grid point by grid point:
-#: the half-car's sd (rms over seeds 0–4 × 60 cells) D1/D2 1.25/2.22 → 0.56/0.70 points; its largest error
-#: seeds 0–4 3.7/2.7/4.4/6.0/5.8 → 1.5/1.6/3.5/2.3/2.2 (seed 2's left: the healthy J⁰'s common scale, below).
-#: Session 9 (the per-profile scale error, cloud.rail.bridge's module docstring): the deflection follows the
-#: dynamic wheel force, and the load regression on the static loads takes its share and the track's deflection
-#: at the supports into the scale (+2…+22 % on the simulator's own AP); ``…_dynamic`` takes them out, but then
-#: the track's own compliance along the span (−13…+5 % of the span's line per profile) reads in full, and on
-#: the simulator's AP that reading is further off than ours (seed 2 profile 1: +12 % of D against −2 %). Not
-#: adopted; reported beside ours.
+#: Each reading is chosen on its sd alone, without the truth (bootstrap noise and draws from the
+#: calibration's intervals as :func:`reading_spread`'s; the smallest wins, within 5 % the simpler). Each
+#: run's calibrated speed is off by a little, which is mm of chainage at the span, and the load regression
+#: over a batch's few per cent of load spread turns the profile's slope times that into the healthy line's
+#: scale, so a reading from the healthy batch alone swings with sub-per-mille changes of the calibration.
+#: Registering every run on the wheels' difference first (cloud.rail.bridge.registered_runs) and pooling
+#: the healthy line over the track's batches with the load-spread weights takes most of that out, for both
+#: models. J⁰ is fitted in the span's first sine modes (cloud.rail.fundamental), not grid point by grid
+#: point, which halves its sd. What the sd does not hold is a common scale error of the healthy line per
+#: profile (errors in proportion to the level; cloud.rail.bridge's module docstring). The load regression
+#: on the dynamic wheel force (``…_dynamic``) takes the force's dynamic share and the track's deflection at
+#: the supports out of that scale, but then the track's own compliance along the span reads in full, and on
+#: the simulator's AP it reads further off than ours: it is reported beside ours. The measurements behind
+#: these choices are in docs/results.md (Rail).
 OURS = {"carriage": "registered_batch_means_pooled", "bogie_half_car": "registered_batch_means_difference_pooled",
         "leading_bogie": "registered_batch_means_pooled"}
-#: The models whose reading's spread is drawn (:func:`reading_spread`; the issue's two).
+#: The models whose reading's spread is drawn (:func:`reading_spread`; the two the targets name).
 SPREAD_MODELS = ("carriage", "bogie_half_car")
 CALIBRATION_MARGIN_M = 2.0  # the calibration window ends this far before the span, m
 

@@ -137,7 +137,7 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     """(b, ε) of a pass's AP (on its reported grid ``x_rep``) against the consensus ``cons`` (on the
     regular grid ``x_cons``, same spacing). None if they overlap too little or nothing correlates.
     ``refine_band_m``: the band of the final least-squares fit (default ``REFINE_BAND_M``).
-    ``stretch_step`` is accepted for compatibility and ignored (no grid over ε any more)."""
+    ``stretch_step`` is accepted for compatibility and ignored (ε is not searched on a grid)."""
     ok = np.isfinite(ap)
     okc = np.isfinite(cons)
     if ok.sum() < MIN_POINTS or okc.sum() < MIN_POINTS:
