@@ -1,4 +1,4 @@
-"""Bearings (issue #5, thesis §4.4): Krot where the data measure it, a one-sided bound where they
+"""Bearings (thesis §4.4): Krot where the data measure it, a one-sided bound where they
 cannot tell it from a clamped or pinned span (``cloud/bridge/bearings.py``).
 
 End to end: simfleet → edge + cloud cores in process → cloud.bridge, 30 passes with each
@@ -68,12 +68,11 @@ def test_the_interval_is_one_sided_only_where_the_data_leave_a_limit_open():
 
 
 def test_a_nearly_clamped_span_is_a_lower_bound_and_told_apart_from_a_pinned_one():
-    """Issue: bearing-1e12 reported as effectively fixed (a lower bound); pinned vs stiff bearings
+    """The target: bearing-1e12 reported as effectively fixed (a lower bound); pinned vs stiff bearings
     told apart. The first mode of the 1e12 span is at 9.5 Hz, outside what the vehicles feel, and
     it deflects 4.6× less than pinned: the passes bound Krot from below only. Measured (30 passes):
     1e12 ≥ 10^10.0 with the mean EI 99.3 %; the pinned span ≤ 10^8.6 (12 passes: ≥ 10^9.5 and
-    ≤ 10^9.3). The previous search, along the ridge of one effective level, read 1e12 as 10.01
-    (9.88–10.14) from 30 self-calibrated passes."""
+    ≤ 10^9.3)."""
     stiff = estimate("bearing-1e12")
     (k, lo, hi), second = stiff.posterior.krot
     assert second == (k, lo, hi)

@@ -1,7 +1,7 @@
-"""Bridge estimation end to end under the issue's conditions: simfleet → edge + cloud cores
+"""Bridge estimation end to end under the accuracy targets' conditions: simfleet → edge + cloud cores
 (fleet self-calibration, in process) → cloud.bridge.
 
-Conditions (issue #5, "Show"): 30 quarter-car passes (Table 4.1 fleet, 15–22 m/s), 2 % sensor
+Conditions: 30 quarter-car passes (Table 4.1 fleet, 15–22 m/s), 2 % sensor
 noise, smooth deck as the thesis; the drive logs carry the class-mean parameters and each pass's AP
 is computed with the vehicle's *fleet calibration* (the parameters the bridge estimator is given);
 the wheel-load prior is the registry's class (its mean mass fixes the scale, §4.5.5). No truth
@@ -32,20 +32,19 @@ def estimate(name: str, passes: int = PASSES, nominal: str = "class"):
     calibration = "fleet" if nominal == "class" else "nominal"
     case = simulate_case(name, WORK, passes=passes, seed=0, calibration=calibration, nominal=nominal)
     settings = BridgeSettings()
-    if nominal == "true" and hasattr(settings, "calibration_log_sd"):  # (the field is new: H3, issue #5)
+    if nominal == "true" and hasattr(settings, "calibration_log_sd"):  # true parameters: no calibration error
         settings = dataclasses.replace(settings, calibration_log_sd=None)
     e, _ = estimate_case(case, settings)
     return e, case
 
 
 def test_healthy_bridge_reads_within_one_and_a_half_points_and_raises_no_alarm():
-    """Issue: mean stiffness ratio within ±1.5 points, every element within ±5 points, no alarm.
-    The elements were 7.6 points off (a ±7 ramp along the span) until the fleet-common calibration
-    error was integrated out (:mod:`cloud.bridge.vehicle_error`). Pinned tighter here, at ±3: with
-    the elements' prior about the design value alone (no common level, :class:`~cloud.bridge.static.StiffnessPrior`) the
-    data-poor end elements read 4.7 points soft on this case (the span's level was right to 0.2);
-    drawn towards the span's level they read 2.3 (bridge-healthy seeds 0–3: 2.3–2.9, they were
-    3.5–5.0). Not a property of every case: the Cramér–Rao element sd with the prior is 3.1–6.4
+    """The target: mean stiffness ratio within ±1.5 points, every element within ±5 points, no alarm.
+    Pinned tighter here, at ±3: the fleet-common calibration error integrated out
+    (:mod:`cloud.bridge.vehicle_error`) keeps the elements off a ramp along the span, and the
+    elements' prior about the span's common level (:class:`~cloud.bridge.static.StiffnessPrior`)
+    keeps the data-poor end elements near it: this case reads 2.3 points at most (bridge-healthy
+    seeds 0–3: 2.3–2.9). Not a property of every case: the Cramér–Rao element sd with the prior is 3.1–6.4
     points at 30 passes (largest at the span's ends)."""
     e, case = estimate("bridge-healthy")
     post = e.posterior
@@ -58,8 +57,8 @@ def test_healthy_bridge_reads_within_one_and_a_half_points_and_raises_no_alarm()
 
 
 def test_global_loss_is_measured_within_one_and_a_half_points():
-    """Issue: mean stiffness loss within ±1.5 points (measured 8.65 % for 10 %; the area-weighted
-    'effective' loss 9.9 % ± 1.8 %, 1σ)."""
+    """The target: mean stiffness loss within ±1.5 points (this case reads 8.65 % for 10 %; the
+    area-weighted 'effective' loss 9.9 % ± 1.8 %, 1σ)."""
     e, case = estimate("bridge-global10")
     post = e.posterior
     assert abs(np.mean(post.stiffness_ratio) - np.mean(true_ratio(case))) < 0.015, post.stiffness_ratio
@@ -110,7 +109,7 @@ def test_the_per_pass_deflections_the_estimate_read_are_exposed():
 
 
 def test_stiff_bearings_are_read_from_the_effective_stiffness_and_the_as_built_tolerance():
-    """Issue: log10 Krot within ±0.3 and mean stiffness within ±2 points; stiff bearings told apart
+    """The target: log10 Krot within ±0.3 and mean stiffness within ±2 points; stiff bearings told apart
     from pinned ones. The passes fix the effective stiffness (truth: 2.16× the pinned span's), and
     Krot — one value for both supports — only through the as-built tolerance on the beam
     (``cloud/bridge/bearings.py``). Six passes with the vehicles' own parameters: calibration is

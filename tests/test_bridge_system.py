@@ -64,7 +64,7 @@ def test_run_exports_bridge_tables_and_recording_and_no_alarm_on_a_healthy_bridg
     # The logs carry the vehicles' true parameters, which the edge uses and reports in each pass-done:
     # the bridge is estimated with the right vehicles. (Class-mean vehicles need the class-wide
     # calibration uncertainty integrated out, which tests/test_bridge_dynamic.py checks in process;
-    # the daemon still gives every pass the default log-sd 0.04 — see the issue's notes.)
+    # the daemon gives every pass the default log-sd, ``BridgeSettings.calibration_log_sd``.)
     sim = simulated(0.0, passes, "true")
     site = load_site(sim / "site.toml")
     bridge = site.bridges[0]

@@ -217,9 +217,9 @@ def test_common_mode_relaxation_extrapolates_a_contracting_trend_and_freezes_a_r
 
 def test_common_mode_trend_restarts_when_the_rounds_passes_change():
     """The daemon calibrates on epochs of growing size (8, 16, … passes); the common mode's target
-    moves with the passes. A trend line through both epochs' rounds read no contraction at the jump
-    and froze the common mode where the small epoch had left it (road-qc seed 0, alias-free AP:
-    m/M and c/M 3.1 % off on every vehicle, the class mean's offset). The trend is the epoch's own."""
+    moves with the passes. A trend line through both epochs' rounds reads no contraction at the jump
+    and freezes the common mode where the small epoch left it (at the class mean's offset; see
+    docs/results.md). The trend is the epoch's own."""
     from cloud.road.fleet_calibration import FleetCalibrator
     from shared.registry import Route, Site, VehicleClass
 
@@ -294,7 +294,7 @@ def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
 
 def test_remap_drives_each_axle_over_the_road_at_its_own_position():
     """A half-car's rear axle meets a bump a wheelbase after the front one: the remap places contact i
-    at x_cg + offsets_m[i] (it used to drive every contact at the same chainage)."""
+    at x_cg + offsets_m[i], not every contact at the same chainage."""
     from cloud.road.calibration import REMAP_DT, PassRemap
     from shared.vehicles import vehicle_from_params
     from shared.vehicles.half_car import TABLE_2_1

@@ -123,7 +123,7 @@ def test_model_spectrum_matches_the_ap_error_of_noise_only_passes():
     The model describes the linearly gridded AP (the inverse's noise up to 250 Hz folded into the
     grid); the alias-free gridding (the edge's default) removes most of that fold, so there the
     model is an upper bound in every band (for a half-car's pitch rate by far: a precision band of
-    low order cannot follow the filtered spectrum's 1 000× range; see the session-4 note)."""
+    low order cannot follow the filtered spectrum's 1 000× range)."""
     system = vehicle_from_params("half_car", TABLE_2_1).system()
     model = build_inverse(system, 0.002)
     rng = np.random.default_rng(7)
@@ -327,7 +327,7 @@ def test_long_wave_band_shares_follow_the_segment_model():
 
 def test_cached_error_model_is_the_uncached_one(monkeypatch):
     """The unit spectra are cached per (inverse, speed bucket, spacing, drift width) and the fit's
-    symbol is tabulated on its check grid (edge CPU per segment, issue #3's real-time latency): a
+    symbol is tabulated on its check grid (edge CPU per segment, within the edge's real-time latency): a
     half-car pass (two channels, so the per-segment noise mix matters) gives the same error model
     with a warm cache as with none, and the tabulated variance and white equivalent are the direct
     quadrature of ``band_symbol`` for every order the edge allows."""

@@ -33,6 +33,6 @@ def test_the_vehicle_step_is_unbiased_against_finer_physics(speed):
                       true["M"])
     want = to_calibration("quarter_car", true)
     err = {n: m / want[n] - 1.0 for n, m in zip(fit.names, fit.mean)}
-    # a bias shared by the fleet stays in every vehicle's ratios: below issue #4's 3 % median target
+    # a bias shared by the fleet stays in every vehicle's ratios: below the 3 % median target
     # (measured at γ = 0.6: k/M +1.9 %, c/M −1.3 %, m/M +1.1 %; at 0.8: k/M +6.4 %)
     assert max(abs(e) for e in err.values()) < 0.03, err

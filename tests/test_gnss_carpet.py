@@ -1,4 +1,4 @@
-"""Issue #4 item 4 on small, fast versions of the scenarios: GNSS chainage error removed by aligning
+"""The GNSS and carpet targets on small, fast versions of the scenarios: GNSS chainage error removed by aligning
 each pass against the consensus; the 3-D carpet's fleet-mean profile under lane scatter.
 
 Everything runs the daemons' cores (``edge.node.Edge``, ``cloud.daemon.core.Cloud``) wired by an in-memory
@@ -95,13 +95,13 @@ def test_alignment_places_every_pass_in_one_common_frame(tmp_path, nominal, rms_
 
 
 def test_profile_with_gnss_error_is_as_good_as_without(tmp_path):
-    """The Show point with true parameters: the aligned profile within 1.2x of the same fleet without
+    """The GNSS target with true parameters: the aligned profile within 1.2x of the same fleet without
     GNSS error (alignment on the plain road changes nothing). Measured 1.33 % against 1.74 %.
 
     A loose guard on these 120 m records: the ratio is mostly the score's 5-50 m band near the ends
-    (its band-pass pivots on the end values). With the drift nuisance off it was 1.36 % against
-    1.01 % here and 1.10-1.71x over 7 seeds, though the passes were placed to 2 mm and an oracle
-    alignment scored the same; padded about a line fitted over the last 2 m, 0.87-1.21x."""
+    (its band-pass pivots on the end values). With the drift nuisance off it is 1.36 % against
+    1.01 % here and 1.10-1.71x over 7 seeds, though the passes are placed to 2 mm and an oracle
+    alignment scores the same; padded about a line fitted over the last 2 m, 0.87-1.21x."""
     gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0)
     plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0)
     _run(gnss, "nominal", align=True)
@@ -127,12 +127,11 @@ def test_carpet_fleet_mean_profile_under_lane_scatter(tmp_path):
 
 
 def test_fleet_calibration_with_gnss_error_is_as_good_as_without(tmp_path):
-    """The Show point on a small version: fleet self-calibration on aligned passes gives a profile
+    """The GNSS target on a small version: fleet self-calibration on aligned passes gives a profile
     within 1.2× of the same fleet without GNSS error (measured 1.35 % against 1.32 %; drift nuisance
     off: 1.81 % against 1.52 %, the vehicles' ratios as good as without: m/M, K/M, k/M, c/M median
-    0.8, 1.1, 1.0, 2.2 % against 0.8, 1.1, 0.6, 2.2 %). It failed (2.26 %, k/M +7 % fleet-wide)
-    while passes were placed where the uncalibrated vehicles' phase error put them (see the
-    alignment test with the class mean).
+    0.8, 1.1, 1.0, 2.2 % against 0.8, 1.1, 0.6, 2.2 %). Passes placed where the uncalibrated
+    vehicles' phase error puts them fail it (see the alignment test with the class mean).
     Without alignment the calibration diverges (measured 60 %)."""
     gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0, nominal="class")
     plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0, nominal="class")

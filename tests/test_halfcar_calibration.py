@@ -4,9 +4,10 @@ Data from finer physics than the step's own discretisation (Newmark γ = ½ at 0
 at 2 ms), 1 % sensor noise, through the edge's real pass processor (inverse under the current
 calibration, anti-aliased gridding); the consensus is the mean AP of two other vehicles of
 Table 2.4 under their true parameters, at other speeds (what a calibrated fleet makes of the road,
-the edge's discretisation undone per pass, as the fleet's vehicle step does). Before the remap settings (cloud.road.calibration.RemapSettings: the
-start state a nuisance, a low-pass) the channels reconstructed from the noisy AP were 26–44 % of
-their sd off and a pass hardly moved the ratios off the class prior.
+the edge's discretisation undone per pass, as the fleet's vehicle step does). The remap settings
+(cloud.road.calibration.RemapSettings: the start state a nuisance, a low-pass) are what make the
+channels reconstructed from the noisy AP close enough for a pass to move the ratios off the class
+prior.
 """
 
 import numpy as np

@@ -238,8 +238,8 @@ def _driveby(*args: str) -> subprocess.CompletedProcess:
 def test_band_holds_the_road_through_the_system(tmp_path, nominal, max_rel_error):
     """road-qc's fleet, noise and road on a 1 km route with 8 passes (on 200 m the band's long-wave
     part is one or two independent numbers, so the fraction covered says little), through real
-    edge and cloud processes: ≥ 90 % of points inside the 95 % band, profile error as the issue
-    asks for nominal calibration with true parameters (2 %) and within road-qc's 5 % with the
+    edge and cloud processes: ≥ 90 % of points inside the 95 % band, profile error within the
+    target for nominal calibration with true parameters (2 %) and within road-qc's 5 % with the
     class mean."""
     from simfleet.evaluate import score_profile
     from simfleet.scenarios import SCENARIOS

@@ -1,5 +1,5 @@
 """The blind-test reading's stability under the batch calibration's per-run speed errors
-(cloud.rail.bridge.registered_runs; issue #6).
+(cloud.rail.bridge.registered_runs).
 
 Synthetic batches of the leading bogie's AP (no inverse: the AP is built from a rail irregularity
 of the German low spectrum, 1–80 m, and the static deflection of a 10.2 m simply supported span

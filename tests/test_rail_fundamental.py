@@ -1,4 +1,4 @@
-"""J⁰ by the matrix method from a bogie's two wheels (cloud.rail.fundamental; issue #6): the area of
+"""J⁰ by the matrix method from a bogie's two wheels (cloud.rail.fundamental): the area of
 J⁰ (what D2 compares) from a batch-mean wheel difference with known noise.
 
 The line is the exact J⁰(x) − J⁰(x − d) of a Hermite FE beam (10.2 m, simply supported, 5 % per-

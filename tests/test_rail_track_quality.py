@@ -1,4 +1,4 @@
-"""EN 13848 D1 longitudinal level (shared.track_quality) and its export table (issue #6 item 7)."""
+"""EN 13848 D1 longitudinal level (shared.track_quality) and its export table."""
 
 from __future__ import annotations
 
