@@ -115,9 +115,9 @@ def test_stiff_bearings_are_read_from_the_effective_stiffness_and_the_as_built_t
     (``cloud/bridge/bearings.py``). Six passes with the vehicles' own parameters: calibration is
     not what this checks (``driveby reproduce bridge`` has the self-calibrated 30-pass figures).
     Thirty passes: fewer do not exclude a clamped span (read, honestly, as a lower bound — what
-    ``tests/test_bridge_bearings.py`` checks on bearing-1e12). Since the edge's inverse runs at
-    γ = 0.6 for quarter-cars (was 0.8) 12 passes read ≥ 10^9.3 (with γ = 0.8: 10.17, 9.84–11.00); 30 read
-    10.22 (9.90–11.28), effective 2.51 ± 0.49 (truth 2.16)."""
+    ``tests/test_bridge_bearings.py`` checks on bearing-1e12). With the edge's inverse at γ = 0.6
+    for quarter-cars, 12 passes read only ≥ 10^9.3; 30 read 10.22 (9.90–11.28), effective 2.51 ± 0.49
+    (truth 2.16)."""
     from cloud.bridge.bearings import krot_reading
 
     e, case = estimate("bearing-1e10", passes=30, nominal="true")

@@ -78,8 +78,9 @@ def _tolerance(rank: int, rel_var: float) -> tuple[float, float]:
 
 
 def test_whitened_noise_is_white_along_the_element_directions_on_a_stationary_approach():
-    """(before: 1.30 against 1.04 ± 0.13 — the AR(3) cannot follow the band limit's edge, and its
-    level, read from the whole band, was low in the element directions' band.)"""
+    """On a stationary approach the whitened noise has unit variance along the element directions,
+    within χ² sampling (:func:`_tolerance`): the AR(3) cannot follow the band limit's edge, and a level
+    read from the whole band is low in the element directions' band, so the level is read there."""
     kappa, rank, rel_var = _element_variance(startup=False)
     centre, half = _tolerance(rank, rel_var)
     assert abs(kappa - centre) < half, (kappa, centre, half)
@@ -87,8 +88,8 @@ def test_whitened_noise_is_white_along_the_element_directions_on_a_stationary_ap
 
 def test_the_element_directions_see_the_noise_as_white_behind_a_noisier_start():
     """The same with the start-up excess on the approach: the AR fitted there over-models the low
-    band, but the level is read where the element directions are. (It held before too — 1.12: the
-    excess raised the whole-band level, which happened to offset the band-limit error above.)"""
+    band, but the level is read where the element directions are. (A level read from the whole band
+    passes here by chance only: the excess raises it, offsetting the band-limit error above.)"""
     kappa, rank, rel_var = _element_variance(startup=True)
     centre, half = _tolerance(rank, rel_var)
     assert abs(kappa - centre) < half, (kappa, centre, half)

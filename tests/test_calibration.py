@@ -276,9 +276,9 @@ def test_carpet_lane_scatter_does_not_pull_the_fleet_calibration(tmp_path):
     """road-qc on a 3-D carpet (lane drawn per pass), small: 8 vehicles, one pass each, through
     the edge and cloud code in process. Each vehicle's channels come from its own lane, the
     consensus is the lanes' mean: the misfit is smooth lane scatter, not white noise. Weighted as
-    white noise it pulled every vehicle away from the class prior and the fleet's common mode ran
-    away round after round (measured before: profile error 70 %, not settled in 12 rounds; now
-    4.3 %, settled in 7; the class mean without calibration gives 4.1 %)."""
+    white noise it pulls every vehicle away from the class prior and the fleet's common mode runs
+    away round after round (profile error 70 %, not settled in 12 rounds); weighted as the scatter
+    it is, 4.3 %, settled in 7 (the class mean without calibration gives 4.1 %)."""
     from shared.drivelog import list_drive_logs, read_drive_log
     from shared.registry import load_site
     from simfleet.evaluate import score_profile

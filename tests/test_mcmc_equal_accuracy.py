@@ -44,8 +44,8 @@ def test_a_flat_curve_is_not_extrapolated_and_a_target_beyond_the_limit_is_refus
 def test_production_path_on_short_passes_is_as_good_as_the_exact_posterior():
     """A bridge approach: 12 quarter-cars over 20 m, 2 % noise. Each pass's AP carries a level and
     slope error (~5 mm rms over 13 m) 30× its shape error; the cloud's per-pass drift nuisance
-    removes it. Without it this was 4× (band) / 11× (detrended) the exact posterior's error; with
-    it measured 0.83× / 1.40× (seeds 1–2: ≤ 0.74× / 0.81×)."""
+    removes it. Without it the error is 4× (band) / 11× (detrended) the exact posterior's; with it
+    0.83× / 1.40× (seeds 1–2: ≤ 0.74× / 0.81×)."""
     from cloud.daemon.settings import CloudSettings
     from cloud.reference import exact_profile_posterior
     from simfleet.reproduce import METRICS, production_profile, small_road_problem

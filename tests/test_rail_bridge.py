@@ -100,9 +100,8 @@ def test_batches_are_registered_on_the_wheels_difference(healthy_batch):
     """Two batches' chainage differs by their calibrated speeds' common error (~1 cm at the span);
     the registration reads it off the leading bogie's time-synchronous wheel difference beside the
     span. The same runs reported 12 mm further along and 0.01 % faster (expected shift at mid-span
-    −15.5 mm) give −15.3 mm back (seed 3, 10 runs, 29 m before the span; −13.9 mm by the single
-    linearised step on the healthy line's slope that registered before: a noisy regressor pulls it
-    towards zero), the same from the bogie half-car's channels as from the carriage's (the body's
+    −15.5 mm) give −15.3 mm back (seed 3, 10 runs, 29 m before the span; −13.9 mm by a single
+    linearised step on the healthy line's slope: a noisy regressor pulls it towards zero), the same from the bogie half-car's channels as from the carriage's (the body's
     force, which the half-car leaves out, cancels in the difference). And 12 mm alone moves D1/D2 of
     the same runs by −2.4/−3.3 points unregistered, −0.05/−0.04 registered (carriage); the
     half-car's J⁰ reading −3.9/−4.8 and 1.0/2.1."""

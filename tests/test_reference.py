@@ -84,7 +84,7 @@ def test_cross_entropy_on_a_half_car_fleet_is_not_thrown_by_1pct_noise(road):
     4–8 %), as the half-car CE did at 1 % noise in `driveby reproduce road` (85.6 % averaged median).
     The wheels and tyres are where that bias acts, so they are the free parameters here, from 25 %
     off. (Noise-free, the search itself ends up to 11 % low on both on this road: K_t and m_u moved
-    together keep the wheel hop; with noise, now alike: medians 3–10 %.)"""
+    together keep the wheel hop; with noise they come out alike: medians 3–10 %.)"""
     from simfleet.scenarios import TABLE_2_4
 
     from cloud.reference import fleet_objective

@@ -2,8 +2,8 @@
 
 The cloud undoes the edge inverse's Newmark transfer per pass (cloud.road.calibration.continuous_ap), and
 that transfer depends on the step the edge inverted at. Undone at 2 ms whatever the rate, a 1 ms pass's
-AP came out worse than the edge sent it, a 5 ms pass's stayed 12 % off at 0.5–1 m (measured). The
-edge now says its sample interval in the pass-done (``PassDone.sample_interval_s``, optional: a
+AP comes out worse than the edge sent it, a 5 ms pass's stays 12 % off at 0.5–1 m. So the edge says
+its sample interval in the pass-done (``PassDone.sample_interval_s``, optional: a
 message without it was made at 500 Hz) and the cloud's models of the pass use it.
 """
 
@@ -116,7 +116,7 @@ def test_the_fused_profile_of_200_hz_logs_has_the_roads_gain(tmp_path):
     """Through the edge and cloud code (in process; nominal calibration = the true parameters, 0.2 %
     noise so the posterior hardly shrinks): six road-qc quarter-cars logged at 200 Hz, the fused
     profile's gain against the road at 0.5–1 and 1–2 m. The cloud must take the 5 ms step from the
-    pass-done: undone at 2 ms the gain at 0.5–1 m was 1.085 (measured), at 5 ms 0.993 (1–2 m: 0.999)."""
+    pass-done: undone at 2 ms the gain at 0.5–1 m is 1.085, at 5 ms 0.993 (1–2 m: 0.999)."""
     import dataclasses
 
     from shared.drivelog import list_drive_logs, read_drive_log

@@ -20,8 +20,8 @@ influence-line coefficients — curvature at each hypothesis' best node, gradien
 the coefficients linear in η). Without it, a scattered span's soft elements have only the damage
 hypotheses to go to: with enough data they read as a (shallow) crack. Scatter is as-built, not
 damage: the alarm's loss stays the hypothesis' own. It costs detection — a φ = 10 % crack at 100
-passes (2 % noise) loses its alarm at 5 % scatter (measured: P(loss) 0.999 → 0.81 at 10 m, 0.990 →
-0.79 at 14 m; 0.946 at 14 m already at 3 %) — so it is off by default until a bridge can declare it.
+passes (2 % noise) loses its alarm at 5 % scatter (docs/results.md, Bridge) — so it is off by default
+until a bridge can declare it.
 
 The likelihood is the weight- and nuisance-marginal one of :mod:`cloud.bridge.static`
 (:func:`~cloud.bridge.static.marginal_loglik_batch`); each hypothesis' parameters are integrated
@@ -270,12 +270,10 @@ def _with_tolerance(base: Grid, kern: Kernels, s: HypothesisSettings, centre: fl
     the data's λ̂ ± ``info_sd`` shifted by λ_i, times the prior — with weights w_j·prior/proposal.
 
     Fixed Gauss–Hermite nodes on the prior (2 % apart for a 2 % tolerance) under-resolve the level
-    likelihood once the passes pin it to a fraction of that (measured: sd 0.25 % at 300 passes):
-    each hypothesis' evidence then depended on whether its best g fell on a node — on
-    bridge-healthy at 300 passes a crack of φ 0.23 at 17.6 m plus the node g = +2.04 % fitted
-    the level exactly and took P 0.65; a 4 % tolerance moved the nodes and gave healthy 0.72.
+    likelihood once the passes pin it to a fraction of that: each hypothesis' evidence would depend
+    on whether its best g falls on a node, and a hypothesis whose best g does can win on that alone.
     Placed on g's conditional posterior, 5, 9 or 15 nodes give the same evidence as a 0.05 %-step
-    grid to 10⁻³ nats (there: crack 0.81, healthy 0.15 — and 0.83 / 0.12 at a 4 % tolerance)."""
+    grid to 10⁻³ nats (docs/results.md, Bridge)."""
     u, wu = np.polynomial.hermite.hermgauss(s.tolerance_nodes)
     integrals = kern.setup.basis.integrals
     lam = np.log(kern.design_area / (base.a @ integrals))  # (K,) each base node's effective level
@@ -411,7 +409,7 @@ def assess(stats: Sequence[VehicleStats], setup: Setup, weight_prior: WeightPrio
     The stats' dynamic correction columns (if any) are used as they are for every hypothesis: they
     were computed at the fleet's estimated stiffness level (:mod:`cloud.bridge.dynamic`), and
     rescaling them with each hypothesis' compliance is worse than keeping them (the excess depends
-    on the frequency, not only on the amplitude: measured, it moved a 10 % loss to 8 %).
+    on the frequency, not only on the amplitude, so rescaling its amplitude biases the loss).
 
     With ε fixed, though, the likelihood misses what the bridge's vibration says about its
     stiffness — most of the information on the global level at 15–22 m/s. ``level_loglik(g)``
