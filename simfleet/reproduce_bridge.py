@@ -34,11 +34,12 @@ from cloud.bridge.bearings import krot_reading
 from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
 from cloud.bridge.information import PassCase, fleet_information, largest_error, noise_sd_of, pass_sensitivity
 from cloud.bridge.passdata import group_segments
-from cloud.bridge.static import StiffnessPrior, design_beam
+from cloud.bridge.stiffness import StiffnessPrior
 from cloud.bridge.vehicle_error import class_log_sd
 from cloud.daemon.settings import CloudSettings
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.fe.beam import influence_line
+from shared.fe.design import design_beam
 from shared.registry import load_site
 
 from . import sim

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from cloud.bridge.estimator import BridgeEstimator, BridgeSettings
-from cloud.bridge.static import WeightPrior
+from cloud.bridge.likelihood import WeightPrior
 from shared.registry import Bridge
 from tests.bridge_cache import kept
 
@@ -128,7 +128,8 @@ def test_the_calibration_columns_do_not_see_the_consensus_drift_level(passes):
     import dataclasses
 
     from cloud.bridge.passdata import Reference, extract_pass
-    from cloud.bridge.static import Setup, common_calibration_columns
+    from cloud.bridge.setup import Setup
+    from cloud.bridge.whitening import common_calibration_columns
 
     setup = Setup.of(BRIDGE)
     names = ("K/M", "c/M", "k/M", "m/M")
@@ -154,7 +155,8 @@ def test_a_pass_is_read_only_where_its_consensus_keeps_the_same_passes(passes):
     import dataclasses
 
     from cloud.bridge.passdata import Reference, extract_pass
-    from cloud.bridge.static import Setup, whiten_pass
+    from cloud.bridge.setup import Setup
+    from cloud.bridge.whitening import whiten_pass
 
     setup = Setup.of(BRIDGE)
     pds = [extract_pass(segs, setup.window, "quarter_car", WRONG) for segs in passes]

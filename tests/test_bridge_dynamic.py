@@ -8,8 +8,9 @@ import dataclasses
 import numpy as np
 
 from cloud.bridge.dynamic import fit_elements_dynamic
+from cloud.bridge.likelihood import WeightPrior
 from cloud.bridge.passdata import EdgeSettings, extract_pass
-from cloud.bridge.static import Setup, WeightPrior, whiten_all
+from cloud.bridge.setup import Setup, whiten_all
 from shared.fe.beam import Beam, influence_line, moving_load_deflection
 from shared.vbi import simulate_vbi
 from shared.vehicles import QuarterCar
@@ -100,7 +101,7 @@ def test_excess_sensitivities_match_finite_differences():
     anchor frequencies) against central differences of the excess itself, on a non-uniform beam."""
     from cloud.bridge.excess import dynamic_excess, excess_sensitivity
     from cloud.bridge.passdata import PassData, Window
-    from cloud.bridge.static import design_beam
+    from shared.fe.design import design_beam
 
     window = Window.of(BRIDGE)
     lf = 1.0 + 0.08 * np.sin(2 * np.pi * window.x / 7.0) * window.on_span  # a dynamic wheel load

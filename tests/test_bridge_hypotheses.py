@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from cloud.bridge import hypotheses as hy
-from cloud.bridge.static import Setup, Stacked, VehicleStats, WeightPrior, marginal_loglik_batch
+from cloud.bridge.likelihood import Stacked, VehicleStats, WeightPrior, marginal_loglik_batch
+from cloud.bridge.setup import Setup
 from shared.fe.beam import crack_ei_factor
 from shared.registry import Bridge
 

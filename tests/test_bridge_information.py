@@ -11,7 +11,7 @@ from scipy.stats import norm
 
 from cloud.bridge.information import (FD_STEP, PassCase, PassSensitivity, crack_jacobian, efficient_error_covariance,
                                       fleet_information, largest_error, noise_sd_of, pass_sensitivity)
-from cloud.bridge.static import StiffnessPrior
+from cloud.bridge.stiffness import StiffnessPrior
 from shared.fe.beam import Beam, crack_ei_factor
 from shared.vbi import simulate_vbi
 from shared.vehicles import QuarterCar

@@ -7,7 +7,7 @@ import pytest
 
 from cloud.bridge.hypotheses import Kernels
 from cloud.bridge.mril import (AxlePair, Baseline, MrIl, damage_indicators, mril_two_axle, normal_equations)
-from cloud.bridge.static import Setup
+from cloud.bridge.setup import Setup
 from shared.fe.beam import Beam, global_ei_factor, influence_line
 from shared.registry import Bridge
 from shared.vbi import simulate_vbi

@@ -10,10 +10,11 @@ import math
 import numpy as np
 import pytest
 
+from cloud.bridge.basis import MU_PRIOR_SD_M
+from cloud.bridge.likelihood import Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch
 from cloud.bridge.passdata import (EdgeSettings, VehicleFilter, Window, continuous_transfer, extract_pass,
                                    newmark_transfer)
-from cloud.bridge.static import (Setup, Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch,
-                                 MU_PRIOR_SD_M)
+from cloud.bridge.setup import Setup
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import build_inverse, edge_gamma
 from shared.registry import Bridge
@@ -207,7 +208,7 @@ def test_calibration_sensitivity_is_the_forward_models_change_with_the_quantity(
     names map to parameters as the calibration's do ('c/M' moves c, not M)."""
     import dataclasses as dc
 
-    from cloud.bridge.static import model_columns
+    from cloud.bridge.whitening import model_columns
     from cloud.bridge.vehicle_error import perturbed_params
 
     segs, _, _ = edge_pass(21.0)
@@ -237,7 +238,8 @@ def test_the_estimators_wheel_load_factor_holds_none_of_the_passs_own_noise():
     image; and that φ must be accurate — without the deflection under its own load (0.19 mm) it is off
     by ~1 % of φ's swing at the bridge's ramp (measured 1.0 %), with it 0.3 %."""
     from cloud.bridge.estimator import BridgeEstimator, BridgeSettings
-    from cloud.bridge.static import WeightPrior, model_columns
+    from cloud.bridge.likelihood import WeightPrior
+    from cloud.bridge.whitening import model_columns
 
     setup = Setup.of(BRIDGE)
     on = setup.window.on_span

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloud.bridge.static import StiffnessPrior
+from cloud.bridge.stiffness import StiffnessPrior
 
 
 def test_the_precision_is_that_of_the_field_plus_a_common_level():
@@ -51,7 +51,9 @@ def _synthetic_fits(ei_factor: np.ndarray, seed: int, passes: int = 300, noise_m
     statistics the fit reads (:class:`~cloud.bridge.static.VehicleStats`)."""
     from shared.registry import Bridge
 
-    from cloud.bridge.static import Setup, VehicleStats, WeightPrior, fit_elements
+    from cloud.bridge.likelihood import VehicleStats, WeightPrior
+    from cloud.bridge.posterior import fit_elements
+    from cloud.bridge.setup import Setup
 
     bridge = Bridge("B1", "R1", 100.0, 20.0, 20, 35e9, 1.25, 37500.0, 1.0, 0.03, "simply_supported", deck="smooth")
     setup = Setup.of(bridge, deck="smooth")

@@ -17,7 +17,8 @@ import numpy as np
 
 from cloud.bridge.hypotheses import Kernels
 from cloud.bridge.passdata import PassData, Reference, Window
-from cloud.bridge.static import Setup, whiten_pass
+from cloud.bridge.setup import Setup
+from cloud.bridge.whitening import whiten_pass
 from shared.dynamics.inverse import apparent_profile
 from shared.vehicles import QuarterCar
 from tests.test_bridge_passdata import BRIDGE, QC

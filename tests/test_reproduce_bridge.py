@@ -31,7 +31,7 @@ def test_the_report_shows_the_efficient_estimators_largest_error_beside_ours():
     information (scaled from 30 passes), not typed: P(all within) grows with the bound, and each
     row shows its own entry."""
     from cloud.bridge.information import Information
-    from cloud.bridge.static import StiffnessPrior
+    from cloud.bridge.stiffness import StiffnessPrior
     from simfleet.reproduce_bridge import bound_cell, healthy_bound_pts, largest_error_entry, largest_error_report
 
     rng = np.random.default_rng(2)

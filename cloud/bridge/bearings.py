@@ -42,8 +42,10 @@ import numpy as np
 
 from cloud.bridge.excess import LEVEL_GRID, dynamic_deltas
 from cloud.bridge.hypotheses import Kernels
-from cloud.bridge.static import (Setup, Stacked, WeightPrior, WhitenedPass, design_influence, marginal_loglik_batch,
-                                 vehicle_stats)
+from cloud.bridge.likelihood import Stacked, WeightPrior, marginal_loglik_batch, vehicle_stats
+from cloud.bridge.setup import Setup
+from cloud.bridge.stiffness import design_influence
+from cloud.bridge.whitening import WhitenedPass
 
 #: as-built tolerance of the global stiffness (log sd) — HypothesisSettings.tolerance_sd
 AS_BUILT_SD = 0.02

@@ -30,9 +30,11 @@ import numpy as np
 
 from cloud.bridge.bearings import HOLD_SD, krot_posterior
 from cloud.bridge.excess import LEVEL_GRID, dynamic_deltas, dynamic_sensitivities, extended_passes
-from cloud.bridge.static import (ElementPosterior, LinearisedDynamicModel, Setup, Stacked, StiffnessPrior, WeightPrior,
-                                 WhitenedPass, fit_elements, fit_elements_per_scale, marginal_loglik_batch, mix_scales,
-                                 vehicle_stats)
+from cloud.bridge.likelihood import Stacked, WeightPrior, marginal_loglik_batch, vehicle_stats
+from cloud.bridge.posterior import ElementPosterior, fit_elements, fit_elements_per_scale, mix_scales
+from cloud.bridge.setup import Setup
+from cloud.bridge.stiffness import LinearisedDynamicModel, StiffnessPrior
+from cloud.bridge.whitening import WhitenedPass
 
 #: The per-element fit keeps an earlier linearisation level while ĝ is within this (log ratio) of it:
 #: the linearised ε follows the level itself to second order, and computing every pass's ∂ε afresh
@@ -73,7 +75,7 @@ def profile_global_level(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
                          start: float = 0.0, cache: dict | None = None, post: ElementPosterior | None = None,
                          step: float = 0.04, max_evaluations: int = 14) -> GlobalLevel:
     """Maximise log p(data | g) over the uniform level g (weights and μ integrated exactly,
-    :func:`~cloud.bridge.static.marginal_loglik_batch`), the dynamic excess at every g.
+    :func:`~cloud.bridge.likelihood.marginal_loglik_batch`), the dynamic excess at every g.
 
     Successive parabolas through the three best levels (spacing ``step`` at first, then the
     parabola's own scale), until the vertex lies inside the bracket within 1e-3.
@@ -181,11 +183,11 @@ def fit_elements_dynamic(passes: Sequence[WhitenedPass], setup: Setup, weight_pr
     So the global level ĝ is found first by the profile likelihood with ε recomputed at every
     level (:func:`profile_global_level`, from ``start``, a ratio). With ``sensitivities``
     each pass's ε is then linearised in every element's θ about ĝ
-    (:class:`~cloud.bridge.static.LinearisedDynamicModel`; relinearised about the estimate it moved the
+    (:class:`~cloud.bridge.stiffness.LinearisedDynamicModel`; relinearised about the estimate it moved the
     largest element error by < 0.1 point), so the per-element fit reads the dynamics itself; without,
     it is fitted with ε fixed at ĝ and recentred on ĝ (:func:`recentre`). ``model``: an
-    :class:`~cloud.bridge.static.ElementModel` (default, simply supported) or a
-    :class:`~cloud.bridge.static.BearingElementModel` (ε at the level only, :mod:`cloud.bridge.bearings`);
+    :class:`~cloud.bridge.stiffness.ElementModel` (default, simply supported) or a
+    :class:`~cloud.bridge.stiffness.BearingElementModel` (ε at the level only, :mod:`cloud.bridge.bearings`);
     the departure scales are weighted by the linearised fits' own evidence (the model the estimate comes
     from). ``cache``: see :func:`dynamic_deltas`; ``linearise_at``: the uniform level (log ratio) of an
     earlier fit's linearisation, kept while within :data:`LINEARISATION_TOL` of ĝ (a live estimator's

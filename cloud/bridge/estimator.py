@@ -30,15 +30,18 @@ from shared.schema import ApSegment
 from shared.vehicles import GRAVITY, vehicle_from_params
 from shared.vehicles.calibration import calibration_names
 
+from cloud.bridge.basis import mu_basis, step_basis
 from cloud.bridge.dynamic import GlobalLevel, fit_elements_dynamic
 from cloud.bridge.hypotheses import Assessment, HypothesisSettings, Kernels, assess
+from cloud.bridge.likelihood import Stacked, WeightPrior, marginal_loglik_batch, vehicle_stats
 from cloud.bridge.mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
 from cloud.bridge.passdata import EdgeSettings, PassData, Reference, extract_pass, road_load_factor, span_profile
-from cloud.bridge.static import (ElementPosterior, Setup, Stacked, StiffnessPrior, WeightPrior, Whitener,
-                     common_calibration_columns, consensus_distortion, driven_road, fit_elements,
-                     marginal_loglik_batch, model_columns, mu_basis, pass_distortion, road_sensitivity, step_basis,
-                     vehicle_stats, whiten_pass)
+from cloud.bridge.posterior import ElementPosterior, fit_elements
+from cloud.bridge.setup import Setup
+from cloud.bridge.stiffness import StiffnessPrior
 from cloud.bridge.vehicle_error import class_log_sd
+from cloud.bridge.whitening import (Whitener, common_calibration_columns, consensus_distortion, driven_road,
+                                    model_columns, pass_distortion, road_sensitivity, whiten_pass)
 
 LOAD_FACTORS = ("road", "own")
 #: A pass's wheel-load factor from the consensus road is recomputed when the passes behind the
@@ -287,7 +290,7 @@ class BridgeEstimator:
         """Give the pass its wheel-load factor (:attr:`BridgeSettings.load_factor`) and its model columns.
 
         "road": ``1 + φ_p`` of the vehicle driven over the leave-one-out consensus road
-        (:func:`~cloud.bridge.static.driven_road`) and, on a smooth deck's span (where that road is
+        (:func:`~cloud.bridge.whitening.driven_road`) and, on a smooth deck's span (where that road is
         taken flat), its own deflection under the class-mean wheel load ``W̄·J`` at the linearisation
         load term ``load`` (a rough deck's consensus holds the fleet-mean deflection already). It
         holds none of the pass's own noise. A φ̂ read from the pass's own AP errs mostly at 2–10 Hz,
@@ -297,7 +300,7 @@ class BridgeEstimator:
         correlated with the pass's noise.
 
         Recomputed when the passes behind the consensus have grown by :data:`LOAD_FACTOR_REFRESH`
-        (then only the load columns of :func:`~cloud.bridge.static.model_columns` are redone: the μ
+        (then only the load columns of :func:`~cloud.bridge.whitening.model_columns` are redone: the μ
         and step columns do not depend on φ, and the calibration sensitivities of the load columns
         and the cached dynamic excess move by ~Δφ ≈ 10⁻⁴ of themselves, far below their own
         uncertainty, so they are kept). Passed in live one by one, the final estimate is the batch one's
@@ -343,7 +346,7 @@ class BridgeEstimator:
 
     def _common_columns(self, entries: list[_PassEntry], ref: Reference, common, load: np.ndarray) -> list:
         """Every pass's band-limited forward model of its fleet-common calibration columns
-        (:func:`~cloud.bridge.static.common_calibration_columns`). They are a nuisance's shape, not
+        (:func:`~cloud.bridge.whitening.common_calibration_columns`). They are a nuisance's shape, not
         data: all are recomputed when the fleet has grown by a quarter since (the consensus and its
         distortion move), a new pass's against the consensus distortion of then — so an update
         costs one pass's columns, amortised."""

@@ -35,10 +35,12 @@ from scipy import linalg
 from shared.dynamics.newmark import effective_stiffness, integrate, newmark_constants
 from shared.fe.beam import (Beam, BeamSystem, assemble, contact_entries, contact_matrix, element_matrices, influence_line,
                             moving_load_deflection)
+from shared.fe.design import design_beam
 from shared.jit import kernel
 
 from cloud.bridge.passdata import PassData, Window
-from cloud.bridge.static import Setup, WhitenedPass, design_beam
+from cloud.bridge.setup import Setup
+from cloud.bridge.whitening import WhitenedPass
 
 SUBSTEPS = 2  # beam time steps per grid point
 BAND = 3  # half-bandwidth of a Hermite beam's matrices on its free DOFs (w, θ per node)
@@ -286,11 +288,11 @@ def _params_key(params: np.ndarray) -> tuple:
 def dynamic_sensitivities(passes: Sequence[WhitenedPass], setup: Setup, params: np.ndarray,
                           cache: dict | None = None) -> dict[str, np.ndarray]:
     """Every pass's whitened ∂ε_p/∂θ at the element stiffnesses ``params`` (simply supported),
-    pass_id → (n_rows, n_e): the columns D_p of :class:`~cloud.bridge.static.LinearisedDynamicModel`.
+    pass_id → (n_rows, n_e): the columns D_p of :class:`~cloud.bridge.stiffness.LinearisedDynamicModel`.
 
     ``cache`` as for :func:`dynamic_deltas` (which then finds ε at ``params`` there too): the
     derivatives are kept through the pass's forward model and band limit
-    (:meth:`~cloud.bridge.static.Whitener.stage1`), which do not depend on the consensus.
+    (:meth:`~cloud.bridge.whitening.Whitener.stage1`), which do not depend on the consensus.
     """
     ne = setup.bridge.n_elements
     key = _params_key(params)
@@ -316,5 +318,5 @@ def dynamic_sensitivities(passes: Sequence[WhitenedPass], setup: Setup, params: 
 
 def extended_passes(passes: Sequence[WhitenedPass], sensitivities: dict[str, np.ndarray]) -> list[WhitenedPass]:
     """The passes with their load columns extended by their dynamic sensitivities, ``[Ψ_p, D_p]``
-    (:class:`~cloud.bridge.static.LinearisedDynamicModel`), for :func:`~cloud.bridge.static.vehicle_stats`."""
+    (:class:`~cloud.bridge.stiffness.LinearisedDynamicModel`), for :func:`~cloud.bridge.likelihood.vehicle_stats`."""
     return [dataclasses.replace(wp, Psi=np.hstack([wp.Psi, sensitivities[wp.pass_id]]), raw=None) for wp in passes]

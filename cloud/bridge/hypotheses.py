@@ -23,8 +23,8 @@ damage: the alarm's loss stays the hypothesis' own. It costs detection — a φ 
 passes (2 % noise) loses its alarm at 5 % scatter (docs/results.md, Bridge) — so it is off by default
 until a bridge can declare it.
 
-The likelihood is the weight- and nuisance-marginal one of :mod:`cloud.bridge.static`
-(:func:`~cloud.bridge.static.marginal_loglik_batch`); each hypothesis' parameters are integrated
+The likelihood is the weight- and nuisance-marginal one of :mod:`cloud.bridge.likelihood`
+(:func:`~cloud.bridge.likelihood.marginal_loglik_batch`); each hypothesis' parameters are integrated
 on a grid (adaptive Gauss–Hermite in g), which gives its evidence, its posterior over parameters
 and the posterior probability of the hypothesis. The alarm is raised when the model-averaged posterior
 probability that some element lost more than ``alarm_loss`` of its design stiffness exceeds
@@ -43,7 +43,8 @@ import numpy as np
 from shared.fe.beam import (assemble, compliance_kernel, contact_matrix, crack_ei_factor, element_stiffness, free_dofs,
                             stiffness_matrix)
 
-from cloud.bridge.static import Setup, Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch
+from cloud.bridge.likelihood import Stacked, VehicleStats, WeightPrior, marginal_loglik, marginal_loglik_batch
+from cloud.bridge.setup import Setup
 
 HYPOTHESES = ("healthy", "global", "crack", "bearings")
 
@@ -298,7 +299,7 @@ def _with_tolerance(base: Grid, kern: Kernels, s: HypothesisSettings, centre: fl
 
 
 def _gradient_batch(S: Stacked, a: np.ndarray, chunk: int = 512) -> np.ndarray:
-    """∂/∂a of :func:`~cloud.bridge.static.marginal_loglik_batch` (weights and μ integrated) at each
+    """∂/∂a of :func:`~cloud.bridge.likelihood.marginal_loglik_batch` (weights and μ integrated) at each
     row of ``a`` (K, n_b) → (K, n_b): the weight-marginal gradient at μ's conditional mode
     (envelope theorem; the μ integral's log-determinant term, slowly varying, left out)."""
     inv_s2 = 1.0 / S.w_sd**2

@@ -549,7 +549,7 @@ def road_load_factor(p: PassData, road_m: np.ndarray, deflection_m: np.ndarray |
     :func:`extract_pass` computes ``φ̂`` from the pass's own AP, so it carries the pass's AP noise —
     the very noise the load term ``W·(1 + φ)·J`` is then regressed against: an errors-in-variables
     bias (spurious free-element gain, the bridge read soft). Driven over what the cloud knows
-    instead — the fleet's leave-one-out consensus road (:func:`~cloud.bridge.static.driven_road`) —
+    instead — the fleet's leave-one-out consensus road (:func:`~cloud.bridge.whitening.driven_road`) —
     φ holds the other passes' noise only, averaged down by their number and independent of this
     pass's.
 

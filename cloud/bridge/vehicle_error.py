@@ -27,7 +27,7 @@ per quantity, shared by all passes, as coordinates of the common nuisance μ wit
 σ_class/√N (the class prior's mean is that of N vehicles drawn from it; ``BridgeSettings``),
 marginalised jointly with the stiffness (exact: the columns join the state; the hypotheses see the
 same marginal likelihood). Its columns are ``u_p − 1_off·ū`` in the AP domain
-(:func:`~cloud.bridge.static.common_calibration_columns`): the pass's AP distortion
+(:func:`~cloud.bridge.whitening.common_calibration_columns`): the pass's AP distortion
 (:func:`ap_distortion`) less the consensus' (the fleet mean, where the consensus is used).
 Carried, it removes false crack alarms on healthy spans and reads the common error itself
 (docs/results.md). It needs alias-free APs (the edge's ``EdgeConfig.antialias``): linearly
