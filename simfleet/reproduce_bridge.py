@@ -505,7 +505,7 @@ def _report(r: dict) -> str:
           "A spread from 10 seeds is itself uncertain by ±24 % (1σ). The bound and the estimator carry the same "
           "nuisances (wheel loads, the calibration error common to the fleet and each pass's own), not the same "
           "noise level: the bound has white sensor noise at 2 % of the channel's sd; the estimator reads each "
-          "pass's level on its approach, in the band of its element directions (cloud.bridge.static."
+          "pass's level on its approach, in the band of its element directions (cloud.bridge.whitening."
           "element_band_sigma, which reads the level there as noise-free twins do, where the whole band's level reads "
           "it low), and the approach's noise holds more "
           "than sensor noise (the AP's processing, a low-frequency excess near the record's start).", ""]

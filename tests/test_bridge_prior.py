@@ -48,7 +48,7 @@ def _synthetic_fits(ei_factor: np.ndarray, seed: int, passes: int = 300, noise_m
     on synthetic whitened passes: each vehicle's deflection under its wheel (class-drawn load) seen
     every 0.4 m along the span with white noise — the per-element information, as in the real
     passes, largest at mid-span and smallest at the ends. Built directly as the sufficient
-    statistics the fit reads (:class:`~cloud.bridge.static.VehicleStats`)."""
+    statistics the fit reads (:class:`~cloud.bridge.likelihood.VehicleStats`)."""
     from shared.registry import Bridge
 
     from cloud.bridge.likelihood import VehicleStats, WeightPrior

@@ -42,7 +42,7 @@ def test_healthy_bridge_reads_within_one_and_a_half_points_and_raises_no_alarm()
     """The target: mean stiffness ratio within ±1.5 points, every element within ±5 points, no alarm.
     Pinned tighter here, at ±3: the fleet-common calibration error integrated out
     (:mod:`cloud.bridge.vehicle_error`) keeps the elements off a ramp along the span, and the
-    elements' prior about the span's common level (:class:`~cloud.bridge.static.StiffnessPrior`)
+    elements' prior about the span's common level (:class:`~cloud.bridge.stiffness.StiffnessPrior`)
     keeps the data-poor end elements near it: this case reads 2.3 points at most (bridge-healthy
     seeds 0–3: 2.3–2.9). Not a property of every case: the Cramér–Rao element sd with the prior is 3.1–6.4
     points at 30 passes (largest at the span's ends)."""

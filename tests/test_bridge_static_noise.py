@@ -1,4 +1,4 @@
-"""The per-pass noise model of the bridge likelihood (:func:`cloud.bridge.static.whiten_pass`) must be
+"""The per-pass noise model of the bridge likelihood (:func:`cloud.bridge.whitening.whiten_pass`) must be
 right where the element directions are, even when the approach it is fitted on is not like the span.
 
 Synthetic passes with an exactly known noise: white noise in the measured channel (the AP made from it
