@@ -68,7 +68,7 @@ def mu_basis(window: Window, basis: SpanBasis, deck: str) -> np.ndarray:
 
 
 def step_basis(window: Window, deck: str) -> np.ndarray:
-    """Columns (n_window, 3) of each pass's own nuisance on a smooth deck: ``{1, ξ, ξ²}`` on the
+    """Columns (n_window, 4) of each pass's own nuisance on a smooth deck: ``{1, ξ, ξ², ξ³}`` on the
     span (the drift-control trend of the consensus, a step at the supports, which differs from
     pass to pass by ~2 % — tens of µm, as much as the deflection signal of a precise pass); none on
     a rough deck. Each pass's coefficients are projected out of its likelihood."""

@@ -191,9 +191,9 @@ class WhitenedPass:
 
 
 def model_columns(p: PassData, basis: SpanBasis, deck: str = "smooth", band_hz: float | None = None
-                  ) -> tuple[Whitener, np.ndarray]:
-    """The pass's band-limited forward-model output of its model columns (load basis, μ basis, step
-    basis), (n_dec, n_b + n_mu + n_step), the :class:`Whitener` skeleton (AR and rows not yet known), and —
+                  ) -> tuple[Whitener, np.ndarray, tuple[tuple[str, ...], np.ndarray, np.ndarray] | None]:
+    """The :class:`Whitener` skeleton (AR and rows not yet known), the pass's band-limited forward-model
+    output of its model columns (load basis, μ basis, step basis), (n_dec, n_b + n_mu + n_step), and —
     when the pass carries calibration uncertainty (:attr:`~cloud.bridge.passdata.PassData.params_log_sd`) —
     the sensitivities of the load columns to each calibration quantity, ``(names, sd, D)`` with D
     (n_dec, K, n_b) = ∂/∂log q_k of the band-limited forward model of the load basis (None otherwise).
