@@ -18,7 +18,7 @@ EDGE_M = 1.5  # margin kept from the wheels' coverage (trial speeds move it), m
 
 
 def window(runs: Sequence[RailRun], offsets: np.ndarray, window_m: tuple[float, float] | None,
-            speed_slack: float) -> np.ndarray:
+           speed_slack: float) -> np.ndarray:
     """The common grid every wheel of every run covers at any speed within ``speed_slack`` (relative)."""
     lo = max(r.x0_m + offsets.max() for r in runs) + EDGE_M
     hi = min(r.x0_m + offsets.min() + r.speed_mps * (1 - speed_slack) * (len(r.channels) - 1) * r.dt
@@ -57,6 +57,7 @@ class Mapper:
         return sosfiltfilt_rows(self.sos, np.ascontiguousarray(a).reshape(-1, a.shape[-1])).reshape(a.shape)
 
     def detrend(self, a: np.ndarray) -> np.ndarray:
+        """``a`` (..., K) less its least-squares cubic along the grid."""
         return a - (a @ self.basis) @ self.basis.T
 
     def map_runs(self, aps: np.ndarray, dts: np.ndarray, x0: np.ndarray, speeds: np.ndarray, lengths: np.ndarray,
