@@ -1,7 +1,7 @@
 """Batch self-calibration of a carriage's run properties: 50 runs of ``rail-track``
 (150 m of ballasted track, 2 % noise, GNSS speed ~2 % off), ours (:func:`cloud.rail.calibration.
-calibrate_batch`) against the thesis's Cross-Entropy with restarts (:func:`cloud.rail.calibration.
-cross_entropy_batch`) on the same runs, window and low-pass band, with the same primitives (the
+calibrate_batch`) against the thesis's Cross-Entropy with restarts (:func:`cloud.reference.
+rail_cross_entropy.cross_entropy_batch`) on the same runs, window and low-pass band, with the same primitives (the
 batched inverse, the one-call mapping); CE low-passes the channels once per run, ours the mapped AP in
 space (on the channels the filter's edge error over-dispersed the masses; CE keeps the cheaper form,
 so the ratio does not gain from making the reference slower).
@@ -27,7 +27,7 @@ The accuracy also gives what no calibration at all scores (``no_calibration_medi
 class means of mv and Iv, the GNSS speed), the floor any calibration should beat: CE at the
 settings below does not beat it on mv and Iv on this batch (docs/results.md, Rail).
 
-CE (:func:`cloud.rail.calibration.cross_entropy_batch` defaults) against thesis §3.4.1: the objective
+CE (:func:`cloud.reference.rail_cross_entropy.cross_entropy_batch` defaults) against thesis §3.4.1: the objective
 (3.11)–(3.12), normal sampling, the 10 % elite, restarts that keep the mean and reset the sd to its
 initial value, globals held at the class means — as the thesis states. Not stated there, so ours to
 choose: the population (60 trial vectors of the 3·n_b = 150 unknowns), the number of restarts (3),
@@ -53,7 +53,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.profile import one_blas_thread
-from cloud.rail.calibration import calibrate_batch, cross_entropy_batch
+from cloud.rail.calibration import calibrate_batch
+from cloud.reference.rail_cross_entropy import cross_entropy_batch
 from simfleet.reproduce_rail import calibration_errors, load_runs
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate

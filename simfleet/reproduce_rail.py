@@ -50,7 +50,9 @@ from cloud.bridge.mril import DamageIndicators, MrIl, damage_indicators
 from cloud.rail.bridge import (calibration_draw, calibration_sds, damage_from_batch_means, design_scale,
                                influence_of_aps, pooled_healthy, readable_line, registered_runs, resampled_runs,
                                run_aps)
-from cloud.rail.calibration import GLOBAL_FIT, RailRun, calibrate_batch, cross_entropy_batch
+from cloud.rail.calibration import GLOBAL_FIT, calibrate_batch
+from cloud.rail.records import RailRun
+from cloud.reference.rail_cross_entropy import cross_entropy_batch
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
 from shared.fe.beam import influence_line
 from shared.registry import load_site
@@ -360,7 +362,7 @@ def calibration_errors(fit, truth: dict) -> dict:
 def ce_reference(d: Path, seed: int, quick: bool) -> dict:
     """The thesis's Cross-Entropy batch calibration on the same batch and window (cached; with
     ``quick`` at most 40 generations and one restart)."""
-    cached = d / "cross_entropy-v2.pkl"  # v2: the inverse at γ = 0.5 (rail_calibration.INVERSE_GAMMA)
+    cached = d / "cross_entropy-v3.pkl"  # v3: the result class in cloud.reference.rail_cross_entropy
     if cached.exists():
         with open(cached, "rb") as f:
             return pickle.load(f)
@@ -450,7 +452,7 @@ def reproduce_rail(out_dir: str | Path, quick: bool = False, seed: int = 0, prof
                       **calibration_errors(b.fit, truths[state, profile])})
     ref_key = (HEALTHY_STATE, profiles[0])  # the thesis's Fig. 3.10 batch: profile 1, state 7
     ref_dir = batch_dir(cache, *ref_key, passes, seed, quick)
-    ce = ce_reference(ref_dir, seed, quick)["result"] if cross_entropy or (ref_dir / "cross_entropy-v2.pkl").exists() else None
+    ce = ce_reference(ref_dir, seed, quick)["result"] if cross_entropy or (ref_dir / "cross_entropy-v3.pkl").exists() else None
     ce_err = calibration_errors(ce, truths[ref_key]) if ce is not None else {}
     fig = _fig_3_10(batches[ref_key].fit, ce, truths[ref_key])
     results = {"quick": quick, "seed": seed, "passes": passes, "rows": rows, "calibration": calib,

@@ -3,7 +3,7 @@
 The edge runs its inverse at Newmark γ > ½ for stability (quarter-car 0.6, half-car 0.8). Against the
 road that scheme has a gain and phase error every vehicle of a class shares, so fused as sent it
 biases the profile, its IRI and the fleet calibration alike. The cloud maps each complete pass to
-the AP of an exact continuous-time inverse (cloud.road.calibration.continuous_segments), fuses that,
+the AP of an exact continuous-time inverse (cloud.road.continuous.continuous_segments), fuses that,
 and calibrates on it with a vehicle step that reconstructs and predicts at γ ½.
 
 Data from finer physics than the edge's (the simulator: γ ½ at a quarter of the logger's step).
@@ -16,7 +16,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from cloud.daemon.settings import CloudSettings
-from cloud.road.calibration import PassAp, class_prior, continuous_ap, fit_vehicle, to_calibration
+from cloud.road.calibration import PassAp, class_prior, fit_vehicle, to_calibration
+from cloud.road.continuous import continuous_ap
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
 from shared.profiles import iso8608_profile, tyre_filter

@@ -14,7 +14,8 @@ import numpy as np
 
 from scipy.signal import butter, sosfiltfilt
 
-from cloud.road.calibration import PassAp, calibration_names, class_prior, continuous_ap, fit_vehicle, to_calibration
+from cloud.road.calibration import PassAp, calibration_names, class_prior, fit_vehicle, to_calibration
+from cloud.road.continuous import continuous_ap
 from cloud.road.fleet_calibration import FleetCalibrator
 from edge.pipeline import PassProcessor
 from shared.dynamics.forward import simulate_on_profile

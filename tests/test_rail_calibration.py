@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from benchmarks.rail import started_mid_motion
-from cloud.rail.calibration import RailRun, calibrate_batch, cross_entropy_batch
+from cloud.rail.calibration import calibrate_batch
+from cloud.rail.records import RailRun
+from cloud.reference.rail_cross_entropy import cross_entropy_batch
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
 from shared.registry import load_site
 from shared.track_quality import d1_longitudinal_level
@@ -223,8 +225,8 @@ def test_masses_share_one_scale_without_noise(tmp_path):
     over-disperses the masses and biases the bridge's load regression. Measured: log-log slope of
     calibrated on true mv 0.997, scatter of log(mv / true) about its mean 0.03 %; with the stages'
     low-pass on the channels before the inverse (the filter's edge error at the record's start,
-    carried for seconds by the inverse's body modes, depends on mv: :class:`cloud.rail.calibration.
-    _Mapper`) 1.024 and 0.28 % (the blind test's healthy batch, 50 noisy runs: slope 1.045 → 1.010)."""
+    carried for seconds by the inverse's body modes, depends on mv: :class:`cloud.rail.mapping.
+    Mapper`) 1.024 and 0.28 % (the blind test's healthy batch, 50 noisy runs: slope 1.045 → 1.010)."""
     out = tmp_path / "quiet"
     generate(dataclasses.replace(SCENARIOS["rail-track"], route_length_m=100.0, noise_pct=0.0), out, seed=5,
              passes=6, workers=2, progress=False)
@@ -299,7 +301,7 @@ def test_batched_inverse_is_the_reference_inverse():
     """carriage_aps_runs (all trials of all runs in one compiled call) gives the AP of the per-trial
     reference inverse (shared.dynamics.population.population_aps) exactly, runs of different
     lengths and steps included."""
-    from cloud.rail.calibration import INVERSE_GAMMA, INVERSE_NAMES, carriage_aps_runs
+    from cloud.rail.carriage_inverse import INVERSE_GAMMA, INVERSE_NAMES, carriage_aps_runs
     from shared.dynamics.population import population_aps
     from shared.vehicles.carriage import TABLE_3_1
 
@@ -323,7 +325,7 @@ def test_sensitivities_are_the_derivatives_of_the_inverse():
     Jacobian) gives carriage_aps_runs' AP exactly and its derivatives in every log parameter as a
     central difference of carriage_aps_runs does (to the difference's own error, ~1e-7 here), runs
     of different lengths and steps included, damped and undamped contacts."""
-    from cloud.rail.calibration import INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
+    from cloud.rail.carriage_inverse import INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
     from shared.vehicles.carriage import TABLE_3_1
 
     rng = np.random.default_rng(2)
@@ -358,7 +360,7 @@ def test_sensitivities_in_the_body_initial_state():
     sensitivities' AP agree exactly, at rest they are the batched inverse's, and the derivatives in
     the state (the free responses: the AP is affine in it) are its central differences to rounding;
     the parameters' derivatives still match theirs."""
-    from cloud.rail.calibration import BODY0_NAMES, INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
+    from cloud.rail.carriage_inverse import BODY0_NAMES, INVERSE_NAMES, carriage_aps_runs, carriage_aps_sensitivities
     from shared.vehicles.carriage import TABLE_3_1
 
     rng = np.random.default_rng(4)
@@ -398,7 +400,7 @@ def test_lowpass_is_scipys_zero_phase_filter():
     starts) on the closed-form Butterworth sections, to rounding, short records included."""
     from scipy.signal import butter, sosfiltfilt
 
-    from cloud.rail.calibration import butter4_sos, sosfiltfilt_columns, sosfiltfilt_rows
+    from cloud.rail.filters import butter4_sos, sosfiltfilt_columns, sosfiltfilt_rows
 
     rng = np.random.default_rng(3)
     for wn in (0.01, 0.06, 0.3):

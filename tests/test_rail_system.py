@@ -172,7 +172,7 @@ def test_bridge_batches_give_d1_d2_and_the_alarm_state(bridge_runs, tmp_path):
     from cloud.rail.batches import RailBatches
     from cloud.view import View
     from cloud.rail.bridge import bogie_influence
-    from cloud.rail.calibration import RailRun
+    from cloud.rail.records import RailRun
     from shared.schema import decode_alarm
 
     logs, site = bridge_runs

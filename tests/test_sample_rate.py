@@ -1,6 +1,6 @@
 """Logs at sample rates other than the logger's original 500 Hz (interfaces.md §1: any rate).
 
-The cloud undoes the edge inverse's Newmark transfer per pass (cloud.road.calibration.continuous_ap), and
+The cloud undoes the edge inverse's Newmark transfer per pass (cloud.road.continuous.continuous_ap), and
 that transfer depends on the step the edge inverted at. Undone at 2 ms whatever the rate, a 1 ms pass's
 AP comes out worse than the edge sent it, a 5 ms pass's stays 12 % off at 0.5–1 m. So the edge says
 its sample interval in the pass-done (``PassDone.sample_interval_s``, optional: a
@@ -13,7 +13,7 @@ import pytest
 from scipy.signal import butter, sosfiltfilt
 
 from cloud.ingest.aggregator import Aggregator
-from cloud.road.calibration import continuous_segments
+from cloud.road.continuous import continuous_segments
 from edge.pipeline import PassProcessor
 from shared.dynamics.forward import simulate_on_profile
 from shared.dynamics.inverse import build_inverse, edge_gamma

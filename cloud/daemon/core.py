@@ -38,7 +38,7 @@ from cloud.export import (bridge_bearings_table, bridge_elements_table, bridge_s
                           profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
 from cloud.ingest.segment_store import SegmentStore
-from cloud.road.calibration import CONTINUOUS_MODELS, continuous_segments
+from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
 from cloud.road.fleet_calibration import FleetCalibrator
 from cloud.road.gmrf_profile import GmrfProfile
 from cloud.road.long_wave import drift_of, with_long_wave_band

@@ -29,7 +29,7 @@ class CloudSettings:
         0.8, for stability) distorts every AP of a vehicle class alike, so the profile, its IRI and
         the fleet calibration would all carry that bias. The cloud has the whole pass, so it
         corrects each complete one under the parameters the edge computed it with
-        (:func:`cloud.road.calibration.continuous_segments`, non-causal); the edge's AP stays the
+        (:func:`cloud.road.continuous.continuous_segments`, non-causal); the edge's AP stays the
         inverse's exact output, which the remap, the bridge and rail rebuild the channels from. The
         correction costs several times the rest of ingest, so it is idle work
         (:meth:`Cloud.fuse_pending`), never on the ingest path.

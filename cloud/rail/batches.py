@@ -54,7 +54,8 @@ from shared.vehicles import vehicle_from_params
 from cloud.bridge.mril import MrIl, damage_indicators
 from cloud.bridge.monitor import CLEARED
 from cloud.rail.bridge import bogie_influence
-from cloud.rail.calibration import FIXED, RUN_NAMES, BatchFit, RailRun, calibrate_batch
+from cloud.rail.calibration import FIXED, RUN_NAMES, BatchFit, calibrate_batch
+from cloud.rail.records import RailRun
 
 log = logging.getLogger("driveby.cloud.rail")
 

@@ -45,7 +45,7 @@ that way (one bogie's two channels and the calibrated run properties). The third
 ``leading_bogie`` (:func:`leading_bogie_ap`), keeps the half-car's data (the leading bogie's two
 channels) and models the body's force: the carriage's body, driven by the leading bogie and by a
 trailing bogie simulated over the AP the leading wheels found. Every inverse here runs at the batch
-calibration's Newmark γ (:data:`cloud.rail.calibration.INVERSE_GAMMA`), the one its properties were
+calibration's Newmark γ (:data:`cloud.rail.carriage_inverse.INVERSE_GAMMA`), the one its properties were
 fitted under.
 
 Each run's calibrated speed is off by a little (centimetres of chainage at a span far into the
@@ -98,8 +98,10 @@ from shared.vehicles.bogie import BogieHalfCar
 from shared.vehicles.carriage import Carriage
 
 from cloud.bridge.mril import MrIl, damage_indicators
-from cloud.rail.calibration import FIXED, INVERSE_GAMMA, BatchFit, RailRun
+from cloud.rail.calibration import FIXED, BatchFit
+from cloud.rail.carriage_inverse import INVERSE_GAMMA
 from cloud.rail.fundamental import chord_windows, difference_mril, registered_fundamental
+from cloud.rail.records import RailRun
 
 GRID_M = 0.05
 APPROACH_M = 10.0  # AP kept either side of the span, m

@@ -3,8 +3,8 @@
 
 Every run of the batch crossed the same track, so under the right run properties the apparent
 profiles (AP) of all runs and all four wheels agree in space. The thesis searches the 3·n_b run
-properties by Cross-Entropy with restarts (:func:`cross_entropy_batch`, the reference here). Ours
-(:func:`calibrate_batch`) is Bayesian:
+properties by Cross-Entropy with restarts (:func:`cloud.reference.rail_cross_entropy.cross_entropy_batch`,
+kept to measure against). Ours (:func:`calibrate_batch`) is Bayesian:
 
     −log p(θ | data) = ‖B AP(θ) − c(θ)‖² / (2σ²) + ½ Σ_r ‖(θ_r − μ_r) / s‖² + ½ ‖(θ_g − μ_g) / s_g‖²,
 
@@ -31,8 +31,8 @@ starts in static equilibrium (a logger switched on at a standstill; our simulato
 for one that starts mid-motion: the body's free oscillation then rides every AP, and on Table 3.1's
 suspension it decays slowly (bounce 1.16 Hz, pitch 1.4 Hz, ζ ≈ 0.07–0.08: e-folding in ~2 s, 60 m
 at 30 m/s), so no start-up window a 150 m record can spare removes it. Given θ the AP is
-affine in the body's initial state (:data:`BODY0_NAMES`), so each run carries it as a nuisance with
-a weak prior, its Jacobian columns exact from the same forward-mode pass. A free state costs
+affine in the body's initial state (:data:`~cloud.rail.carriage_inverse.BODY0_NAMES`), so each run
+carries it as a nuisance with a weak prior, its Jacobian columns exact from the same forward-mode pass. A free state costs
 information when the record did start at rest, so before the last
 stage each run's fitted state is tested against rest (Wald χ², 4 dof, :data:`REST_CHI2`) and held
 at rest where consistent — a spike-and-slab prior decided per run. A mid-motion record's first
@@ -53,14 +53,16 @@ Cost (the thesis's CE needs thousands of batch evaluations; this needs tens): th
 no short waves, so their channels are decimated to ~20 samples per period of the stage's cut-off
 and compared on a coarser grid; the Jacobian is exact, the AP's derivatives in the 8 inverse
 parameters and the body's initial state carried through the inverse's recursion in forward mode
-(:func:`carriage_aps_sensitivities`: one pass per run at a few inverses' cost, where finite
-differences need one per parameter and are only good to their step; the state's columns are skipped
-once every run is held at rest), the speed's and shift's columns finite differences of the mapping alone; it is refreshed every third
-accepted step, with chord steps (1 inverse per run) in between; samples past what the window needs
-are not inverted; every trial of every run is one compiled inverse call (:func:`carriage_aps_runs`)
-and one interpolation (:meth:`_Mapper.map_runs`); the stage's low-pass is a compiled zero-phase
-filter of the mapped rows in space (:func:`sosfiltfilt_rows`; on the channels before the inverse it
-biases the masses, :class:`_Mapper`). ``python -m benchmarks rail`` times it.
+(:func:`~cloud.rail.carriage_inverse.carriage_aps_sensitivities`: one pass per run at a few inverses'
+cost, where finite differences need one per parameter and are only good to their step; the state's
+columns are skipped once every run is held at rest), the speed's and shift's columns finite
+differences of the mapping alone; it is refreshed every third accepted step, with chord steps (1
+inverse per run) in between; samples past what the window needs are not inverted; every trial of
+every run is one compiled inverse call (:func:`~cloud.rail.carriage_inverse.carriage_aps_runs`) and one
+interpolation (:meth:`~cloud.rail.mapping.Mapper.map_runs`); the stage's low-pass is a compiled
+zero-phase filter of the mapped rows in space (:func:`~cloud.rail.filters.sosfiltfilt_rows`; on the
+channels before the inverse it biases the masses, :class:`~cloud.rail.mapping.Mapper`).
+``python -m benchmarks rail`` times it.
 
 Pure functions on arrays: no I/O, no transport.
 """
@@ -75,9 +77,13 @@ from typing import Sequence
 import numpy as np
 import scipy.fft
 
-from shared.dynamics.newmark import newmark_constants
-from shared.jit import kernel
 from shared.vehicles.carriage import Carriage
+
+from cloud.rail.carriage_inverse import (BODY0_NAMES, INVERSE_NAMES, N_SENS, carriage_aps_runs,
+                                         carriage_aps_sensitivities)
+from cloud.rail.filters import lowpass_channels
+from cloud.rail.mapping import EDGE_M, GRID_M, Mapper, window
+from cloud.rail.records import RailRun
 
 RUN_NAMES = ("mv", "Iv", "v")
 #: Global properties calibrated with the batch (their class sd is the prior); the wheelset mass does
@@ -95,15 +101,12 @@ POINTS_PER_WAVELENGTH = 20
 #: unless :func:`calibrate_batch` is told otherwise.
 SAMPLES_PER_CUTOFF = 20
 #: A decimated stage's channels are low-passed (against aliasing) at its shortest wavelength ÷ this:
-#: the decimated rate's Nyquist is at ÷ 10 and the stage's own low-pass is in space (:class:`_Mapper`).
+#: the decimated rate's Nyquist is at ÷ 10 and the stage's own low-pass is in space
+#: (:class:`~cloud.rail.mapping.Mapper`).
 ANTIALIAS_FACTOR = 4.0
-#: :func:`sosfiltfilt_rows` transposes this many rows at a time into a work array that stays in cache.
-FILTER_BLOCK_ROWS = 32
 MAX_WAVELENGTH_M = 60.0
-GRID_M = 0.1  # finest comparison grid spacing, m
 SPEED_SEARCH_M = 6.0  # shortest wavelength of the speed's grid search (:func:`_speed_from_wheels`), m
 SPEED_STEP = 0.01  # its step in log speed
-EDGE_M = 1.5  # margin kept from the wheels' coverage (trial speeds move it), m
 FD_LOG_STEP = 1e-3  # the speed's Jacobian column: a finite difference of the mapping, log speed
 #: The stages before the last stop on steps below this (log): they only bring the last one into its
 #: basin, which it then converges from to ``tol`` (the stage's optimum is not the last stage's).
@@ -120,26 +123,6 @@ Z95 = 1.959963984540054
 #: the Jacobian's is above this fraction of its peak: beyond the stage's low-pass both are down at
 #: the leakage floor of their ends, and the products' cost is in proportion to the bins kept.
 NOISE_BAND_FLOOR = 1e-6
-
-
-@dataclasses.dataclass(frozen=True)
-class RailRun:
-    """One run's measured bogie channels (n, 4) in ``bogie1_acc, bogie1_pitch_rate, bogie2_acc,
-    bogie2_pitch_rate`` order at step ``dt`` (s), its reported speed (m/s) and the chainage of the
-    body's centre of gravity at the first sample (m)."""
-
-    pass_id: str
-    channels: np.ndarray
-    dt: float
-    speed_mps: float
-    x0_m: float = 0.0
-
-    def __post_init__(self) -> None:
-        z = np.asarray(self.channels)
-        if z.ndim != 2 or z.shape[1] != 4 or len(z) < 16:
-            raise ValueError(f"RailRun {self.pass_id}: channels must be (n >= 16, 4), got {z.shape}")
-        if not (self.dt > 0 and self.speed_mps > 0 and math.isfinite(self.x0_m)):
-            raise ValueError(f"RailRun {self.pass_id}: need dt > 0, speed_mps > 0 and a finite x0_m")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,210 +162,6 @@ class BatchFit:
                  "pass_id": r.pass_id} for r in self.runs for k in RUN_NAMES]
 
 
-def _lowpass(run: RailRun, min_wavelength_m: float = 2.0) -> np.ndarray:
-    """The channels without wavelengths shorter than ``min_wavelength_m`` at the run's reported speed
-    (zero phase). A linear filter commutes with the linear inverse only away from the record's start
-    (:class:`_Mapper`): :func:`calibrate_batch` uses this only against aliasing before decimating."""
-    z = np.asarray(run.channels, dtype=float)
-    nyq = 0.5 / run.dt
-    fc = run.speed_mps / min_wavelength_m
-    if fc < 0.9 * nyq:
-        z = sosfiltfilt_columns(butter4_sos(fc / nyq), np.ascontiguousarray(z))
-    return z
-
-
-@kernel
-def sosfiltfilt_columns(sos, x):
-    """``scipy.signal.sosfiltfilt(sos, x, axis=0)`` with its defaults (odd extension of 3·(2·sections
-    + 1) samples, each pass started in the steady state of its first sample), for sections without
-    zero coefficients: the same arithmetic, to rounding. scipy's is mostly Python overhead, a
-    noticeable share of a batch calibration, which calls it once per run and stage."""
-    n, nch = x.shape
-    edge = 3 * (2 * sos.shape[0] + 1)
-    if n <= edge:
-        raise ValueError("sosfiltfilt_columns: the record is shorter than the filter's padding")
-    ext = np.empty((n + 2 * edge, nch))  # channels side by side: independent recursions interleave
-    ext[edge:edge + n] = x
-    _filtfilt_extended(sos, ext, edge)
-    return ext[edge:edge + n].copy()
-
-
-@kernel
-def sosfiltfilt_rows(sos, x):
-    """:func:`sosfiltfilt_columns` along the last axis of ``x`` (rows, n): the same numbers. The mapper
-    filters ~200–300 mapped rows a call; a block of rows at a time is transposed into a work array
-    that stays in cache (faster than numpy's transposes around :func:`sosfiltfilt_columns`)."""
-    nch, n = x.shape
-    edge = 3 * (2 * sos.shape[0] + 1)
-    if n <= edge:
-        raise ValueError("sosfiltfilt_rows: the record is shorter than the filter's padding")
-    out = np.empty_like(x)
-    for c0 in range(0, nch, FILTER_BLOCK_ROWS):
-        c1 = min(nch, c0 + FILTER_BLOCK_ROWS)
-        ext = np.empty((n + 2 * edge, c1 - c0))
-        for ch in range(c0, c1):
-            for k in range(n):
-                ext[edge + k, ch - c0] = x[ch, k]
-        _filtfilt_extended(sos, ext, edge)
-        for ch in range(c0, c1):
-            for k in range(n):
-                out[ch, k] = ext[edge + k, ch - c0]
-    return out
-
-
-@kernel
-def _filtfilt_extended(sos, ext, edge):
-    """In place on ``ext`` (n + 2·edge, nch), the record in the middle rows: the odd extensions,
-    then the forward and backward passes of every section (scipy's sosfiltfilt arithmetic)."""
-    m, nch = ext.shape
-    n = m - 2 * edge
-    ns = sos.shape[0]
-    # sosfilt_zi: each section's lfilter_zi (the 2x2 solve of its companion form), scaled by the
-    # DC gain of the sections before it
-    zi = np.empty((ns, 2))
-    scale = 1.0
-    for q in range(ns):
-        b0, b1, b2, a1, a2 = sos[q, 0] / sos[q, 3], sos[q, 1] / sos[q, 3], sos[q, 2] / sos[q, 3], \
-            sos[q, 4] / sos[q, 3], sos[q, 5] / sos[q, 3]
-        r1, r2 = b1 - a1 * b0, b2 - a2 * b0
-        # (I - A) zi = B with A = companion(a).T: [[1 + a1, -1], [a2, 1]]
-        z0 = (r1 + r2) / (1.0 + a1 + a2)
-        zi[q, 0] = scale * z0
-        zi[q, 1] = scale * (r2 - a2 * z0)
-        scale *= (b0 + b1 + b2) / (1.0 + a1 + a2)
-    for k in range(edge):
-        for ch in range(nch):
-            ext[k, ch] = 2.0 * ext[edge, ch] - ext[2 * edge - k, ch]
-            ext[n + edge + k, ch] = 2.0 * ext[n + edge - 1, ch] - ext[n + edge - 2 - k, ch]
-    st0 = np.empty((ns, nch))
-    st1 = np.empty((ns, nch))
-    for direction in range(2):
-        first = 0 if direction == 0 else m - 1
-        for q in range(ns):
-            for ch in range(nch):
-                st0[q, ch] = zi[q, 0] * ext[first, ch]
-                st1[q, ch] = zi[q, 1] * ext[first, ch]
-        for kk in range(m):
-            k = kk if direction == 0 else m - 1 - kk
-            row = ext[k]
-            # section by section over a whole row: the channels' recursions are independent, so
-            # the inner loop vectorises (channel by channel through both sections it cannot)
-            for q in range(ns):
-                b0, b1, b2, a1, a2 = sos[q, 0], sos[q, 1], sos[q, 2], sos[q, 4], sos[q, 5]
-                s0 = st0[q]
-                s1 = st1[q]
-                for ch in range(nch):
-                    v = row[ch]
-                    out = b0 * v + s0[ch]
-                    s0[ch] = b1 * v - a1 * out + s1[ch]
-                    s1[ch] = b2 * v - a2 * out
-                    row[ch] = out
-
-
-def butter4_sos(wn: float) -> np.ndarray:
-    """``scipy.signal.butter(4, wn, output="sos")`` in closed form (same sections, same order, to
-    ~1e-13 relative): the bilinear transform of the prewarped analog poles. scipy's design is slow
-    for a batch calibration, which designs one per run and stage."""
-    warped = 4.0 * math.tan(math.pi * wn / 2.0)  # scipy's prewarp at fs = 2
-    pa = warped * np.exp(1j * np.pi * np.array([5.0, 7.0]) / 8.0)  # one pole of each conjugate pair
-    pd = (4.0 + pa) / (4.0 - pa)
-    gain = warped**4 / float(np.real(np.prod(4.0 - pa) * np.prod(4.0 - np.conj(pa))))
-    sos = np.zeros((2, 6))
-    for row, i in enumerate(np.argsort(np.abs(pd))):  # scipy's "nearest" pairing: nearest the unit circle last
-        sos[row] = (1.0, 2.0, 1.0, 1.0, -2.0 * pd[i].real, abs(pd[i]) ** 2)
-    sos[0, :3] *= gain
-    return sos
-
-
-def _window(runs: Sequence[RailRun], offsets: np.ndarray, window_m: tuple[float, float] | None,
-            speed_slack: float) -> np.ndarray:
-    """The common grid every wheel of every run covers at any speed within ``speed_slack`` (relative)."""
-    lo = max(r.x0_m + offsets.max() for r in runs) + EDGE_M
-    hi = min(r.x0_m + offsets.min() + r.speed_mps * (1 - speed_slack) * (len(r.channels) - 1) * r.dt
-             for r in runs) - EDGE_M
-    if window_m is not None:
-        lo, hi = max(lo, window_m[0]), min(hi, window_m[1])
-    if hi - lo < 20.0:
-        raise ValueError(f"the runs share only [{lo:.1f}, {hi:.1f}] m of track: too short a window to calibrate")
-    return np.arange(lo, hi, GRID_M)
-
-
-class _Mapper:
-    """B: a run's AP (time) → its four wheels on the grid, low-passed there (no wavelengths shorter
-    than ``min_wavelength_m``, zero phase) and a cubic removed from each (the unknown level and the
-    integrators' slow drift of sensor noise).
-
-    The low-pass is applied to the mapped AP, in space, not to the channels before the inverse: a
-    filter commutes with the linear inverse only away from the record's start, where the channels'
-    filter makes an edge error that the inverse's lightly damped body modes then carry for seconds
-    (most of a window). That error depends on each run's mv, so it biases the masses — not a common
-    scale but an over-dispersion (calibrated mv regressed on the truth has a slope above 1), by an
-    amount that depends on the track near the record's start. On the grid the filter's edges are the
-    same for every run and wheel, so the truth stays exact."""
-
-    def __init__(self, grid: np.ndarray, min_wavelength_m: float | None = None):
-        self.grid = grid
-        X = np.stack([((grid - grid.mean()) / np.ptp(grid)) ** k for k in range(4)], axis=1)
-        self.basis, _ = np.linalg.qr(X)
-        wn = 2.0 * (grid[1] - grid[0]) / min_wavelength_m if min_wavelength_m else 1.0
-        self.sos = butter4_sos(wn) if wn < 0.9 else None
-
-    def lowpass(self, a: np.ndarray) -> np.ndarray:
-        """``a`` (..., K) without wavelengths shorter than the mapper's (zero phase, along the grid)."""
-        if self.sos is None:
-            return a
-        return sosfiltfilt_rows(self.sos, np.ascontiguousarray(a).reshape(-1, a.shape[-1])).reshape(a.shape)
-
-    def detrend(self, a: np.ndarray) -> np.ndarray:
-        return a - (a @ self.basis) @ self.basis.T
-
-    def map_runs(self, aps: np.ndarray, dts: np.ndarray, x0: np.ndarray, speeds: np.ndarray, lengths: np.ndarray,
-                 offsets: np.ndarray) -> np.ndarray:
-        """(R, T, N, 4) APs of R runs (the first ``lengths[r]`` samples at step ``dts[r]``, from
-        ``x0[r]``), each mapped at each of its run's speeds ``speeds`` (R, S): (R, T, S, 4, K), by
-        linear interpolation, each query clipped to its record (:func:`_map_kernel`)."""
-        R, T, N, nw = aps.shape
-        out = np.empty((R, T, speeds.shape[1], nw, len(self.grid)))
-        _map_kernel(aps, np.asarray(dts, dtype=float), np.asarray(x0, dtype=float), np.asarray(speeds, dtype=float),
-                    np.asarray(lengths, dtype=np.int64), np.asarray(offsets, dtype=float), self.grid, out)
-        return self.detrend(self.lowpass(out))
-
-
-@kernel
-def _map_kernel(aps, dts, x0, speeds, lengths, offsets, grid, out):
-    """out[r, t, s, i, k] = AP of run r, trial t, wheel i at chainage grid[k] at speed speeds[r, s]:
-    linear interpolation between the bracketing samples, computed (the samples are uniform in time),
-    not searched. What ``np.interp`` over the records laid end to end gave (to rounding; the end to
-    end abscissae lost ~1e-11 to their offsets), without its (R, T, 4, N) abscissa array: a 50-run
-    Jacobian mapping (and its detrend) 0.04 → 0.017 s. CE's evaluations share it."""
-    R, T = aps.shape[0], aps.shape[1]
-    for r in range(R):
-        top = lengths[r] - 1
-        for s in range(speeds.shape[1]):
-            for i in range(aps.shape[3]):
-                for k in range(grid.shape[0]):
-                    u = (grid[k] - x0[r] - offsets[i]) / speeds[r, s] / dts[r]
-                    u = min(max(u, 0.0), float(top))
-                    j = min(int(u), top - 1)
-                    f = u - j
-                    for t in range(T):
-                        a0 = aps[r, t, j, i]
-                        out[r, t, s, i, k] = a0 + (aps[r, t, j + 1, i] - a0) * f
-
-
-#: The carriage's parameters the inverse depends on, in the order of :func:`carriage_aps`' columns.
-INVERSE_NAMES = ("mv", "Iv", "mb", "Ib", "kp", "cp", "ks", "cs")
-#: Newmark γ of the calibration's inverse. Not the edge's 0.8: its numerical damping (~(γ − ½)·ω·Δt/2,
-#: a fifth of the bogies' own damping at their bounce) is read as a lower cp relative to the masses,
-#: and cp's prior then pulls the batch's common mass scale up beyond what the priors explain.
-#: ``tests/test_rail_calibration.py`` checks the common error over seeds.
-INVERSE_GAMMA = 0.5
-#: The body's state at a record's first sample, relative to the bogies' (m, rad, m/s, rad/s). The
-#: inverse's default start at rest is right only for a record that starts at rest; a record that
-#: starts mid-motion leaves the body's free oscillation in every AP, and the body modes decay
-#: slowly: bounce 1.16 Hz, pitch 1.4 Hz at ζ ≈ 0.07–0.08 with Table 3.1's suspension (e-folding
-#: in ~2 s, 60 m at 30 m/s) — no start-up window a 150 m record could spare removes it.
-BODY0_NAMES = ("u", "pitch", "u_dot", "pitch_rate")
 #: :func:`calibrate_batch` carries the initial state in these units (m, rad, m/s, rad/s): as many
 #: times its typical posterior sd as a log unit is the masses', so the step tolerance means the same
 #: for both (in mm and mm/s the state's steps never fall below it and the stages run out of
@@ -406,292 +185,10 @@ REST_SD = 1e-7
 #: A run whose fitted chainage shift is within this of zero (Wald χ², 1 dof, 99.9 %) keeps the
 #: log's chainage (module docstring).
 SHIFT_CHI2 = 10.8276
-N_SENS = 1 + len(INVERSE_NAMES) + len(BODY0_NAMES)  # carriage_aps_sensitivities' rows
-
-
-def _body0(body0: np.ndarray | None, T: int) -> np.ndarray:
-    if body0 is None:
-        return np.zeros((T, len(BODY0_NAMES)))
-    body0 = np.ascontiguousarray(body0, dtype=np.float64)
-    if body0.shape != (T, len(BODY0_NAMES)):
-        raise ValueError(f"body0 must be ({T}, {len(BODY0_NAMES)}), got {body0.shape}")
-    return body0
-
-
-def carriage_aps_runs(theta: np.ndarray, run_of: np.ndarray, Lb: float, Lv: float, z: np.ndarray,
-                      lengths: np.ndarray, dts: np.ndarray, out: np.ndarray | None = None,
-                      body0: np.ndarray | None = None) -> np.ndarray:
-    """APs (T, N, 4) under T parameter sets ``theta`` (T, 8) in :data:`INVERSE_NAMES` order, trial t
-    on run ``run_of[t]``'s channels ``z`` (R, N, 4) (the first ``lengths[r]`` samples, step
-    ``dts[r]``; the rest of its AP is zero). Same result as :func:`cloud.reference.cross_entropy.
-    population_aps` per run; the carriage's matrices are assembled in array form — M, C, K are
-    linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`) — and the whole
-    batch is one compiled call (:func:`_inverse_kernel` without derivatives), instead of a
-    ``Carriage`` per trial and a call per run.
-
-    ``out``: a (≥ T, N, 4) C-contiguous work array to write into (its first T rows; past a run's
-    length left as they were, not zeroed): a calibration reuses one across its evaluations.
-    ``body0`` (T, 4): the body's initial state of each trial (:data:`BODY0_NAMES`; default at rest)."""
-    theta = np.asarray(theta, dtype=float)
-    run_of = np.asarray(run_of, dtype=np.int64)
-    T, N = len(theta), z.shape[1]
-    if out is None:
-        out = np.zeros((T, N, 4))  # time-major, as the sensitivities (a step's values in one piece)
-    else:
-        out = out[:T]
-        if out.shape[1:] != (N, 4) or not out.flags.c_contiguous:
-            raise ValueError(f"carriage_aps_runs: out must be a C-contiguous (>= {T}, {N}, 4) array")
-    _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, _body0(body0, T), 0, out.reshape(T, N, 1, 4))
-    return out
-
-
-def carriage_aps_sensitivities(theta: np.ndarray, Lb: float, Lv: float, z: np.ndarray, lengths: np.ndarray,
-                               dts: np.ndarray, out: np.ndarray | None = None,
-                               body0: np.ndarray | None = None, body_derivatives: bool = True) -> np.ndarray:
-    """APs and their derivatives: (R, 13, N, 4), [r, 0] the AP of run r's channels ``z[r]`` (the
-    first ``lengths[r]`` samples at step ``dts[r]``) under ``theta[r]`` (R, 8; :data:`INVERSE_NAMES`
-    order) from the body's initial state ``body0[r]`` (:data:`BODY0_NAMES`; default at rest) exactly
-    as :func:`carriage_aps_runs` gives it, [r, 1 + j] its derivative in log θ_j, [r, 9 + j] in
-    body0_j (per m, rad, m/s, rad/s: the free responses, the AP being affine in the initial state) —
-    forward mode through the same Newmark-β recursion (exact to rounding, no finite-difference step)
-    in one pass per run (:func:`_inverse_kernel`), at ~the cost of 4 of the 13 inverses a one-sided
-    finite-difference Jacobian takes. ``out``: a (≥ R, N, 13, 4) C-contiguous work array (past a
-    run's length left as it was). ``body_derivatives=False``: rows 9–12 are not computed (left as
-    they were)."""
-    theta = np.asarray(theta, dtype=float)
-    R, N = len(theta), z.shape[1]
-    if out is None:
-        out = np.zeros((R, N, N_SENS, 4))  # time-major: a step's 52 values in one piece
-    else:
-        out = out[:R]
-        if out.shape[1:] != (N, N_SENS, 4) or not out.flags.c_contiguous:
-            raise ValueError(f"carriage_aps_sensitivities: out must be a C-contiguous (>= {R}, {N}, {N_SENS}, 4) array")
-    _carriage_inverse(theta, np.arange(R), Lb, Lv, z, lengths, dts, _body0(body0, R), 12 if body_derivatives else 8,
-                      out)
-    return out.transpose(0, 2, 1, 3)
-
-
-def _carriage_inverse(theta, run_of, Lb, Lv, z, lengths, dts, body0, nd, out) -> None:
-    """:func:`_inverse_kernel` on ``out`` (T, N, ≥ 1 + nd, 4) with the carriage's matrices of each
-    trial; ``nd`` 0: the primal alone (the derivatives' inputs are None: compiled without them)."""
-    dts = np.asarray(dts, dtype=float)
-    M, C, K, G, sec, prim = _carriage_matrices(theta, Lb, Lv)
-    c = newmark_constants(float(dts.min()), INVERSE_GAMMA)
-    dt = dts[run_of][:, None, None]
-    S = np.concatenate([M[:, :, :2] + c.gamma * dt * C[:, :, :2] + c.beta * dt * dt * K[:, :, :2],
-                        np.broadcast_to(-G, (len(theta), 6, 4))], axis=2)
-    Sinv = np.linalg.inv(S)
-    tangents = (Sinv @ C[:, :, :2], Sinv @ K[:, :, :2], Sinv @ prim, Sinv @ sec) if nd else (None,) * 4
-    _inverse_kernel(Sinv, M, C, K, *tangents, theta, body0, run_of, nd, np.ascontiguousarray(z, dtype=np.float64),
-                    np.asarray(lengths, dtype=np.int64), dts, c.gamma, c.beta, out)
-
-
-@kernel
-def _inverse_kernel(Sinv, M, C, K, PC, PK, SP, SS, theta, body0, run_of, nd, z, lengths, dts, gamma, beta, out):
-    """The carriage's inverse step (:func:`shared.dynamics.batched_inverse.inverse_runs` with the carriage's
-    structure: DOFs 2–5 measured, accelerations and pitch rates alternately; 0–1 the body, free;
-    four contacts, the primary suspensions kp, cp), parameter set t on run ``run_of[t]``'s channels,
-    the body started from ``body0[t]`` (u, θ, u̇, θ̇; its acceleration 0 as the at-rest inverse has
-    it: a wrong start acceleration only moves the state after the first step, within the same free
-    responses), with the forward-mode derivatives in the first ``nd`` directions carried alongside:
-    8 the log parameters, 12 also the body's initial state. ``out`` (T, N, ≥ 1 + nd, 4),
-    time-major: [t, k, 0] the AP, [t, k, 1 + j] its derivative j (rows past 1 + nd untouched).
-
-    ``PC`` None (``nd`` 0): the AP alone, for the chord steps' trials. numba compiles that call
-    without the derivatives' code (its branches test the argument against None, which it prunes at
-    compile time): as fast as a kernel of the primal alone, which a run-time flag is not.
-
-    The measured DOFs' states are data, so only the body's and the contacts' states have
-    derivatives. Differentiating M a + C v + K u − G g = 0 in log θ_j: S [ds_f; dg] = −(b_j + C_f
-    dvp_f + K_f dup_f), with b_j = θ_j (∂_j M a + ∂_j C v + ∂_j K u) at the step's state — a few
-    entries per parameter (mv, Iv, mb, Ib a diagonal entry each; kp, cp the primary pattern
-    ``prim``; ks, cs the secondary ``sec``), pre-multiplied by S⁻¹: ``PC``/``PK`` = S⁻¹C/K on the
-    free columns, ``SP``/``SS`` = S⁻¹ prim / S⁻¹ sec. Directions 8–11, the initial state's, have no
-    right-hand side and unit initial tangents."""
-    T = Sinv.shape[0]
-    u = np.zeros(6)
-    v = np.zeros(6)
-    a = np.zeros(6)
-    up = np.zeros(6)
-    vp = np.zeros(6)
-    s = np.zeros(6)
-    known = np.zeros(6)
-    y = np.zeros(4)
-    yd = np.zeros(4)
-    du = np.zeros((2, 12))
-    dv = np.zeros((2, 12))
-    da = np.zeros((2, 12))
-    dup = np.zeros((2, 12))
-    dvp = np.zeros((2, 12))
-    ds = np.zeros((6, 12))
-    dy = np.zeros((4, 12))
-    dyd = np.zeros((4, 12))
-    dyn = np.zeros(12)
-    for t in range(T):
-        r = run_of[t]
-        dt = dts[r]
-        bdt2 = beta * dt * dt
-        gdt = gamma * dt
-        mv, Iv, mb, Ib, kp, cp, ks, cs = theta[t]
-        two_dt = 2.0 / dt
-        inv_kp = 1.0 / kp
-        inv_den = 1.0 / (kp + 2.0 * cp / dt)
-        u[:] = 0.0
-        v[:] = 0.0
-        a[:] = 0.0
-        y[:] = 0.0
-        yd[:] = 0.0
-        u[0] = body0[t, 0]
-        u[1] = body0[t, 1]
-        v[0] = body0[t, 2]
-        v[1] = body0[t, 3]
-        a[2] = z[r, 0, 0]
-        v[3] = z[r, 0, 1]
-        a[4] = z[r, 0, 2]
-        v[5] = z[r, 0, 3]
-        for c in range(4):
-            out[t, 0, 0, c] = 0.0
-        if PC is not None:
-            du[:] = 0.0
-            dv[:] = 0.0
-            da[:] = 0.0
-            dy[:] = 0.0
-            dyd[:] = 0.0
-            if nd > 8:
-                du[0, 8] = 1.0
-                du[1, 9] = 1.0
-                dv[0, 10] = 1.0
-                dv[1, 11] = 1.0
-            for q in range(1, 1 + nd):
-                for c in range(4):
-                    out[t, 0, q, c] = 0.0
-        for k in range(1, lengths[r]):
-            for i in range(6):
-                up[i] = u[i] + dt * v[i] + dt * dt * (0.5 - beta) * a[i]
-                vp[i] = v[i] + dt * (1.0 - gamma) * a[i]
-            if PC is not None:
-                for f in range(2):
-                    for j in range(nd):
-                        dup[f, j] = du[f, j] + dt * dv[f, j] + dt * dt * (0.5 - beta) * da[f, j]
-                        dvp[f, j] = dv[f, j] + dt * (1.0 - gamma) * da[f, j]
-            for m in range(4):
-                i = 2 + m
-                if m % 2 == 0:
-                    a[i] = z[r, k, m]
-                else:  # a measured rate: the acceleration Newmark's velocity update implies
-                    a[i] = (z[r, k, m] - vp[i]) / gdt
-                u[i] = up[i] + bdt2 * a[i]
-                v[i] = vp[i] + gdt * a[i]
-            # the primal solve, as inverse_runs: S [s_f; g] = −known
-            for row in range(6):
-                acc = 0.0
-                for i in range(2, 6):
-                    acc += M[t, row, i] * a[i] + C[t, row, i] * v[i] + K[t, row, i] * u[i]
-                for i in range(2):
-                    acc += C[t, row, i] * vp[i] + K[t, row, i] * up[i]
-                known[row] = acc
-            for q in range(6):
-                acc = 0.0
-                for row in range(6):
-                    acc -= Sinv[t, q, row] * known[row]
-                s[q] = acc
-            for f in range(2):
-                a[f] = s[f]
-                u[f] = up[f] + bdt2 * s[f]
-                v[f] = vp[f] + gdt * s[f]
-            if PC is not None:
-                # the eight right-hand sides b_j, pre-multiplied by −S⁻¹, at the updated state
-                for q in range(6):
-                    sp_u = 0.0
-                    sp_v = 0.0
-                    ss_u = 0.0
-                    ss_v = 0.0
-                    for i in range(2, 6):  # prim: the bogies' DOFs only
-                        sp_u += SP[t, q, i] * u[i]
-                        sp_v += SP[t, q, i] * v[i]
-                    for i in (0, 1, 2, 4):  # sec: the body's and the bogies' bounce
-                        ss_u += SS[t, q, i] * u[i]
-                        ss_v += SS[t, q, i] * v[i]
-                    ds[q, 0] = -mv * Sinv[t, q, 0] * a[0]
-                    ds[q, 1] = -Iv * Sinv[t, q, 1] * a[1]
-                    ds[q, 2] = -mb * (Sinv[t, q, 2] * a[2] + Sinv[t, q, 4] * a[4])
-                    ds[q, 3] = -Ib * (Sinv[t, q, 3] * a[3] + Sinv[t, q, 5] * a[5])
-                    ds[q, 4] = -kp * sp_u
-                    ds[q, 5] = -cp * sp_v
-                    ds[q, 6] = -ks * ss_u
-                    ds[q, 7] = -cs * ss_v
-                    for j in range(8, nd):
-                        ds[q, j] = 0.0
-                    p0 = PC[t, q, 0]
-                    p1 = PC[t, q, 1]
-                    k0 = PK[t, q, 0]
-                    k1 = PK[t, q, 1]
-                    for j in range(nd):
-                        ds[q, j] -= p0 * dvp[0, j] + p1 * dvp[1, j] + k0 * dup[0, j] + k1 * dup[1, j]
-                for f in range(2):
-                    for j in range(nd):
-                        da[f, j] = ds[f, j]
-                        du[f, j] = dup[f, j] + bdt2 * ds[f, j]
-                        dv[f, j] = dvp[f, j] + gdt * ds[f, j]
-            for c in range(4):
-                g = s[2 + c]
-                if cp == 0.0:
-                    ynew = g / kp
-                    if PC is not None:
-                        for j in range(nd):
-                            dy[c, j] = ds[2 + c, j] * inv_kp
-                        dy[c, 4] -= ynew  # d/dlog kp of g/kp
-                    y[c] = ynew
-                else:  # kc·y + cc·ẏ = g by the trapezoidal rule (the primal as inverse_runs has it)
-                    den = kp + 2.0 * cp / dt
-                    hist = 2.0 * y[c] / dt + yd[c]
-                    ynew = (g + cp * hist) / den
-                    if PC is not None:
-                        for j in range(nd):  # (reciprocals: divisions are slow)
-                            dyn[j] = (ds[2 + c, j] + cp * (two_dt * dy[c, j] + dyd[c, j])) * inv_den
-                        dyn[4] -= ynew * kp * inv_den  # the contact's stiffness is kp
-                        dyn[5] += cp * (hist - two_dt * ynew) * inv_den  # and its damping cp
-                        for j in range(nd):
-                            dyd[c, j] = two_dt * (dyn[j] - dy[c, j]) - dyd[c, j]
-                            dy[c, j] = dyn[j]
-                    yd[c] = 2.0 * (ynew - y[c]) / dt - yd[c]
-                    y[c] = ynew
-                out[t, k, 0, c] = y[c]
-                if PC is not None:
-                    for j in range(nd):
-                        out[t, k, 1 + j, c] = dy[c, j]
-
-
-def _carriage_matrices(theta: np.ndarray, Lb: float, Lv: float):
-    """M, C, K (T, 6, 6) of T parameter sets (:data:`INVERSE_NAMES` order), the contact matrix G
-    (6, 4) and the secondary and primary suspensions' patterns ``sec``, ``prim`` (6, 6): M, C, K are
-    linear in the parameters (:meth:`shared.vehicles.carriage.Carriage._body_bogie`)."""
-    T = len(theta)
-    mv, Iv, mb, Ib, kp, cp, ks, cs = theta.T
-    s1 = np.array([1.0, Lv, -1.0, 0.0, 0.0, 0.0])
-    s2 = np.array([1.0, -Lv, 0.0, 0.0, -1.0, 0.0])
-    sec = np.outer(s1, s1) + np.outer(s2, s2)
-    G = np.zeros((6, 4))
-    G[2, 0], G[3, 0], G[2, 1], G[3, 1] = 1.0, Lb, 1.0, -Lb
-    G[4, 2], G[5, 2], G[4, 3], G[5, 3] = 1.0, Lb, 1.0, -Lb
-    prim = G @ G.T
-    K = ks[:, None, None] * sec + kp[:, None, None] * prim
-    C = cs[:, None, None] * sec + cp[:, None, None] * prim
-    M = np.zeros((T, 6, 6))
-    for j, m in enumerate((mv, Iv, mb, Ib, mb, Ib)):
-        M[:, j, j] = m
-    return M, C, K, G, sec, prim
-
-
-def carriage_aps(theta: np.ndarray, Lb: float, Lv: float, z: np.ndarray, dt: float) -> np.ndarray:
-    """APs (T, n, 4) of one run's channels ``z`` (n, 4) under T parameter sets (:func:`carriage_aps_runs`)."""
-    z = np.asarray(z, dtype=float)
-    return carriage_aps_runs(theta, np.zeros(len(theta), dtype=np.int64), Lb, Lv, z[None], np.array([len(z)]),
-                             np.array([dt]))
 
 
 def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, fixed: dict[str, float],
-                       offsets: np.ndarray, mapper: "_Mapper", slack: float) -> np.ndarray:
+                       offsets: np.ndarray, mapper: "Mapper", slack: float) -> np.ndarray:
     """log(v / reported v) of each run at which its own four wheels agree best (global grid search).
 
     A bump reaches wheel 3 2·Lv/v after wheel 1: the run's speed follows from its own data,
@@ -930,7 +427,7 @@ def calibrate_batch(
     fixed = {k: float(prior_mean[k]) for k in FIXED}
     offsets = Carriage(**fixed, **{k: prior_mean[k] for k in GLOBAL_FIT}, mv=1.0, Iv=1.0, v=1.0).wheel_offsets_m()
     slack = 4 * speed_rel_sd
-    grid = _window(runs, offsets, window_m, speed_slack=slack)
+    grid = window(runs, offsets, window_m, speed_slack=slack)
     # Samples past the last the window can need (trailing wheel, slowest trial speed) are not
     # inverted: the inverse is causal, and a decimated stage's anti-alias filter is applied to the
     # whole record first.
@@ -1057,9 +554,9 @@ def calibrate_batch(
         chans = []
         for r, k in zip(runs, keep):
             q = decimation or max(1, int(1.0 / (r.dt * SAMPLES_PER_CUTOFF * r.speed_mps / min_wavelength)))
-            # The stage's low-pass is the mapper's, in space (:class:`_Mapper`); the channels are
-            # filtered only against aliasing when decimated, well below the stage's cut-off.
-            z = _lowpass(r, min_wavelength / ANTIALIAS_FACTOR) if q > 1 else np.asarray(r.channels, dtype=float)
+            # The stage's low-pass is the mapper's, in space (:class:`~cloud.rail.mapping.Mapper`); the
+            # channels are filtered only against aliasing when decimated, well below the stage's cut-off.
+            z = lowpass_channels(r, min_wavelength / ANTIALIAS_FACTOR) if q > 1 else np.asarray(r.channels, dtype=float)
             chans.append((z[:k:q], r.dt * q))
         lengths = np.array([len(c[0]) for c in chans])
         z = np.zeros((n, lengths.max(), 4))
@@ -1069,7 +566,7 @@ def calibrate_batch(
                 "work": np.empty(max(4 * n, 4 * N_SENS * JACOBIAN_CHUNK_RUNS) * z.shape[1])}  # chord / Jacobian
 
     def mapper_for(min_wavelength):
-        return _Mapper(grid[:: max(1, int(round(min_wavelength / POINTS_PER_WAVELENGTH / GRID_M)))], min_wavelength)
+        return Mapper(grid[:: max(1, int(round(min_wavelength / POINTS_PER_WAVELENGTH / GRID_M)))], min_wavelength)
 
     x = mu.copy()
     at_rest = None
@@ -1158,113 +655,3 @@ def calibrate_batch(
     globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT)}
     return BatchFit(estimates, globals_fit, mapper.grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
                     time.perf_counter() - t_start, cov[L * n:, L * n:].copy())
-
-
-# ---------------------------------------------------------------------------------------------
-# The thesis's reference: Cross-Entropy with restarts (§3.4.1)
-
-
-@dataclasses.dataclass(frozen=True)
-class CrossEntropyResult:
-    runs: list[RunEstimate]  # the best trial; lo95/hi95 are the last elite's 2.5/97.5 % quantiles
-    best_objective: float  # eq. (3.11), m²
-    initial_objective: float  # at the class means and the reported speeds
-    generations: int
-    restarts: int
-    evaluations: int  # trial vectors scored
-    seconds: float
-
-
-def cross_entropy_batch(
-    runs: Sequence[RailRun],
-    prior_mean: dict[str, float],
-    prior_sd: dict[str, float],
-    rng: np.random.Generator,
-    speed_rel_sd: float = 0.02,
-    window_m: tuple[float, float] | None = None,
-    population: int = 60,
-    elite_fraction: float = 0.10,
-    alpha: float = 0.7,
-    max_generations: int = 200,
-    restarts: int = 3,
-    sd_tol: float = 0.02,
-    patience: int = 8,
-    time_budget_s: float | None = None,
-) -> CrossEntropyResult:
-    """The thesis's batch calibration: Cross-Entropy over the 3·n_b run properties (mv, Iv, v of
-    every run), global properties held at the class means, objective eq. (3.11)–(3.12) — the squared
-    differences of each run's AP under each axle from the batch mean AP of that axle, on a common
-    chainage grid (each run mapped to space with its own trial speed, as the thesis converts to a
-    reference speed). Trials are drawn from independent normals (initial mean: class means and the
-    reported speed; initial sd: class sd and the GNSS error), the best 10 % give the next mean and sd
-    (smoothed by ``alpha``), and a restart keeps the mean but resets the sd (Botev and Kroese, 2004)
-    when the sd has collapsed (max σ/σ₀ < ``sd_tol``) or the best has not improved for ``patience``
-    generations. The comparison grid and cubic removal are those of :func:`calibrate_batch`; the
-    low-pass (the same 2 m) is on the channels, once per run, although its edge error over-disperses
-    the masses (:class:`_Mapper`): in space it would filter every trial of every run, and slow the
-    reference for an accuracy it does not reach anyway.
-    """
-    t0 = time.perf_counter()
-    runs = list(runs)
-    n = len(runs)
-    if n < 2:
-        raise ValueError("cross_entropy_batch: a batch needs at least two runs")
-    base = {k: float(prior_mean[k]) for k in GLOBAL_FIT + FIXED}
-    offsets = Carriage(**base, mv=1.0, Iv=1.0, v=1.0).wheel_offsets_m()
-    slack = 4 * speed_rel_sd
-    grid = _window(runs, offsets, window_m, speed_slack=slack)
-    mapper = _Mapper(grid)
-    # The same primitives as ours: channels trimmed to what the window needs, every trial of a run
-    # inverted in one compiled call and mapped in one interpolation.
-    zs = [_lowpass(r, STAGES_M[-1])[: int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min())
-                                                     / (r.speed_mps * (1 - slack)) / r.dt)) + 2] for r in runs]
-    theta_g = np.array([base[k] for k in INVERSE_NAMES[2:]])
-    mu0 = np.array([[prior_mean["mv"], prior_mean["Iv"], r.speed_mps] for r in runs])
-    sd0 = np.array([[prior_sd["mv"], prior_sd["Iv"], speed_rel_sd * r.speed_mps] for r in runs])
-    floor = 0.2 * mu0
-
-    def evaluate(thetas: np.ndarray) -> np.ndarray:  # (T, n, 3) → (T,)
-        T = len(thetas)
-        A = np.empty((T, n, 4, grid.size))
-        for r, run in enumerate(runs):
-            theta = np.column_stack([thetas[:, r, :2], np.broadcast_to(theta_g, (T, len(theta_g)))])
-            aps = carriage_aps(theta, base["Lb"], base["Lv"], zs[r], run.dt)
-            m = len(zs[r])
-            A[:, r] = mapper.map_runs(aps[:, None], np.full(T, run.dt), np.full(T, run.x0_m), thetas[:, r, 2:3],
-                                      np.full(T, m), offsets)[:, 0, 0]
-        dev = A - A.mean(axis=1, keepdims=True)  # eq. (3.12): the batch mean under each axle
-        return np.einsum("trik,trik->t", dev, dev)
-
-    n_elite = max(2, int(math.ceil(elite_fraction * population)))
-    mu, sd = mu0.copy(), sd0.copy()
-    best_theta = mu0.copy()
-    best = initial = float(evaluate(mu0[None])[0])
-    evaluations, gen, n_restarts, stale = 1, 0, 0, 0
-    elite = mu0[None]
-    while gen < max_generations:
-        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
-            break
-        gen += 1
-        thetas = mu[None] + sd[None] * rng.standard_normal((population,) + mu.shape)
-        thetas = np.maximum(thetas, floor[None])
-        f = evaluate(thetas)
-        evaluations += population
-        order = np.argsort(f)
-        elite = thetas[order[:n_elite]]
-        if f[order[0]] < best * (1 - 1e-6):
-            best, best_theta, stale = float(f[order[0]]), thetas[order[0]].copy(), 0
-        else:
-            stale += 1
-        mu = alpha * elite.mean(axis=0) + (1 - alpha) * mu
-        sd = alpha * elite.std(axis=0) + (1 - alpha) * sd
-        if np.max(sd / sd0) < sd_tol or stale >= patience:
-            if n_restarts >= restarts:
-                break
-            n_restarts += 1
-            mu, sd, stale = best_theta.copy(), sd0.copy(), 0
-    lo = np.quantile(elite, 0.025, axis=0)
-    hi = np.quantile(elite, 0.975, axis=0)
-    estimates = [RunEstimate(run.pass_id, dict(zip(RUN_NAMES, map(float, best_theta[r]))),
-                             dict(zip(RUN_NAMES, map(float, lo[r]))), dict(zip(RUN_NAMES, map(float, hi[r]))))
-                 for r, run in enumerate(runs)]
-    return CrossEntropyResult(estimates, best, initial, gen, n_restarts, evaluations, time.perf_counter() - t0)

@@ -4,6 +4,8 @@
 * :mod:`.mcmc` — the Bayesian profile and vehicle properties by Metropolis-within-Gibbs (§4.3),
   plus the exact Gaussian posterior of the same model for fixed vehicles, and the bridge's element
   second moments of area with the vehicles' weights (§4.5.4).
+* :mod:`.rail_cross_entropy` — a carriage's run properties over a batch of runs by Cross-Entropy
+  with restarts (§3.4.1), on the rail calibration's own inverse and mapping.
 
 They are deliberately faithful rather than fast; the production estimators live in ``cloud/road``,
 ``cloud/bridge`` and ``cloud/rail``. Nothing in the daemons imports this package: what the two share

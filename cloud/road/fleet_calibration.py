@@ -49,9 +49,9 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from cloud.road.calibration import (CONTINUOUS_MODELS, REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior,
-                          continuous_ap_resampled, fit_fleet, fit_vehicle, from_calibration, pass_speed, pass_values,
-                          to_calibration)
+from cloud.road.calibration import (REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior, fit_fleet,
+                                    fit_vehicle, from_calibration, to_calibration)
+from cloud.road.continuous import CONTINUOUS_MODELS, continuous_ap_resampled, pass_speed, pass_values
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ PER_VEHICLE = frozenset({"quarter_car", "half_car"})
 #: and the profile gets worse.
 OVER_RELAXED = frozenset({"quarter_car"})
 #: Per-vehicle models whose vehicle step runs against a consensus of continuous-time APs
-#: (:func:`cloud.road.calibration.continuous_ap_resampled`: the edge inverse's discretisation undone per pass under
+#: (:func:`cloud.road.continuous.continuous_ap_resampled`: the edge inverse's discretisation undone per pass under
 #: the vehicle's own parameters, in a copy of the profile estimator) and predicts with continuous
 #: physics (``RemapSettings.predict_gamma`` ½). The edge's γ = 0.8 distorts each half-car's AP at
 #: the wheel hop by its own parameters and speed (2–4 % of the road in 1.5 c/m – 30 m, noise-free);
@@ -404,7 +404,7 @@ class FleetCalibrator:
 
     def _continuous_estimator(self, model: str, vids: list[str], by_vehicle: dict):
         """A copy of the profile estimator with ``vids``' segments replaced by their continuous-time
-        APs (:func:`cloud.road.calibration.continuous_ap_resampled`, per pass under the vehicle's parameters), and
+        APs (:func:`cloud.road.continuous.continuous_ap_resampled`, per pass under the vehicle's parameters), and
         those segments per vehicle."""
         est = copy.deepcopy(self.estimator)
         out = {}

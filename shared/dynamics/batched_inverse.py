@@ -6,7 +6,7 @@ reference (:mod:`cloud.reference.cross_entropy`) a population on one vehicle's r
 with its own length and time step: trial ``t`` on run ``run_of[t]``, without compiling a state-space
 model per trial. Same equations and initial state convention as :class:`~shared.dynamics.inverse.
 InverseStream` without an initial state. (The rail batch calibration runs the carriage's own kernel,
-with forward-mode derivatives and a body initial state, :func:`cloud.rail.calibration._inverse_kernel`;
+with forward-mode derivatives and a body initial state, :func:`cloud.rail.carriage_inverse._inverse_kernel`;
 its test checks it against this one.)
 
 The kernel is compiled once per vehicle structure (number of DOFs, which are measured and how,
