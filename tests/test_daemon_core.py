@@ -32,7 +32,8 @@ def _segment(pass_id: str, n: int = 40) -> ApSegment:
 @pytest.mark.parametrize("change", [
     dict(spacing_m=0.0), dict(calibration="both"), dict(drift_knot_m=-1.0), dict(bridge_duty=0.0),
     dict(quiet_s=-0.1), dict(epoch_first=0), dict(max_resident=0), dict(max_resident_passes=1),
-    dict(shard=frozenset()), dict(align_max_stretch=1.0), dict(refresh_wait_s=float("nan"))])
+    dict(shard=frozenset()), dict(align_max_stretch=1.0), dict(refresh_wait_s=float("nan")),
+    dict(status_heartbeat_s=-1.0)])
 def test_settings_are_validated_once(change):
     with pytest.raises(ValueError, match=next(iter(change))):
         CloudSettings(**change)
@@ -68,6 +69,30 @@ def test_the_status_follows_the_clock_it_is_given():
     cloud.flush_status()
     statuses = [json.loads(p) for k, p in published if k == status_key]
     assert len(statuses) == 2 and statuses[-1]["passes"] == 2 and not cloud.status_due
+
+
+def test_a_quiet_cloud_repeats_its_status_so_a_lost_one_is_not_waited_on_for_good():
+    """A status is published when acks change it; one lost on the way (a router restarting after the
+    last acknowledgement) would leave the run waiting on "settled". While the bus is quiet the core
+    repeats it every ``status_heartbeat_s`` of its clock, and no more often."""
+    now = [0.0]
+    published = []
+    cloud = Cloud(NET, SITE, lambda k, p: published.append(k), CloudSettings(status_heartbeat_s=2.0),
+                  clock=lambda: now[0])
+    status_key = keys.status_key(NET, cloud.node_id)
+    cloud.on_segment(keys.ap_key(NET, "R1", 0, "veh-1"), _segment("p1").encode())
+    cloud.on_done(keys.done_key(NET, "veh-1"), PassDone("veh-1", "p1", "R1", 0, 1).encode())
+    assert published.count(status_key) == 1 and not cloud.status_due
+    for t in (0.5, 1.0, 1.99):  # quiet ticks within the heartbeat: nothing new to say, nothing said
+        now[0] = t
+        cloud.flush_status(force=True)
+    assert published.count(status_key) == 1
+    now[0] = 2.0
+    cloud.flush_status(force=True)
+    assert published.count(status_key) == 2
+    now[0] = 10.0
+    cloud.flush_status()  # not quiet (input streaming): only changes are published
+    assert published.count(status_key) == 2
 
 
 def test_leaving_a_pass_out_of_an_estimator_gives_it_back():

@@ -315,9 +315,14 @@ class Cloud:
 
         Computing it costs O(vehicles), after every acknowledged pass of a busy fleet: so a status
         held back is published by the next call after the interval (the daemon calls with ``force``
-        whenever the bus goes quiet).
+        whenever the bus goes quiet). While quiet, the status is also repeated every
+        ``status_heartbeat_s``: a status is published once, and one lost on the way (a router
+        restarting) would otherwise leave a subscriber waiting on it for good.
         """
-        if self.status_due and (force or self.clock() - self._status_at >= self.settings.status_interval_s):
+        since = self.clock() - self._status_at
+        if self.status_due and (force or since >= self.settings.status_interval_s):
+            self.publish_status()
+        elif force and since >= self.settings.status_heartbeat_s:
             self.publish_status()
 
     # -- calibration -----------------------------------------------------------------------------

@@ -68,6 +68,8 @@ class CloudSettings:
     ----------
     quiet_s : rounds, alignment, rail and bridge estimates run once no input has arrived for this long.
     status_interval_s : the status is published at most this often (and this late) while acks stream in.
+    status_heartbeat_s : while quiet, the status is published again this often, unchanged or not, so a
+        subscriber that missed the last one (lost while a router restarted) has it within this long.
     bridge_duty : while segments stream in, bridge estimates take at most this share of the
         cloud's time, so the bridge view still updates pass by pass during a fast replay.
     flush_budget_s : per quiet tick, at most this long encoding resident segments into the spill
@@ -105,6 +107,7 @@ class CloudSettings:
 
     quiet_s: float = 0.2
     status_interval_s: float = 0.1
+    status_heartbeat_s: float = 2.0
     bridge_duty: float = 0.2
     flush_budget_s: float = 0.01
 
@@ -127,7 +130,7 @@ class CloudSettings:
         require(self.align_iterations >= 1, "align_iterations", ">= 1")
         require(0.0 < self.align_max_stretch < 1.0, "align_max_stretch", "a fraction in (0, 1)")
         for name in ("align_tol_m", "align_apply_m", "epoch_tail_s", "refresh_wait_s", "reissue_after_s",
-                     "quiet_s", "status_interval_s", "flush_budget_s"):
+                     "quiet_s", "status_interval_s", "status_heartbeat_s", "flush_budget_s"):
             value = getattr(self, name)
             require(math.isfinite(value) and value >= 0, name, "a finite value >= 0")
         require(self.epoch_first >= 1, "epoch_first", ">= 1")
