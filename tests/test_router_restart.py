@@ -90,8 +90,9 @@ def total_chunks(road) -> int:
 def _run_with_outage(road, export, kill_on: str, seed: int):
     """``driveby run`` through a router of ours, SIGKILLed at ``kill_on`` and restarted on the same
     endpoint after a pause drawn from ``seed``. ``kill_on``: "last_done", once the edge has sent every
-    pass's pass-done (i.e. had every raw chunk), with the cloud frozen (SIGSTOP) from the last raw chunk
-    until the router is dead, so the last passes' acknowledgements cannot get out before it dies;
+    pass's pass-done (i.e. had every raw chunk), with the cloud frozen (SIGSTOP) from half-way through
+    the raw chunks until the router is dead, so the passes still streaming then cannot be acknowledged
+    before it dies (half a stream is a wide margin for this process to stop the cloud in time);
     "last_ack", once every pass is acknowledged; "chunks", once 20-70 % of the raw chunks (drawn from
     ``seed``) have been published, i.e. while they stream. Returns the run's result (or its
     exception) and what the outage caught."""
@@ -135,13 +136,13 @@ def _run_with_outage(road, export, kill_on: str, seed: int):
         seen.add((chunk.vehicle_id, chunk.seq))
         if kill_on == "chunks" and len(seen) == kill_at:
             kill()
-        if kill_on == "last_done" and len(seen) == total and not frozen:
+        if kill_on == "last_done" and len(seen) == total // 2 and not frozen:
             freeze_cloud()
 
     def on_done(sample):
         done_passes.add(decode_pass_done(sample.payload.to_bytes()).pass_id)
         if kill_on == "last_done" and len(done_passes) == PASSES:
-            kill()  # at once, in the callback; the frozen cloud has acknowledged none of the last passes
+            kill()  # at once, in the callback; the frozen cloud has acknowledged none of the passes since
 
     def drive():
         try:
@@ -231,11 +232,12 @@ def test_a_router_killed_while_chunks_stream_loses_nothing(road, reference, tmp_
     assert outage["run_alive"] and outage["acked_before"] < PASSES, (outage, seed)
     if "error" in result:
         raise AssertionError(f"run failed after the router restart (seed {seed})") from result["error"]
-    # The outage fell while raw chunks streamed: a plain subscriber missed some of them for good ...
-    assert outage["chunks_seen"] < total_chunks(road), (outage, seed)
-    # ... the edge's advanced subscriber fetched them from the vehicles' caches: no gap, no pass lost.
     ref, ref_dir = reference
     cut = result["run"]
+    # The outage fell while raw chunks streamed: a plain subscriber missed some of them for good, unless
+    # the run's backstop published their passes again ...
+    assert cut.resent_passes > 0 or outage["chunks_seen"] < total_chunks(road), (outage, cut, seed)
+    # ... the edge's advanced subscriber fetched them from the vehicles' caches: no gap, no pass lost.
     assert cut.acked == PASSES
     assert cut.stats["accepted"] == ref.stats["accepted"]
     a, b = _profile(ref_dir), _profile(tmp_path / "cut")
@@ -344,7 +346,7 @@ def _run_with_partition(road, reference, tmp_path, during: str, seconds: tuple[f
         assert np.max(np.abs(a[f] - b[f])) <= 1e-9 * scale, f
     assert cut.acked == ref.acked == PASSES
     assert cut.stats["accepted"] == ref.stats["accepted"]
-    return len(seen)
+    return len(seen), cut
 
 
 def test_a_partitioned_link_heals_and_nothing_is_lost(road, reference, tmp_path, monkeypatch):
@@ -359,8 +361,9 @@ def test_a_partition_longer_than_the_lease_while_chunks_stream_loses_nothing(roa
     the raw chunks published meanwhile come back from the vehicles' caches."""
     monkeypatch.setattr(simfleet.run, "IDLE_TIMEOUT_S", IDLE_S)
     monkeypatch.setattr(simfleet.run, "RESEND_S", RESEND_S)  # the backstop, if a recovery query finds no cache
-    seen = _run_with_partition(road, reference, tmp_path, "chunks", (LEASE_S + 1.0, LEASE_S + 3.0), seed=6)
-    assert seen < total_chunks(road)  # a plain subscriber lost chunks for good
+    seen, cut = _run_with_partition(road, reference, tmp_path, "chunks", (LEASE_S + 1.0, LEASE_S + 3.0), seed=6)
+    # A plain subscriber lost chunks for good, unless the run's backstop published their passes again.
+    assert cut.resent_passes > 0 or seen < total_chunks(road), (seen, cut)
 
 
 def test_chunks_the_vehicles_caches_cannot_recover_are_sent_again(road, reference, tmp_path, monkeypatch):
@@ -403,7 +406,7 @@ def test_chunks_beyond_the_vehicles_cache_are_a_counted_gap(road):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = _router(endpoint)
     got_before, recovered, second_done = threading.Event(), threading.Event(), threading.Event()
-    stop = threading.Event()
+    second_handled, stop = threading.Event(), threading.Event()
     try:
         with zenoh.open(zenoh_config("client", connect=[endpoint])) as edge_s, \
                 zenoh.open(zenoh_config("client", connect=[endpoint])) as veh_s:
@@ -412,11 +415,13 @@ def test_chunks_beyond_the_vehicles_cache_are_a_counted_gap(road):
 
             def on_chunk(payload, key_vehicle=None):  # the real handler, observed
                 feed(payload, key_vehicle)
-                seq = decode_sensor_chunk(payload).seq
-                if seq == before - 1:
+                chunk = decode_sensor_chunk(payload)
+                if chunk.seq == before - 1:
                     got_before.set()
                 if edge.rejected["sequence_gap"]:
                     recovered.set()
+                if chunk.pass_id == "second" and chunk.final:
+                    second_handled.set()  # the handler has returned: its last put on edge_s is over
 
             edge.on_chunk = on_chunk
             done_passes: list[str] = []
@@ -449,6 +454,9 @@ def test_chunks_beyond_the_vehicles_cache_are_a_counted_gap(road):
                 for c in chunks:
                     publish(key, dataclasses.replace(c, pass_id="second").encode())
                 assert second_done.wait(EVENT_S), f"the next pass was not processed: {edge.stats()}"
+                # A session is closed only once no callback is inside one of its calls (zenoh refuses:
+                # "Already borrowed"); the pass-done arrives while the edge's put of it is still returning.
+                assert second_handled.wait(EVENT_S)
             done_sub.undeclare()
             stop.set()
             server.join(EVENT_S)
