@@ -267,7 +267,9 @@ def test_the_estimators_wheel_load_factor_holds_none_of_the_passs_own_noise():
     swing = rms(twin.load_factor - 1.0)
     noise_image = rms(own[0] - own[1]) / math.sqrt(2)
     assert noise_image > 2e-3 * swing, (noise_image, swing)  # φ̂ carries its pass's noise (measured 0.35 %)
-    assert np.max(np.abs(used[0] - used[1])) < 1e-12 * swing  # the estimator's φ none of it
+    # The estimator's φ none of it, but for rounding: the draws' leave-one-out roads (sum − own AP) differ in
+    # their last bits, so the roundings of φ's n-step recursion part ways, by up to ~eps of the load per step.
+    assert np.max(np.abs(used[0] - used[1])) < setup.window.n * np.finfo(float).eps
     assert rms(used[0] - twin.load_factor) < 5e-3 * swing, (rms(used[0] - twin.load_factor), swing)
 
     # Live: when the fleet behind the consensus has grown by a quarter, φ and the load columns follow.

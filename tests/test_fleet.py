@@ -119,7 +119,7 @@ def _spawn(args: list[str], log: Path) -> subprocess.Popen:
 
 
 def test_live_fleet_through_edge_and_cloud(site, tmp_path):
-    with run_router() as endpoint:
+    with run_router(timeout_s=TIMEOUT_S) as endpoint:
         common = ["--connect", endpoint, "--net", NET, "--site", str(site)]
         daemons = [_spawn(["-m", "cloud", *common, "--id", "c1"], tmp_path / "cloud.log"),
                    _spawn(["-m", "edge", *common, "--id", "e1"], tmp_path / "edge.log")]  # fleet calibration
@@ -155,7 +155,8 @@ def test_live_fleet_through_edge_and_cloud(site, tmp_path):
                 assert sorted(acks) == ["veh-0001", "veh-0002"]
                 assert all(a.n_segments_accepted >= 2 for a in acks.values())
 
-                replies = list(s.get(keys.control_key(NET, "c1", "stats"), timeout=10.0))
+                replies = list(s.get(keys.control_key(NET, "c1", "stats"), timeout=TIMEOUT_S))
+                assert replies and replies[0].ok is not None, "the cloud did not answer its statistics"
                 stats = json.loads(replies[0].ok.payload.to_bytes())["stats"]
                 assert stats["rejected"] == {} and stats["passes_complete"] == 2
                 assert stats["accepted"] == sum(a.n_segments_accepted for a in acks.values())

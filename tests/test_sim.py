@@ -33,7 +33,7 @@ SEED = 11
 
 def driveby(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "simfleet.cli", "sim", *args], capture_output=True, text=True,
-                          timeout=120, stdin=subprocess.DEVNULL)
+                          timeout=600, stdin=subprocess.DEVNULL)  # a cold numba cache on a loaded machine
 
 
 def load_logs(out: Path) -> list:
