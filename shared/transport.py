@@ -134,7 +134,7 @@ def run_router(
     *,
     host: str = "127.0.0.1",
     config_file: str | os.PathLike[str] | None = None,
-    timeout_s: float = 10.0,
+    timeout_s: float = 60.0,
     security: str | os.PathLike[str] | None = None,
     net: str = "net",
     router_id: str = "router",

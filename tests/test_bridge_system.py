@@ -213,10 +213,10 @@ def test_the_cloud_publishes_an_alarm_over_zenoh_once():
         cloud = Cloud(NET, monitor.site, lambda k, p: session.put(k, p), CloudSettings(calibration="nominal"))
         cloud.bridges = monitor
         assert cloud.maybe_estimate_bridges(force=True)
-        assert arrived.wait(10.0), "no alarm arrived"
+        assert arrived.wait(60.0), "no alarm arrived"  # bounded for a loaded 2-core machine
         assert not cloud.maybe_estimate_bridges(force=True)  # nothing new: no estimate, no alarm
         session.put(keys.alarm_key(NET, "B0"), b"end")
-        assert marker.wait(10.0)
+        assert marker.wait(60.0)
     ((key, alarm),) = got
     assert key == keys.alarm_key(NET, "B1") and alarm.kind in ("global", "crack") and alarm.probability > 0.95
     # What state/bridge/B1 answers: the export rows and the assessment, strict JSON.

@@ -8,7 +8,6 @@ restart it.
 from __future__ import annotations
 
 import os
-import random
 import signal
 import threading
 
@@ -127,7 +126,6 @@ def _profile(export_dir):
 def test_a_cloud_killed_mid_run_is_restarted_and_the_export_is_unchanged(road, tmp_path):
     site = road / "site.toml"
     ref = run(road / "logs", site, tmp_path / "ref", calibration="nominal", progress=False, rate=20.0)
-    rng = random.Random(3)
     with run_router() as endpoint:
         kills: list[int] = []
         acks_seen = threading.Event()
@@ -145,8 +143,8 @@ def test_a_cloud_killed_mid_run_is_restarted_and_the_export_is_unchanged(road, t
             def on_ack(sample):
                 ack = decode_ack(sample.payload.to_bytes())
                 n_acks[0] += 1
-                if n_acks[0] == 1 and not kills:  # after the first acknowledged pass, at a random moment
-                    threading.Timer(rng.uniform(0.0, 0.3), kill).start()
+                if n_acks[0] == 1 and not kills:  # on the first acknowledged pass, whatever the load: a
+                    threading.Thread(target=kill).start()  # delay after it would race the other three
                 acks_seen.set()
 
             sub = s.declare_subscriber(keys.ack_keyexpr("net"), on_ack)
