@@ -401,7 +401,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--net", default="net", help="network name in the key space")
     p.add_argument("--id", default="edge-1", help="this daemon's id (liveliness)")
     p.add_argument("--site", help="site registry TOML (vehicle-class priors for cold start)")
-    p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet")
+    p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
+                   help="parameters before the cloud calibrates a vehicle: fleet, its class mean (default); nominal, its log's nominal_params")
     p.add_argument("--vehicle", action="append", help="only process these vehicles (repeatable)")
     p.add_argument("--shard", default="0/1", metavar="I/N",
                    help="only process the vehicles of hash shard I of N (run N edges to share a fleet)")
@@ -414,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--raw-spool-mb", type=float, default=SPOOL_MAX_BYTES / 2**20, metavar="MB",
                    help="bound of the raw passes kept (in memory) to recompute when a calibration changes; "
                         f"also at most {SPOOL_PASSES} per vehicle; the oldest are dropped (counted) beyond it")
-    p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--log-level", default="WARNING", help="logging level (DEBUG, INFO, WARNING, ERROR; default WARNING)")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s edge %(levelname)s %(message)s")
     try:

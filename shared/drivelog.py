@@ -246,6 +246,8 @@ def write_drive_log(path: str | os.PathLike, log: DriveLog) -> None:
 def list_drive_logs(directory: str | os.PathLike) -> list[Path]:
     """The ``*.parquet`` files directly in ``directory``, sorted by name."""
     directory = Path(directory)
+    if not directory.exists():
+        raise DriveLogError(directory, "directory", "does not exist")
     if not directory.is_dir():
         raise DriveLogError(directory, "directory", "not a directory")
     return sorted(p for p in directory.glob("*.parquet") if p.is_file())

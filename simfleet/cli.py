@@ -19,7 +19,7 @@ from shared.blas import single_threaded_blas
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", nargs="?", help="scenario name (see --list)")
     p.add_argument("--out", type=Path, help="output directory (logs/, site.toml, truth.json)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     p.add_argument("--passes", type=int, help="number of passes (vehicles cycle when passes exceed vehicles)")
     p.add_argument("--vehicles", type=int, help="fleet size")
     p.add_argument("--noise", type=float, help="sensor noise, %% of each channel's std")
@@ -118,7 +118,7 @@ def _reproduce_args(p: argparse.ArgumentParser) -> None:
                         "calibration, Fig. 3.10)")
     p.add_argument("--out", default="driveby-reproduce", help="output directory (default ./driveby-reproduce)")
     p.add_argument("--quick", action="store_true", help="smaller fleets, fewer noise levels and iterations")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
     p.add_argument("--large", action="store_true", help="bridge: also the 300-pass cracks, fleet-large and the "
                    "rough decks at 30/100/300 passes (hours on a loaded machine)")
 
@@ -161,8 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="simulate a small fleet over a road and a cracked bridge, run it, summarise")
     demo.add_argument("--out", default="driveby-demo", help="working directory (default ./driveby-demo)")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--passes", type=int, default=20)
+    demo.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
+    demo.add_argument("--passes", type=int, default=20, help="passes to simulate (default 20)")
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
     _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
     _reproduce_args(sub.add_parser("reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))

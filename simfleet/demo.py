@@ -53,7 +53,11 @@ def demo(out: str | Path = "driveby-demo", seed: int = 0, passes: int = 20) -> i
     out = Path(out)
     scenario = SCENARIOS[DEMO_SCENARIO]
     print(f"driveby demo: {scenario.description} ({passes} passes) → {out}/")
-    generate(scenario, out / "sim", seed=seed, passes=passes)
+    try:
+        generate(scenario, out / "sim", seed=seed, passes=passes)
+    except OSError as e:  # e.g. --out names an existing file, or a read-only place
+        print(f"driveby demo: cannot write to {out}: {e.strerror or e}", file=sys.stderr)
+        return 1
     try:
         res = run(out / "sim" / "logs", out / "sim" / "site.toml", out / "export", rrd=out / "demo.rrd")
     except RunError as e:

@@ -299,7 +299,7 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicles", type=int, required=True, help="number of vehicles")
     p.add_argument("--rate", type=float, default=1.0, help="speed-up over real time (default 1)")
     p.add_argument("--passes", type=int, help="passes per vehicle (default: until SIGINT/SIGTERM)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the fleet and its profiles (default 0)")
     p.add_argument("--net", default="net", help="network name in the key space")
     p.add_argument("--noise", type=float, default=2.0, help="sensor noise, %% of each channel's std (default 2)")
     p.add_argument("--model", help="vehicle class to draw from, when the site declares several")
@@ -309,7 +309,7 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prefix", default="veh-", help="vehicle ids are PREFIX0001, PREFIX0002, ...")
     p.add_argument("--run-id", help="pass ids are RUN_ID-00000, ... (default: the UTC start time)")
     p.add_argument("--workers", type=int, default=2, help="threads simulating passes ahead (default 2)")
-    p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--log-level", default="WARNING", help="logging level (DEBUG, INFO, WARNING, ERROR; default WARNING)")
 
 
 def _check_args(args: argparse.Namespace) -> None:

@@ -207,9 +207,11 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
     if not 1 <= shards <= len(routes):
         raise RunError(f"--shards: expected 1 to {len(routes)} (the site's routes), got {shards}")
     export_dir = Path(export_dir)
-    export_dir.mkdir(parents=True, exist_ok=True)
     work = export_dir / ".run"
-    work.mkdir(exist_ok=True)
+    try:
+        work.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # e.g. a path through a file, or a read-only place
+        raise RunError(f"--export {export_dir}: cannot create the directory: {e.strerror or e}") from e
     cloud_ids = ["cloud-1"] if shards == 1 else [f"cloud-{i + 1}" for i in range(shards)]
     sec = _security_dir(secure, work, connect, cloud_ids, 1 if shards == 1 else 2) if secure else None
     with contextlib.ExitStack() as stack:

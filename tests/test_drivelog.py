@@ -200,8 +200,10 @@ def test_list_drive_logs_sorted_parquet_only(tmp_path):
         (tmp_path / name).write_bytes(b"")
     (tmp_path / "d.parquet").mkdir()
     assert list_drive_logs(tmp_path) == [tmp_path / "a.parquet", tmp_path / "b.parquet"]
-    with pytest.raises(DriveLogError, match="not a directory"):
+    with pytest.raises(DriveLogError, match="nope: directory: does not exist"):
         list_drive_logs(tmp_path / "nope")
+    with pytest.raises(DriveLogError, match="c.txt: directory: not a directory"):
+        list_drive_logs(tmp_path / "c.txt")
 
 
 def test_error_is_a_value_error_and_pickles():

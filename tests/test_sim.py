@@ -347,6 +347,17 @@ def test_an_unwritable_out_exits_nonzero_with_one_line(tmp_path):
     assert blocker.read_text() == "not a directory"
 
 
+def test_the_demo_with_an_unwritable_out_exits_nonzero_with_one_line(tmp_path):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    res = subprocess.run([sys.executable, "-m", "simfleet.cli", "demo", "--out", str(blocker)], capture_output=True,
+                         text=True, timeout=600, stdin=subprocess.DEVNULL)  # a cold numba cache on a loaded machine
+    assert res.returncode == 1
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0] == f"driveby demo: cannot write to {blocker}: Not a directory", res.stderr
+    assert blocker.read_text() == "not a directory"
+
+
 @pytest.mark.parametrize(
     "kw",
     [dict(passes=0), dict(passes=-2), dict(passes=1.5), dict(vehicles=0), dict(noise_pct=-1.0),

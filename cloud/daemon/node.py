@@ -221,7 +221,7 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="driveby cloud", description="cloud aggregator daemon")
     add_zenoh_arguments(p)
-    p.add_argument("--net", default="net")
+    p.add_argument("--net", default="net", help="network name in the key space (the same on every daemon; default net)")
     p.add_argument("--id", default="cloud-1", help="this daemon's id (liveliness, control keys)")
     p.add_argument("--site", required=True, help="site registry TOML")
     p.add_argument("--routes", metavar="R1,R2,…",
@@ -242,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
                         f"like spilled segments (default {DEFAULT_MAX_RESIDENT_PASSES}, a few kB each)")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
-    p.add_argument("--log-level", default="WARNING")
+    p.add_argument("--log-level", default="WARNING", help="logging level (DEBUG, INFO, WARNING, ERROR; default WARNING)")
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s cloud %(levelname)s %(message)s")
     try:
