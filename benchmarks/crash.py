@@ -44,7 +44,6 @@ import signal
 import statistics
 import tempfile
 import threading
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -35,7 +35,7 @@ from shared.drivelog import FORMAT, VERSION, DriveLog, DriveLogMeta
 from shared.fe.beam import Beam
 from shared.fe.design import design_beam, registry_krot
 from shared.profiles import RoadProfile, iso8608_profile, tyre_filter
-from shared.registry import Bridge, RegistryError, Site, VehicleClass, load_site
+from shared.registry import RegistryError, Site, VehicleClass, load_site
 from shared.sensors import add_noise
 from shared.transport import add_zenoh_arguments, config_from_args
 from shared.vbi import simulate_vbi

@@ -1,6 +1,5 @@
 """The cloud's write-ahead journal: records survive a killed process, torn tails and compaction."""
 
-import os
 import subprocess
 import sys
 import textwrap
