@@ -186,10 +186,7 @@ class Aggregator:
             if reason in PASS_ACCOUNTED and seg.route_id in self.routes:
                 # The vehicle did send it: the pass can complete without it (acknowledged with fewer
                 # accepted segments) instead of waiting forever for a segment that will not be fused.
-                ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
-                if seg.calib_version > ps.calib_version:
-                    self._unack(ps)
-                    ps.calib_version, ps.seqs, ps.refused, ps.expected = seg.calib_version, set(), set(), None
+                ps = self._pass_of(seg)
                 if seg.calib_version == ps.calib_version:
                     ps.refused.add(seg.seq)
                 return self._maybe_ack(seg.vehicle_id, seg.pass_id)
@@ -212,14 +209,20 @@ class Aggregator:
                 est.update(held)
         self.accepted += 1
         self.updates += 1
-        ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
+        ps = self._pass_of(seg)
         ps.slots.add(slot)
-        if seg.calib_version > ps.calib_version:
-            self._unack(ps)
-            ps.calib_version, ps.seqs, ps.refused, ps.expected = seg.calib_version, set(), set(), None
         if seg.calib_version == ps.calib_version:
             ps.seqs.add(seg.seq)
         return self._maybe_ack(seg.vehicle_id, seg.pass_id)
+
+    def _pass_of(self, seg: ApSegment) -> PassState:
+        """The pass ``seg`` belongs to; a segment under a newer calibration starts the pass afresh
+        (unacknowledged, its segments counted again from that version)."""
+        ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
+        if seg.calib_version > ps.calib_version:
+            self._unack(ps)
+            ps.calib_version, ps.seqs, ps.refused, ps.expected = seg.calib_version, set(), set(), None
+        return ps
 
     def on_pass_done(self, payload: bytes) -> list[Ack]:
         try:
