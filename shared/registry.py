@@ -14,8 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from shared.drivelog import MODEL_PARAMS, one_line
+from shared.geo import GeometryError, RouteGeometry, read_geojson_line
 
 SUPPORTS = ("simply_supported", "rotational_springs")
+# A registry's length_m and its geometry's geodesic length describe the same chainage: beyond this
+# share they disagree about where the route ends.
+LENGTH_TOLERANCE = 0.01
+# A bridge placed by coordinates farther than this from its route's line is on another road.
+MAX_BRIDGE_OFFSET_M = 50.0
 DECKS = ("rough", "smooth")
 
 
@@ -34,10 +40,15 @@ class RegistryError(ValueError):
 
 @dataclass(frozen=True)
 class Route:
-    """A route: chainage runs from 0 to ``length_m`` (m)."""
+    """A route: chainage runs from 0 to ``length_m`` (m).
+
+    ``geometry`` (optional) is its centre line; chainage is then the geodesic length along it from
+    its first vertex (`shared.geo.RouteGeometry`).
+    """
 
     id: str
     length_m: float
+    geometry: RouteGeometry | None = None
 
 
 @dataclass(frozen=True)
@@ -152,15 +163,20 @@ def load_site(path: str | os.PathLike) -> Site:
     return parse_site(doc, name)
 
 
-def parse_site(doc: Mapping[str, Any], name: str = "<site>") -> Site:
+def parse_site(doc: Mapping[str, Any], name: str = "<site>", base_dir: str | os.PathLike | None = None) -> Site:
     """Validate a registry already parsed into plain data (as `tomllib` returns it).
 
-    ``name`` labels error messages. Unknown top-level tables and unknown keys inside entries are
-    ignored, so the contract may grow.
+    ``name`` labels error messages; ``base_dir`` resolves relative ``geometry_file`` paths (default:
+    the directory of ``name`` when it is a path). Unknown top-level tables and unknown keys inside
+    entries are ignored, so the contract may grow.
     """
-    routes = tuple(_route(t, f"route[{i}]", name) for i, t in _tables(doc, "route", name, required=True))
+    if base_dir is None:
+        base_dir = Path(name).parent if not name.startswith("<") else Path.cwd()
+    routes = tuple(_route(t, f"route[{i}]", name, Path(base_dir))
+                   for i, t in _tables(doc, "route", name, required=True))
     _unique([r.id for r in routes], "route", "id", name)
-    bridges = tuple(_bridge(t, f"bridge[{i}]", name) for i, t in _tables(doc, "bridge", name))
+    by_id = {r.id: r for r in routes}
+    bridges = tuple(_bridge(t, f"bridge[{i}]", name, by_id) for i, t in _tables(doc, "bridge", name))
     _unique([b.id for b in bridges], "bridge", "id", name)
     lengths = {r.id: r.length_m for r in routes}
     for i, b in enumerate(bridges):
@@ -221,15 +237,56 @@ def _unique(values: list[str], table: str, key: str, file: str) -> None:
         seen[v] = i
 
 
-def _route(t: Mapping, kp: str, file: str) -> Route:
-    return Route(id=_string(t, "id", kp, file), length_m=_real(t, "length_m", kp, file, lo=0.0))
+def _route(t: Mapping, kp: str, file: str, base_dir: Path) -> Route:
+    rid = _string(t, "id", kp, file)
+    if "geometry" in t and "geometry_file" in t:
+        raise RegistryError(file, f"{kp}.geometry", "give geometry or geometry_file, not both")
+    geometry = None
+    if "geometry" in t:
+        try:
+            geometry = RouteGeometry.from_latlon(t["geometry"])
+        except GeometryError as e:
+            raise RegistryError(file, f"{kp}.geometry", str(e)) from None
+    elif "geometry_file" in t:
+        rel = _string(t, "geometry_file", kp, file)
+        try:
+            geometry = read_geojson_line(base_dir / rel)
+        except GeometryError as e:
+            raise RegistryError(file, f"{kp}.geometry_file", f"{base_dir / rel}: {e}") from None
+    if geometry is None or "length_m" in t:
+        length = _real(t, "length_m", kp, file, lo=0.0)
+    else:
+        length = geometry.length_m
+    if geometry is not None and abs(length - geometry.length_m) > LENGTH_TOLERANCE * geometry.length_m:
+        raise RegistryError(file, f"{kp}.length_m", f"{length:g} m disagrees with the geometry's geodesic "
+                            f"length {geometry.length_m:.1f} m by more than {100 * LENGTH_TOLERANCE:g} %")
+    return Route(id=rid, length_m=length, geometry=geometry)
 
 
-def _bridge(t: Mapping, kp: str, file: str) -> Bridge:
+def _bridge_start(t: Mapping, kp: str, file: str, routes: Mapping[str, Route]) -> float:
+    """The bridge's first support as route chainage: given, or its coordinates on the route's line."""
+    if "start_chainage_m" in t or not ("start_lat" in t or "start_lon" in t):
+        return _real(t, "start_chainage_m", kp, file, lo=0.0, lo_inclusive=True)
+    lat = _real(t, "start_lat", kp, file, lo=-90.0, lo_inclusive=True)
+    lon = _real(t, "start_lon", kp, file, lo=-180.0, lo_inclusive=True)
+    if abs(lat) > 90.0 or abs(lon) > 180.0:
+        raise RegistryError(file, f"{kp}.start_lat", f"({lat:g}, {lon:g}) is not a WGS84 position")
+    route = routes.get(t.get("route"))
+    if route is None or route.geometry is None:
+        raise RegistryError(file, f"{kp}.start_lat", "a position needs a route with geometry; "
+                            "give start_chainage_m instead")
+    chainage, offset = route.geometry.locate(lat, lon)
+    if offset[0] > MAX_BRIDGE_OFFSET_M:
+        raise RegistryError(file, f"{kp}.start_lat", f"({lat:g}, {lon:g}) is {offset[0]:.0f} m from route "
+                            f"{route.id!r}'s line (more than {MAX_BRIDGE_OFFSET_M:g} m)")
+    return float(chainage[0])
+
+
+def _bridge(t: Mapping, kp: str, file: str, routes: Mapping[str, Route]) -> Bridge:
     fields = dict(
         id=_string(t, "id", kp, file),
         route=_string(t, "route", kp, file),
-        start_chainage_m=_real(t, "start_chainage_m", kp, file, lo=0.0, lo_inclusive=True),
+        start_chainage_m=_bridge_start(t, kp, file, routes),
         span_m=_real(t, "span_m", kp, file, lo=0.0),
         n_elements=_count(t, "n_elements", kp, file),
         E_pa=_real(t, "E_pa", kp, file, lo=0.0),
@@ -341,7 +398,12 @@ def _tname(v: Any) -> str:
 
 def site_to_dict(site: Site) -> dict[str, Any]:
     """``site`` as plain data in the registry's layout (what `parse_site` accepts)."""
-    doc: dict[str, Any] = {"route": [{"id": r.id, "length_m": r.length_m} for r in site.routes]}
+    doc: dict[str, Any] = {"route": []}
+    for r in site.routes:
+        entry = {"id": r.id, "length_m": r.length_m}
+        if r.geometry is not None:
+            entry["geometry"] = r.geometry.latlon()
+        doc["route"].append(entry)
     if site.bridges:
         doc["bridge"] = []
         for b in site.bridges:

@@ -34,6 +34,7 @@ from cloud.daemon.epochs import Epochs
 from cloud.daemon.queries import TILE_M, bridge_state, tile_points, tile_state
 from cloud.daemon.settings import CloudSettings
 from cloud.daemon.sharding import Ownership, shard_site
+from cloud.coordinates import bridges_with_coordinates, roughness_geojson, roughness_with_coordinates, write_geojson
 from cloud.export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
                           profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
@@ -551,7 +552,7 @@ class Cloud:
         rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0), self.profile.spacing_m)
                  for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
         if rough:
-            tables["roughness"] = pa.concat_tables(rough)
+            tables["roughness"] = roughness_with_coordinates(pa.concat_tables(rough), self.site)
         rail_rows = self.rail.rows() if self.rail is not None else []
         vehicle_rows = self.vehicle_rows() + rail_rows
         if self.calibrator is not None or vehicle_rows:
@@ -568,7 +569,11 @@ class Cloud:
             tables["bridge_summary"] = bridge_summary_table(self.bridges.summary_rows())
         if self.rail is not None and self.rail.bridge_rows():  # rail batches' D1/D2 in place of a bridge's road row
             tables["bridge_summary"] = bridge_summary_table(self.rail.bridge_rows(self.bridges.summary_rows()))
+        if "bridge_summary" in tables:
+            tables["bridge_summary"] = bridges_with_coordinates(tables["bridge_summary"], self.site)
         written = write_export(out_dir, tables)
+        if "roughness" in tables and (doc := roughness_geojson(tables["roughness"], self.site)) is not None:
+            written.append(write_geojson(out_dir, doc))
         if self.view is not None:
             self.view.flush()
         return written
