@@ -125,9 +125,20 @@ def _control_args(p: argparse.ArgumentParser, what: str) -> None:
         p.add_argument("--out", required=True, help="directory to write the export's Parquet tables into")
 
 
+def _no_router(args, command: str) -> bool:
+    """The deployed network is named by --connect (or a Zenoh --config): without either, a usage error."""
+    if args.connect or args.config:
+        return False
+    print(f"driveby {command}: --connect ENDPOINT is required (the deployed router, e.g. tcp/hub:7447)",
+          file=sys.stderr)
+    return True
+
+
 def _cmd_status(args) -> int:
     from .control import ControlError, format_status, status
 
+    if _no_router(args, "status"):
+        return 2
     try:
         bodies = status(args)
     except ControlError as e:
@@ -141,6 +152,8 @@ def _cmd_status(args) -> int:
 def _cmd_export(args) -> int:
     from .control import ControlError, export
 
+    if _no_router(args, "export"):
+        return 2
     try:
         written, stats = export(args)
     except ControlError as e:
@@ -155,6 +168,8 @@ def _cmd_export(args) -> int:
 def _cmd_replay(args) -> int:
     from .control import ControlError, replay_logs
 
+    if _no_router(args, "replay"):
+        return 2
     try:
         res = replay_logs(args)
     except ControlError as e:
