@@ -289,7 +289,16 @@ def _add_tls_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _tls_from_args(args: argparse.Namespace) -> TlsFiles | None:
-    """TlsFiles from ``--tls-ca/--tls-cert/--tls-key``; raises ValueError (one line) if incomplete."""
+    """TlsFiles from ``--secure DIR`` (the certificate of identity ``--id`` in a ``shared.security``
+    directory) or ``--tls-ca/--tls-cert/--tls-key``; raises ValueError (one line) if incomplete."""
+    secure = getattr(args, "secure", None)
+    if secure is not None:
+        if args.tls_ca or args.tls_cert or args.tls_key:
+            raise ValueError("--secure DIR or --tls-ca/--tls-cert/--tls-key, not both")
+        name = getattr(args, "id", None)
+        if not name:
+            raise ValueError("--secure DIR needs --id NAME: the identity whose certificate DIR holds")
+        return SecurityDir(Path(secure)).tls(name)
     if args.tls_ca is None:
         if args.tls_cert or args.tls_key:
             raise ValueError("--tls-cert/--tls-key need --tls-ca")
@@ -303,6 +312,8 @@ def add_zenoh_arguments(p: argparse.ArgumentParser, default_mode: str = "client"
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on (repeatable)")
     p.add_argument("--config", help="zenoh JSON5 config file (TLS, access control, ...)")
+    p.add_argument("--secure", metavar="DIR", help="TLS with the certificate of this process's --id from the "
+                   "security directory DIR (python -m shared.security; the same CA on every machine)")
     _add_tls_arguments(p)
     p.set_defaults(_default_mode=default_mode)
 

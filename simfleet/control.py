@@ -36,9 +36,12 @@ class ControlError(Exception):
 
 
 def add_network_arguments(p: argparse.ArgumentParser) -> None:
-    """``--connect``/``--net``/``--tls-*`` (and the rest of the daemons' Zenoh options)."""
+    """``--connect``/``--net``/``--secure``/``--id`` (and the rest of the daemons' Zenoh options)."""
     add_zenoh_arguments(p)
     p.add_argument("--net", default="net", help="network name in the key space (the daemons'; default net)")
+    p.add_argument("--id", default="operator",
+                   help="this client's identity: with --secure DIR, whose certificate it presents (an operator "
+                        "role; default operator)")
 
 
 def add_cloud_arguments(p: argparse.ArgumentParser) -> None:
