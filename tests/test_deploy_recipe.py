@@ -3,7 +3,7 @@
 cloud and edge daemons, ``driveby replay`` of a small simulated log set, then ``driveby status`` and
 ``driveby export`` — with ``HUB`` → ``127.0.0.1`` and a free port for 7447. Every pass must be
 acknowledged, with no segment rejected, and the daemons must say what they do (start, connection,
-peers). Waits are on output lines or process exits, each with a generous timeout."""
+peers coming and going) and refuse an id that is already live. Waits are on output lines or process exits, each with a generous timeout."""
 
 from __future__ import annotations
 
@@ -142,6 +142,17 @@ def test_the_readme_deployment_recipe_runs_as_written(tmp_path):
         assert profile.num_rows > 0
         assert (out / "roughness.parquet").exists() and (out / "vehicles.parquet").exists()
         assert len(set(pq.read_table(out / "vehicles.parquet").column("vehicle_id").to_pylist())) == 4
+
+        # A second cloud with a live id refuses to start; a daemon that goes is noticed.
+        twin_argv = _argv(cmds["cloud"], port)
+        if "--state" in twin_argv:  # its own state directory: only the id is shared
+            twin_argv[twin_argv.index("--state") + 1] = str(work / "twin")
+        twin = subprocess.run(twin_argv, cwd=work, capture_output=True, text=True, timeout=COMMAND_S,
+                              stdin=subprocess.DEVNULL)
+        assert twin.returncode == 1 and twin.stderr.strip().count("\n") == 0, twin.stderr
+        assert "cloud-1" in twin.stderr and "already live" in twin.stderr, twin.stderr
+        assert procs.pop("edge").stop() == 0
+        procs["cloud"].wait_for(r"peer edge/edge-1 is gone", STARTUP_S)
     finally:
         codes = {name: p.stop() for name, p in reversed(list(procs.items()))}
-    assert codes == {"router": 0, "cloud": 0, "edge": 0}, codes
+    assert codes == {"router": 0, "cloud": 0}, codes
