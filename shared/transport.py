@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 READY = "ready"
+ANSI = re.compile(r"\x1b\[[0-9;]*m")  # terminal colour codes in Zenoh's log lines
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")  # the daemons' --log-level choices
 PRESENCE_CHECK_S = 3.0  # how long a starting daemon asks whether its id is already live
 
@@ -355,7 +356,7 @@ def _capture_zenoh_log(counter: DenialCounter) -> typing.TextIO:
                         who, message, flow, key = denial
                         log.warning("access denied (%d so far): %s %s %s on %s", counter.total, who, message,
                                     flow, key)
-                elif " TRACE " not in line:
+                elif " TRACE " not in ANSI.sub("", line):  # (Zenoh colours its level even into a pipe)
                     sys.stderr.write(line)
 
     threading.Thread(target=read, daemon=True, name="zenoh-log").start()

@@ -64,7 +64,10 @@ def _session(args: argparse.Namespace) -> zenoh.Session:
     try:
         return zenoh.open(conf)
     except zenoh.ZError as e:
-        raise ControlError(f"cannot reach {', '.join(args.connect) or args.config}: {zenoh_message(e)}") from None
+        hint = ""
+        if any(c.startswith("tls/") for c in args.connect) and not (args.secure or args.tls_ca or args.config):
+            hint = " (a tls/ endpoint: give --secure DIR)"
+        raise ControlError(f"cannot reach {', '.join(args.connect) or args.config}: {zenoh_message(e)}{hint}") from None
 
 
 def _clouds(session: zenoh.Session, args: argparse.Namespace, timeout_s: float) -> list[str]:
