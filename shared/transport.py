@@ -47,6 +47,7 @@ MODES = ("peer", "client", "router")
 READY = "ready"
 ANSI = re.compile(r"\x1b\[[0-9;]*m")  # terminal colour codes in Zenoh's log lines
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")  # the daemons' --log-level choices
+ALL_ALIVE = "driveby/*/alive/*/*"  # every daemon's liveliness token, on every net (the router's log)
 PRESENCE_CHECK_S = 3.0  # how long a starting daemon asks whether its id is already live
 
 __all__ = ["MODES", "free_port", "zenoh_config", "run_router", "serve_router", "add_zenoh_arguments",
@@ -424,6 +425,20 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m shared.transp
                     query.reply(denials_key(args.net, args.id), json.dumps(counter.snapshot()).encode())
 
             declared.append(session.declare_queryable(denials_key(args.net, args.id), on_denials))
+        presence = logging.getLogger(PRESENCE_LOG)
+        presence.setLevel(logging.INFO)
+        presence.info("router started: zenoh id %s, listening on %s%s", session.zid(), ", ".join(args.listen),
+                      f", joining {', '.join(args.connect)}" if args.connect else "")
+
+        def on_daemon(sample) -> None:  # every daemon of every net that comes and goes through this router
+            try:
+                net, role, ident = parse_alive_key(str(sample.key_expr))
+            except ValueError:
+                return
+            state = "is up" if sample.kind == zenoh.SampleKind.PUT else "is gone"
+            presence.info("router: %s/%s on net %s %s", role, ident, net, state)
+
+        declared.append(session.liveliness().declare_subscriber(ALL_ALIVE, on_daemon, history=True))
         out.write(f"{READY} {session.zid()}\n")
         out.flush()
 

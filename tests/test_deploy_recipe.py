@@ -124,6 +124,7 @@ def test_the_readme_deployment_recipe_runs_as_written(tmp_path):
             procs[me].wait_for(rf"{me}/{me}-1 started: net city, .*endpoints tcp/127\.0\.0\.1:{port}", STARTUP_S)
             procs[me].wait_for(rf"{me}/{me}-1 connected to router ", STARTUP_S)
             procs[me].wait_for(rf"peer {other} is up", STARTUP_S)
+            procs["router"].wait_for(rf"router: {me}/{me}-1 on net city is up", STARTUP_S)
 
         replayed = _run(_argv(cmds["replay"], port), work)
         assert f"{passes}/{passes} passes acknowledged" in replayed.stdout, replayed.stdout
