@@ -297,6 +297,8 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
             progressed.set()
             check_done()
 
+        wanted = {f"cloud/{cid}" for cid in cloud_ids} | {"edge/edge-1"}
+
         def on_alive(sample):
             try:
                 _, role, ident = keys.parse_alive_key(str(sample.key_expr))
@@ -304,7 +306,7 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
                 return
             if sample.kind == zenoh.SampleKind.PUT:
                 alive.add(f"{role}/{ident}")
-            if {f"cloud/{cid}" for cid in cloud_ids} | {"edge/edge-1"} <= alive:
+            if wanted <= alive:
                 ready.set()
 
         def on_ack(sample):
@@ -319,7 +321,11 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
         live = session.liveliness().declare_subscriber(keys.alive_keyexpr(net), on_alive, history=True)
         acks = session.declare_subscriber(keys.ack_keyexpr(net), on_ack)
         stats_subs = [session.declare_subscriber(keys.status_key(net, cid), on_status) for cid in cloud_ids]
-        _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start")
+        # A first start compiles the kernels (a minute or two): say so while it lasts.
+        with Progress(len(wanted), "daemons", enabled=progress, unit="live") as bar:
+            _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start",
+                  lambda: bar.update(len(alive & wanted)))
+            bar.update(len(alive & wanted))
         # The loggers keep their recent chunks (publication cache): what a router restart or a
         # partition made the edge miss is fetched again, not lost.
         publish = ImuPublishers(session, cache_chunks=replay_module.CACHE_CHUNKS)
@@ -431,9 +437,10 @@ def _check_alive(procs, work) -> None:
         p.supervise()
 
 
-def _wait(event: threading.Event, timeout: float, procs, work, what: str) -> None:
+def _wait(event: threading.Event, timeout: float, procs, work, what: str, tick=lambda: None) -> None:
     deadline = time.monotonic() + timeout
     while not event.wait(0.5):
+        tick()
         _check_alive(procs, work)
         if time.monotonic() > deadline:
             raise RunError(f"timed out after {timeout:.0f} s waiting for {what}")
