@@ -123,8 +123,11 @@ class Daemon:
             return
         tail = (self.work / f"{self.name}.log").read_text(errors="replace").strip().splitlines()[-1:] or [""]
         # 2: bad arguments; a one-line "driveby <daemon>: ..." refusal: bad input (its site, its
-        # state, its id taken). Restarting cannot help either; a crash (a traceback) it can.
+        # state, its id taken). Restarting cannot help either; a crash (a traceback) it can. Except
+        # an id still held by this daemon's own previous process (the router has not yet seen it
+        # go): that passes.
         refused = code == 1 and tail[0].startswith(("driveby cloud:", "driveby edge:"))
+        refused = refused and not (self.restarts > 0 and "already live" in tail[0])
         if code == 2 or refused or self.restarts >= MAX_RESTARTS:
             raise RunError(f"{self.name} daemon exited with code {code}: {tail[0] or '(no output)'}")
         self.restarts += 1
