@@ -38,8 +38,8 @@ from pathlib import Path
 import zenoh
 
 from shared.keys import MAX_ID_LEN, alive_key, alive_keyexpr, check_id, parse_alive_key
-from shared.security import ACL_LOG_DIRECTIVE, DenialCounter, SecurityDir, SecurityError, TlsFiles, denials_key, router_config, \
-    tls_config
+from shared.security import (ACL_LOG_DIRECTIVE, DenialCounter, SecurityDir, SecurityError, TlsFiles, denials_key,
+                             router_config, tls_config)
 
 log = logging.getLogger(__name__)
 
