@@ -118,7 +118,7 @@ def format_status(body: dict) -> str:
     rejected = st.get("rejected", {})
     lines = [f"cloud {body['id']} (net {body['net']}): {body['passes']} passes, {body['passes_current']} at their "
              f"vehicle's current calibration, {'settled' if body['settled'] else 'working'}; "
-             f"{body['calibration_rounds']} calibration rounds",
+             f"{body['calibration_rounds']} calibration round{'' if body['calibration_rounds'] == 1 else 's'}",
              f"  segments: {st['accepted']} accepted, {sum(rejected.values())} rejected"
              + (f" ({', '.join(f'{k} {v}' for k, v in sorted(rejected.items()))})" if rejected else ""),
              f"  vehicles: {len(body['vehicles'])}" + (f" ({', '.join(body['vehicles'][:8])}"
