@@ -93,7 +93,7 @@ def _ask(session: zenoh.Session, net: str, cloud: str, verb: str, timeout_s: flo
             raise ControlError(f"{cloud}: {r.err.payload.to_bytes().decode(errors='replace')}")
         oks.append(r.ok)
     if not oks:
-        raise ControlError(f"{cloud} did not answer {verb} within {timeout_s:.0f} s")
+        raise ControlError(f"{cloud} did not answer {verb} within {timeout_s:.0f} s (--timeout S waits longer)")
     return oks
 
 
