@@ -135,7 +135,7 @@ def _no_router(args, command: str) -> bool:
 
 
 def _cmd_status(args) -> int:
-    from .control import ControlError, format_status, status
+    from .control import ControlError, UsageError, format_status, status
 
     if _no_router(args, "status"):
         return 2
@@ -143,14 +143,14 @@ def _cmd_status(args) -> int:
         bodies = status(args)
     except ControlError as e:
         print(f"driveby status: {e}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(e, UsageError) else 1
     for body in bodies:
         print(json.dumps(body) if args.json else format_status(body))
     return 0
 
 
 def _cmd_export(args) -> int:
-    from .control import ControlError, export
+    from .control import ControlError, UsageError, export
 
     if _no_router(args, "export"):
         return 2
@@ -158,7 +158,7 @@ def _cmd_export(args) -> int:
         written, stats = export(args)
     except ControlError as e:
         print(f"driveby export: {e}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(e, UsageError) else 1
     rejected = sum(stats.get("rejected", {}).values())
     print(f"wrote {', '.join(p.name for p in written)} to {args.out} ({stats.get('passes_complete', 0)} passes, "
           f"{stats.get('accepted', 0)} segments accepted, {rejected} rejected)")
@@ -166,7 +166,7 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_replay(args) -> int:
-    from .control import ControlError, replay_logs
+    from .control import ControlError, UsageError, replay_logs
 
     if _no_router(args, "replay"):
         return 2
@@ -174,7 +174,7 @@ def _cmd_replay(args) -> int:
         res = replay_logs(args)
     except ControlError as e:
         print(f"driveby replay: {e}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(e, UsageError) else 1
     print(f"{res.acked}/{res.passes} passes acknowledged in {res.seconds:.1f} s"
           + (f" ({res.resent_passes} published again)" if res.resent_passes else ""))
     return 0

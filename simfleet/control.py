@@ -35,6 +35,10 @@ class ControlError(Exception):
     """A user-facing failure: one line, exit 1."""
 
 
+class UsageError(ControlError):
+    """The command line itself is wrong (a malformed --net, --cloud, endpoint): one line, exit 2."""
+
+
 def add_network_arguments(p: argparse.ArgumentParser) -> None:
     """``--connect``/``--net``/``--secure``/``--id`` (and the rest of the daemons' Zenoh options)."""
     add_zenoh_arguments(p)
@@ -53,14 +57,26 @@ def add_cloud_arguments(p: argparse.ArgumentParser) -> None:
                         f"{EXPORT_TIMEOUT_S:.0f} for export)")
 
 
-def _session(args: argparse.Namespace) -> zenoh.Session:
+def _config(args: argparse.Namespace) -> zenoh.Config:
+    """The session's config from the command line, checked before anything is read or dialled."""
     if not args.connect and not args.config:
-        raise ControlError("--connect ENDPOINT is required (the deployed router, e.g. tcp/hub:7447)")
+        raise UsageError("--connect ENDPOINT is required (the deployed router, e.g. tcp/hub:7447)")
     try:
-        keys.check_id(args.net, "net")
-        conf = config_from_args(args)
-    except (ValueError, SecurityError) as e:
+        keys.check_id(args.net, "--net")
+        for cloud in getattr(args, "cloud", None) or []:
+            keys.check_id(cloud, "--cloud")
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    try:
+        return config_from_args(args)
+    except SecurityError as e:  # a file of --secure DIR is missing
         raise ControlError(str(e)) from None
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
+def _session(args: argparse.Namespace, conf: zenoh.Config | None = None) -> zenoh.Session:
+    conf = _config(args) if conf is None else conf
     try:
         return zenoh.open(conf)
     except zenoh.ZError as e:
@@ -72,7 +88,7 @@ def _session(args: argparse.Namespace) -> zenoh.Session:
 
 def _clouds(session: zenoh.Session, args: argparse.Namespace, timeout_s: float) -> list[str]:
     if args.cloud:
-        return [keys.check_id(c, "--cloud") for c in args.cloud]
+        return list(args.cloud)
     found = set()
     for reply in session.liveliness().get(keys.alive_keyexpr(args.net, "cloud"), timeout=timeout_s):
         if reply.ok is not None:
@@ -207,13 +223,14 @@ def add_replay_arguments(p: argparse.ArgumentParser) -> None:
 
 def replay_logs(args: argparse.Namespace, progress: bool | None = None):
     """Read and check every log, then publish them to the deployed network and wait for the acks."""
+    conf = _config(args)
     try:
         logs = [read_drive_log(p) for p in list_drive_logs(Path(args.logs))]
     except DriveLogError as e:
         raise ControlError(str(e)) from None
     if not logs:
         raise ControlError(f"{args.logs}: no drive logs (*.parquet) found")
-    with _session(args) as session:
+    with _session(args, conf) as session:
         try:
             return replay_to(session, args.net, logs, rate=args.rate, progress=progress, daemons_wait_s=args.wait,
                              idle_s=args.timeout)
