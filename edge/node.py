@@ -40,7 +40,9 @@ from shared.schema import (
     decode_calibration,
     decode_sensor_chunk,
 )
-from shared.transport import add_zenoh_arguments, config_from_args
+from shared.security import SecurityError
+from shared.transport import (LOG_LEVELS, IdInUseError, Presence, add_zenoh_arguments, config_from_args, default_id,
+                              zenoh_message)
 from shared.vehicles import MODELS, vehicle_from_params
 
 from .outbox import DEFAULT_MAX_BYTES, Outbox
@@ -395,11 +397,13 @@ def serve(session: zenoh.Session, edge: Edge, node_id: str, stop: threading.Even
             s.undeclare()
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """``driveby edge``'s options."""
     p = argparse.ArgumentParser(prog="driveby edge", description="edge daemon: inverse Newmark-β → AP segments")
     add_zenoh_arguments(p)
-    p.add_argument("--net", default="net", help="network name in the key space")
-    p.add_argument("--id", default="edge-1", help="this daemon's id (liveliness)")
+    p.add_argument("--net", default="net", help="network name in the key space (the same on every daemon; default net)")
+    p.add_argument("--id", help="this daemon's id, unique on the net (liveliness, control keys, its TLS certificate's "
+                                "name with --tls-cert; default edge-<host>)")
     p.add_argument("--site", help="site registry TOML (vehicle-class priors for cold start)")
     p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
                    help="parameters before the cloud calibrates a vehicle: fleet, its class mean (default); nominal, its log's nominal_params")
@@ -415,27 +419,45 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--raw-spool-mb", type=float, default=SPOOL_MAX_BYTES / 2**20, metavar="MB",
                    help="bound of the raw passes kept (in memory) to recompute when a calibration changes; "
                         f"also at most {SPOOL_PASSES} per vehicle; the oldest are dropped (counted) beyond it")
-    p.add_argument("--log-level", default="WARNING", help="logging level (DEBUG, INFO, WARNING, ERROR; default WARNING)")
+    p.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS,
+                   help="logging level (default WARNING; start, connection and peers are logged unless ERROR)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s edge %(levelname)s %(message)s")
     try:
-        site = load_site(args.site) if args.site else None
         keys.check_id(args.net, "net")
+        args.id = keys.check_id(args.id or default_id("edge"), "id")
         shard = parse_shard(args.shard)
         if not 1 <= args.ap_batch <= MAX_BATCH_SEGMENTS:
             raise ValueError(f"--ap-batch: expected 1 to {MAX_BATCH_SEGMENTS}, got {args.ap_batch}")
         if not args.raw_spool_mb >= 0:
             raise ValueError(f"--raw-spool-mb: expected >= 0, got {args.raw_spool_mb}")
+        if not args.spool_max_mb > 0:
+            raise ValueError(f"--spool-max-mb: expected > 0, got {args.spool_max_mb}")
         conf = config_from_args(args)
-        outbox = Outbox(args.spool, int(args.spool_max_mb * 2**20))
-    except (RegistryError, ValueError, OSError) as e:
+    except SecurityError as e:  # a TLS file it names is missing
+        print(f"driveby edge: {e}", file=sys.stderr)
+        return 1
+    except ValueError as e:  # the command line itself: a usage error, as argparse's
         print(f"driveby edge: {e}", file=sys.stderr)
         return 2
+    try:
+        site = load_site(args.site) if args.site else None
+        outbox = Outbox(args.spool, int(args.spool_max_mb * 2**20))
+    except (RegistryError, ValueError, OSError) as e:  # what the arguments name is unusable
+        print(f"driveby edge: {e}", file=sys.stderr)
+        return 1
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     try:
         with zenoh.open(conf) as session:
+            presence = Presence(session, args.net, "edge", args.id, args.connect + args.listen, args.log_level)
+
             def publish(key, payload):
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, attachment=edge.trace)
 
@@ -447,8 +469,14 @@ def main(argv: list[str] | None = None) -> int:
             # (~0.1 s of them) and would land in the middle of the stream.
             gc.collect()
             gc.freeze()
-            serve(session, edge, args.id, stop)
+            try:
+                serve(session, edge, args.id, stop)
+            finally:
+                presence.close()
     except zenoh.ZError as e:
-        print(f"driveby edge: zenoh: {e}", file=sys.stderr)
+        print(f"driveby edge: zenoh: {zenoh_message(e)}", file=sys.stderr)
+        return 1
+    except IdInUseError as e:
+        print(f"driveby edge: {e}", file=sys.stderr)
         return 1
     return 0

@@ -77,12 +77,12 @@ _OWN_CONTROL = (  # a daemon's own control queryables (stats, export, ...)
     (("declare_queryable", "reply"), "ingress", ("control/{id}/*",)),
     (("query",), "egress", ("control/{id}/*",)),
 )
+_READ_ONLY_QUERIES = ("state/**", "control/*/stats", "control/*/status", "control/*/latency", "control/*/denials")
 _VIEW = (
     (("declare_subscriber",), "ingress", ("ap/**", "done/*", "ack/*", "calib/*", "status/*", "alarm/*")),
     (("put",), "egress", ("ap/**", "done/*", "ack/*", "calib/*", "status/*", "alarm/*")),
-    (("query",), "ingress", ("state/**", "control/*/stats", "control/*/latency", "control/*/denials")),
-    (("reply", "declare_queryable"), "egress",
-     ("state/**", "control/*/stats", "control/*/latency", "control/*/denials")),
+    (("query",), "ingress", _READ_ONLY_QUERIES),
+    (("reply", "declare_queryable"), "egress", _READ_ONLY_QUERIES),
     *_LIVELINESS_WATCH,
 )
 # Raw chunks go through Zenoh's advanced publisher/subscriber (simfleet.replay, edge.node): the

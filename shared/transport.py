@@ -24,6 +24,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -36,17 +37,25 @@ from pathlib import Path
 
 import zenoh
 
-from shared.keys import check_id
-from shared.security import ACL_LOG_DIRECTIVE, DenialCounter, SecurityDir, TlsFiles, denials_key, router_config, \
-    tls_config
+from shared.keys import MAX_ID_LEN, alive_key, alive_keyexpr, check_id, parse_alive_key
+from shared.security import (ACL_LOG_DIRECTIVE, DenialCounter, SecurityDir, SecurityError, TlsFiles, denials_key,
+                             router_config, tls_config)
 
 log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 READY = "ready"
+ANSI = re.compile(r"\x1b\[[0-9;]*m")  # terminal colour codes in Zenoh's log lines
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")  # the daemons' --log-level choices
+ALL_ALIVE = "driveby/*/alive/*/*"  # every daemon's liveliness token, on every net (the router's log)
+PRESENCE_CHECK_S = 3.0  # how long a starting daemon asks whether its id is already live
 
 __all__ = ["MODES", "free_port", "zenoh_config", "run_router", "serve_router", "add_zenoh_arguments",
-           "config_from_args", "main"]
+           "config_from_args", "default_id", "zenoh_message", "IdInUseError", "Presence", "LOG_LEVELS", "main"]
+
+#: The logger of the daemons' start, connection and peer lines: on at INFO whatever ``--log-level``
+#: says (unless it asks for less than warnings), so a deployed daemon tells what it is doing.
+PRESENCE_LOG = "driveby.presence"
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -54,6 +63,66 @@ def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return int(s.getsockname()[1])
+
+
+def zenoh_message(e: Exception) -> str:
+    """A Zenoh error as one line for a user: without the Rust source location it ends with."""
+    return re.sub(r"\s+at \S+:\d+\.?\s*$", "", str(e).strip()) or type(e).__name__
+
+
+def default_id(role: str) -> str:
+    """``<role>-<host>``: a daemon id unique per machine (one daemon of a role per host); a second
+    one on the same host, or a secured one (its id is its certificate's name), passes ``--id``."""
+    host = re.sub(r"[^A-Za-z0-9_-]+", "-", socket.gethostname().split(".")[0]).strip("-") or "host"
+    return check_id(f"{role}-{host}"[:MAX_ID_LEN], "id")
+
+
+class IdInUseError(RuntimeError):
+    """Another live daemon of the role holds this id on the net (one line, exit 1)."""
+
+
+class Presence:
+    """What a daemon says about its place on the bus: one log line when it starts, when it is
+    connected (or not) to a router, and when another daemon's liveliness token appears or goes.
+
+    ``Presence(session, net, role, node_id, endpoints)`` refuses (:class:`IdInUseError`) an id another live
+    daemon of the role already holds on ``net``; the daemon declares its own token after this.
+    :meth:`close` stops watching.
+    """
+
+    def __init__(self, session: zenoh.Session, net: str, role: str, node_id: str, endpoints: Sequence[str] = (),
+                 log_level: str = "INFO"):
+        self.log = logging.getLogger(PRESENCE_LOG)
+        if logging.getLevelName(log_level.upper()) in (logging.DEBUG, logging.INFO, logging.WARNING):
+            self.log.setLevel(logging.INFO)
+        self.me = f"{role}/{node_id}"
+        own = alive_key(net, role, node_id)
+        if any(r.ok is not None for r in session.liveliness().get(own, timeout=PRESENCE_CHECK_S)):
+            raise IdInUseError(f"--id {node_id}: a {role} with this id is already live on net {net!r} "
+                             "(give each daemon its own --id)")
+        routers = [str(z) for z in session.info.routers_zid()]
+        self.log.info("%s started: net %s, zenoh id %s, endpoints %s", self.me, net, session.info.zid(),
+                      ", ".join(endpoints) or "(none: peer mode)")
+        if routers:
+            self.log.info("%s connected to router %s", self.me, ", ".join(routers))
+        elif endpoints:
+            self.log.warning("%s not connected to %s yet: zenoh keeps trying", self.me, ", ".join(endpoints))
+        self._peers = session.liveliness().declare_subscriber(alive_keyexpr(net), self._on_peer, history=True)
+
+    def _on_peer(self, sample) -> None:
+        try:
+            _, role, ident = parse_alive_key(str(sample.key_expr))
+        except ValueError:
+            return
+        if f"{role}/{ident}" == self.me:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.log.info("%s: peer %s/%s is up", self.me, role, ident)
+        else:
+            self.log.info("%s: peer %s/%s is gone", self.me, role, ident)
+
+    def close(self) -> None:
+        self._peers.undeclare()
 
 
 def _endpoints(name: str, values: Sequence[str] | str) -> list[str]:
@@ -222,7 +291,16 @@ def _add_tls_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _tls_from_args(args: argparse.Namespace) -> TlsFiles | None:
-    """TlsFiles from ``--tls-ca/--tls-cert/--tls-key``; raises ValueError (one line) if incomplete."""
+    """TlsFiles from ``--secure DIR`` (the certificate of identity ``--id`` in a ``shared.security``
+    directory) or ``--tls-ca/--tls-cert/--tls-key``; raises ValueError (one line) if incomplete."""
+    secure = getattr(args, "secure", None)
+    if secure is not None:
+        if args.tls_ca or args.tls_cert or args.tls_key:
+            raise ValueError("--secure DIR or --tls-ca/--tls-cert/--tls-key, not both")
+        name = getattr(args, "id", None)
+        if not name:
+            raise ValueError("--secure DIR needs --id NAME: the identity whose certificate DIR holds")
+        return SecurityDir(Path(secure)).tls(name)
     if args.tls_ca is None:
         if args.tls_cert or args.tls_key:
             raise ValueError("--tls-cert/--tls-key need --tls-ca")
@@ -236,6 +314,8 @@ def add_zenoh_arguments(p: argparse.ArgumentParser, default_mode: str = "client"
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on (repeatable)")
     p.add_argument("--config", help="zenoh JSON5 config file (TLS, access control, ...)")
+    p.add_argument("--secure", metavar="DIR", help="TLS with the certificate of this process's --id from the "
+                   "security directory DIR (python -m shared.security; the same CA on every machine)")
     _add_tls_arguments(p)
     p.set_defaults(_default_mode=default_mode)
 
@@ -277,16 +357,16 @@ def _capture_zenoh_log(counter: DenialCounter) -> typing.TextIO:
                         who, message, flow, key = denial
                         log.warning("access denied (%d so far): %s %s %s on %s", counter.total, who, message,
                                     flow, key)
-                elif " TRACE " not in line:
+                elif " TRACE " not in ANSI.sub("", line):  # (Zenoh colours its level even into a pipe)
                     sys.stderr.write(line)
 
     threading.Thread(target=read, daemon=True, name="zenoh-log").start()
     return original
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m shared.transport router --listen ENDPOINT [--connect E] [--config FILE]``."""
-    parser = argparse.ArgumentParser(prog="python -m shared.transport", description=__doc__.split("\n")[0])
+def build_parser(prog: str = "python -m shared.transport") -> argparse.ArgumentParser:
+    """The router's options."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     router = sub.add_parser("router", help="run a zenoh router until SIGTERM/SIGINT")
     router.add_argument("--listen", "-l", action="append", default=[], help="endpoint, e.g. tcp/127.0.0.1:7447")
@@ -301,8 +381,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     _add_tls_arguments(router)
     router.add_argument("--multicast", action="store_true", help="enable multicast scouting")
     router.add_argument("--exit-on-stdin-eof", action="store_true", help="also stop when stdin closes")
-    args = parser.parse_args(argv)
+    return parser
 
+
+def main(argv: Sequence[str] | None = None, prog: str = "python -m shared.transport") -> int:
+    """``python -m shared.transport router --listen ENDPOINT [--connect E] [--config FILE]`` (also
+    ``driveby router ...``: ``prog`` names it in the help)."""
+    parser = build_parser(prog)
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s router %(levelname)s %(message)s")
     counter = None
     try:
@@ -317,8 +403,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                     value = value[part]
                 conf.insert_json5(section, json.dumps(value))
             counter = None if args.no_count_denials else DenialCounter()
-    except (ValueError, zenoh.ZError) as e:
-        print(f"error: {e}", file=sys.stderr)
+    except SecurityError as e:  # a file of the security directory is missing or malformed
+        print(f"{prog} router: {e}", file=sys.stderr)
+        return 1
+    except (ValueError, zenoh.ZError) as e:  # the endpoints or options themselves
+        print(f"{prog} router: {e}", file=sys.stderr)
         return 2
     out = sys.stdout if counter is None else _capture_zenoh_log(counter)
     stop = threading.Event()
@@ -336,13 +425,27 @@ def main(argv: Sequence[str] | None = None) -> int:
                     query.reply(denials_key(args.net, args.id), json.dumps(counter.snapshot()).encode())
 
             declared.append(session.declare_queryable(denials_key(args.net, args.id), on_denials))
+        presence = logging.getLogger(PRESENCE_LOG)
+        presence.setLevel(logging.INFO)
+        presence.info("router started: zenoh id %s, listening on %s%s", session.zid(), ", ".join(args.listen),
+                      f", joining {', '.join(args.connect)}" if args.connect else "")
+
+        def on_daemon(sample) -> None:  # every daemon of every net that comes and goes through this router
+            try:
+                net, role, ident = parse_alive_key(str(sample.key_expr))
+            except ValueError:
+                return
+            state = "is up" if sample.kind == zenoh.SampleKind.PUT else "is gone"
+            presence.info("router: %s/%s on net %s %s", role, ident, net, state)
+
+        declared.append(session.liveliness().declare_subscriber(ALL_ALIVE, on_daemon, history=True))
         out.write(f"{READY} {session.zid()}\n")
         out.flush()
 
     try:
         serve_router(conf, stop, ready)
-    except zenoh.ZError as e:
-        print(f"error: {e}", file=sys.stderr)
+    except zenoh.ZError as e:  # e.g. the port is taken
+        print(f"{prog} router: {zenoh_message(e)}", file=sys.stderr)
         return 1
     return 0
 

@@ -3,13 +3,20 @@ simulator, the run orchestration, the reports and the edge and cloud daemons.
 
 Subcommands import their modules lazily, so ``driveby --help`` stays fast and a daemon loads only
 its own package.
+
+Every subcommand fails the same way: one line on stderr naming what is wrong, and exit code 2 when
+the command line itself is wrong (an unknown or missing option, a value out of range: argparse's
+rule), 1 when what it names cannot be used or the work fails (a missing or malformed file, a
+directory that cannot be written, no cloud answering, a timeout).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
+import subprocess
 import sys
 from pathlib import Path
 
@@ -105,6 +112,88 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _control_args(p: argparse.ArgumentParser, what: str) -> None:
+    from .control import add_cloud_arguments, add_replay_arguments  # zenoh: loaded only for these subcommands
+
+    if what == "replay":
+        add_replay_arguments(p)
+    else:
+        add_cloud_arguments(p)
+    if what == "status":
+        p.add_argument("--json", action="store_true", help="print the clouds' status as JSON (one object per line)")
+    if what == "export":
+        p.add_argument("--out", required=True, help="directory to write the export's Parquet tables into")
+
+
+def _no_router(args, command: str) -> bool:
+    """The deployed network is named by --connect (or a Zenoh --config): without either, a usage error."""
+    if args.connect or args.config:
+        return False
+    print(f"driveby {command}: --connect ENDPOINT is required (the deployed router, e.g. tcp/hub:7447)",
+          file=sys.stderr)
+    return True
+
+
+def _cmd_status(args) -> int:
+    from .control import ControlError, UsageError, format_status, status
+
+    if _no_router(args, "status"):
+        return 2
+    try:
+        bodies = status(args)
+    except ControlError as e:
+        print(f"driveby status: {e}", file=sys.stderr)
+        return 2 if isinstance(e, UsageError) else 1
+    for body in bodies:
+        print(json.dumps(body) if args.json else format_status(body))
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .control import ControlError, UsageError, export
+
+    if _no_router(args, "export"):
+        return 2
+    try:
+        written, stats = export(args)
+    except ControlError as e:
+        print(f"driveby export: {e}", file=sys.stderr)
+        return 2 if isinstance(e, UsageError) else 1
+    rejected = sum(stats.get("rejected", {}).values())
+    print(f"wrote {', '.join(p.name for p in written)} to {args.out} ({stats.get('passes_complete', 0)} passes, "
+          f"{stats.get('accepted', 0)} segments accepted, {rejected} rejected)")
+    return 0
+
+
+def _cmd_replay(args) -> int:
+    from .control import ControlError, UsageError, replay_logs
+
+    if _no_router(args, "replay"):
+        return 2
+    try:
+        res = replay_logs(args)
+    except ControlError as e:
+        print(f"driveby replay: {e}", file=sys.stderr)
+        return 2 if isinstance(e, UsageError) else 1
+    print(f"{res.acked}/{res.passes} passes acknowledged in {res.seconds:.1f} s"
+          + (f" ({res.resent_passes} published again)" if res.resent_passes else ""))
+    return 0
+
+
+def _cmd_view(args) -> int:
+    path = Path(args.file)
+    if not path.is_file():
+        print(f"driveby view: {path}: no such file (a Rerun recording, e.g. driveby-demo/demo.rrd)", file=sys.stderr)
+        return 1
+    # The viewer of the Rerun SDK installed beside this Python: works without activating the venv.
+    cmd = [sys.executable, "-m", "rerun", str(path), *(["--web-viewer"] if args.web else [])]
+    try:
+        return subprocess.call(cmd)
+    except OSError as e:
+        print(f"driveby view: cannot start the Rerun viewer: {e}", file=sys.stderr)
+        return 1
+
+
 def _cmd_demo(args) -> int:
     from .demo import demo  # zenoh and the simulator: loaded only for this subcommand
 
@@ -146,17 +235,8 @@ DAEMONS = {"edge": "edge.node", "cloud": "cloud.daemon.node", "fleet": "simfleet
 BLAS_DAEMONS = ("edge", "cloud")  # long-running, sharing the machine: single-threaded BLAS by default
 
 
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] and argv[0] in DAEMONS:
-        # Daemons own their whole command line (Zenoh options, ...): hand it over untouched.
-        if argv[0] in BLAS_DAEMONS:
-            single_threaded_blas()
-        node = importlib.import_module(DAEMONS[argv[0]])
-        try:
-            return node.main(argv[1:])
-        except KeyboardInterrupt:
-            return 130
+def build_parser() -> argparse.ArgumentParser:
+    """The ``driveby`` parser (the daemons' own parsers: each daemon module's ``build_parser``)."""
     p = argparse.ArgumentParser(prog="driveby", description="fleet drive-by monitoring of roads, rail and bridges")
     sub = p.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="simulate a small fleet over a road and a cracked bridge, run it, summarise")
@@ -168,12 +248,42 @@ def main(argv: list[str] | None = None) -> int:
     _reproduce_args(sub.add_parser("reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))
     for name, what in (("edge", "the edge daemon (see driveby edge --help)"),
                        ("cloud", "the cloud aggregator daemon (see driveby cloud --help)"),
-                       ("fleet", "live simulated fleet publishers (see driveby fleet --help)")):
+                       ("fleet", "live simulated fleet publishers (see driveby fleet --help)"),
+                       ("router", "a Zenoh router for the daemons to meet at (see driveby router --help)")):
         sub.add_parser(name, help=what, add_help=False)
-    args = p.parse_args(argv)
-    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": _cmd_reproduce}
+    _control_args(sub.add_parser("replay", help="publish drive logs as their vehicles to a deployed router and wait "
+                                                "for every pass's acknowledgement (no edge or cloud of its own)"),
+                  "replay")
+    _control_args(sub.add_parser("status", help="ask the running clouds for their status: passes, segments "
+                                                "accepted/rejected, vehicles, bridges"), "status")
+    _control_args(sub.add_parser("export", help="ask the running clouds for their export; write its Parquet "
+                                                "tables here"), "export")
+    view = sub.add_parser("view", help="open a Rerun recording (.rrd) in the Rerun viewer installed with driveby")
+    view.add_argument("file", metavar="FILE.rrd", help="the recording, e.g. driveby-demo/demo.rrd")
+    view.add_argument("--web", action="store_true", help="serve the web viewer and open it in a browser instead")
+    return p
+
+
+HANDLERS = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": _cmd_reproduce, "status": _cmd_status,
+            "export": _cmd_export, "replay": _cmd_replay, "view": _cmd_view}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["router"]:  # a Zenoh router from the zenoh wheel: no zenohd binary to install
+        return importlib.import_module("shared.transport").main(argv, prog="driveby")
+    if argv[:1] and argv[0] in DAEMONS:
+        # Daemons own their whole command line (Zenoh options, ...): hand it over untouched.
+        if argv[0] in BLAS_DAEMONS:
+            single_threaded_blas()
+        node = importlib.import_module(DAEMONS[argv[0]])
+        try:
+            return node.main(argv[1:])
+        except KeyboardInterrupt:
+            return 130
+    args = build_parser().parse_args(argv)
     try:
-        return handlers[args.command](args)
+        return HANDLERS[args.command](args)
     except KeyboardInterrupt:
         print("driveby: interrupted", file=sys.stderr)
         return 130

@@ -37,7 +37,8 @@ from shared.fe.design import design_beam, registry_krot
 from shared.profiles import RoadProfile, iso8608_profile, tyre_filter
 from shared.registry import RegistryError, Site, VehicleClass, load_site
 from shared.sensors import add_noise
-from shared.transport import add_zenoh_arguments, config_from_args
+from shared.security import SecurityError
+from shared.transport import LOG_LEVELS, add_zenoh_arguments, config_from_args, zenoh_message
 from shared.vbi import simulate_vbi
 from shared.vehicles import MODELS, vehicle_from_params
 
@@ -300,7 +301,7 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate", type=float, default=1.0, help="speed-up over real time (default 1)")
     p.add_argument("--passes", type=int, help="passes per vehicle (default: until SIGINT/SIGTERM)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the fleet and its profiles (default 0)")
-    p.add_argument("--net", default="net", help="network name in the key space")
+    p.add_argument("--net", default="net", help="network name in the key space (the same on every daemon; default net)")
     p.add_argument("--noise", type=float, default=2.0, help="sensor noise, %% of each channel's std (default 2)")
     p.add_argument("--model", help="vehicle class to draw from, when the site declares several")
     p.add_argument("--road-class", default="A", choices=tuple("ABCDE"), help="ISO 8608 road class (default A)")
@@ -309,7 +310,8 @@ def add_fleet_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prefix", default="veh-", help="vehicle ids are PREFIX0001, PREFIX0002, ...")
     p.add_argument("--run-id", help="pass ids are RUN_ID-00000, ... (default: the UTC start time)")
     p.add_argument("--workers", type=int, default=2, help="threads simulating passes ahead (default 2)")
-    p.add_argument("--log-level", default="WARNING", help="logging level (DEBUG, INFO, WARNING, ERROR; default WARNING)")
+    p.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS,
+                   help="logging level (default WARNING)")
 
 
 def _check_args(args: argparse.Namespace) -> None:
@@ -336,6 +338,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         _check_args(args)
         conf = config_from_args(args)
+    except SecurityError as e:  # a TLS file it names is missing
+        print(f"driveby fleet: {e}", file=sys.stderr)
+        return 1
+    except (FleetError, ValueError) as e:  # the command line itself: a usage error, as argparse's
+        print(f"driveby fleet: {e}", file=sys.stderr)
+        return 2
+    try:
         site = load_site(args.site)  # its errors name the file and the key
         try:
             _vehicle_class(site, args.model)
@@ -343,9 +352,9 @@ def run(args: argparse.Namespace) -> int:
                 design_beam(bridge, krot=registry_krot(bridge))
         except (FleetError, ValueError) as e:
             raise FleetError(f"{args.site}: {e}") from None
-    except (FleetError, RegistryError, ValueError) as e:
+    except (FleetError, RegistryError, ValueError) as e:  # what the arguments name is unusable
         print(f"driveby fleet: {e}", file=sys.stderr)
-        return 2
+        return 1
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -365,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
                             speed_range=tuple(args.speed_range), prefix=args.prefix, run_id=args.run_id,
                             workers=args.workers, stop=stop)
     except zenoh.ZError as e:
-        print(f"driveby fleet: zenoh: {e}", file=sys.stderr)
+        print(f"driveby fleet: zenoh: {zenoh_message(e)}", file=sys.stderr)
         return 1
     pub = res.published
     print(f"{res.passes} passes ({pub.items} chunks) from {res.vehicles} vehicles in {pub.seconds:.1f} s "
@@ -375,9 +384,14 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: Iterable[str] | None = None) -> int:
     """``driveby fleet --site FILE --vehicles N [--rate X] [--passes K] ...``."""
+    return run(build_parser().parse_args(None if argv is None else list(argv)))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``driveby fleet``'s options."""
     p = argparse.ArgumentParser(prog="driveby fleet", description=DESCRIPTION)
     add_fleet_arguments(p)
-    return run(p.parse_args(None if argv is None else list(argv)))
+    return p
 
 
 if __name__ == "__main__":

@@ -9,6 +9,10 @@ order. The cache covers an outage of ``cache_chunks × CHUNK_S`` seconds of a ve
 (60 s at the default, i.e. 60 s of wall time in real time, 60/X s replayed at X×); chunks
 older than that are gone, and the edge still sees, counts and survives the gap (``driveby run``
 then publishes the unacknowledged pass again from its log: ``simfleet.run.RESEND_S``).
+
+``driveby replay --connect ROUTER`` (:func:`replay_to`) is the vehicles alone: it publishes the logs to
+a deployed network's router and waits for the cloud's acknowledgement of every pass, with no edge or
+cloud of its own.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
@@ -23,11 +28,29 @@ import zenoh.ext as zx
 
 from shared import keys
 from shared.drivelog import MODEL_CHANNELS, DriveLog
-from shared.schema import SensorChunk
+from shared.progress import Progress
+from shared.schema import DecodeError, SensorChunk, decode_ack
 
 CHUNK_S = 0.1  # a logger's typical upload granularity
 CACHE_CHUNKS = 600  # per vehicle: 60 s of its data (~3.4 KB a chunk at 500 Hz: ~2 MB)
 HEARTBEAT_S = 1.0  # how soon a subscriber learns of chunks lost at the end of a stream
+DAEMONS_WAIT_S = 30.0  # how long `driveby replay` waits for an edge and a cloud to be live on the net
+ACK_IDLE_S = 120.0  # no acknowledgement for this long: the deployment is not answering
+# A pass still unacknowledged this long after its last chunk went out (and the replay is over) is
+# published again, as a logger keeps its files until the cloud has them (simfleet.run.RESEND_S).
+ACK_RESEND_S = 30.0
+
+
+class ReplayError(Exception):
+    """A user-facing failure of ``driveby replay``: one line, exit 1."""
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    passes: int
+    acked: int
+    seconds: float
+    resent_passes: int
 
 
 class ImuPublishers:
@@ -118,3 +141,90 @@ def replay(logs: Iterable[DriveLog], publish: Callable[[str, bytes], None], net:
             clock += chunk.n / chunk.sample_rate_hz
             n += 1
     return n
+
+
+def replay_to(session: zenoh.Session, net: str, logs: list[DriveLog], rate: float | None = None,
+              progress: bool | None = None, daemons_wait_s: float = DAEMONS_WAIT_S, idle_s: float = ACK_IDLE_S,
+              resend_s: float = ACK_RESEND_S) -> ReplayResult:
+    """Publish ``logs`` as their vehicles would, on ``session`` (connected to a deployed network), and
+    wait until the cloud has acknowledged every pass.
+
+    Waits first (at most ``daemons_wait_s``) for an edge and a cloud to be live on ``net``: chunks
+    published to nobody would be lost. A pass unacknowledged ``resend_s`` after its last chunk, once
+    the replay is over, is published again (the cloud recognises duplicates). Raises
+    :class:`ReplayError` when no edge or cloud is live, or no acknowledgement comes for ``idle_s``.
+    """
+    t0 = time.monotonic()
+    expected = {(log.meta.vehicle_id, log.meta.pass_id) for log in logs}
+    acked: set[tuple[str, str]] = set()
+    progressed = threading.Event()
+    roles: set[str] = set()
+    both = threading.Event()
+
+    def on_alive(sample):
+        try:
+            _, role, _ident = keys.parse_alive_key(str(sample.key_expr))
+        except ValueError:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            roles.add(role)
+        if {"edge", "cloud"} <= roles:
+            both.set()
+
+    def on_ack(sample):
+        try:
+            ack = decode_ack(sample.payload.to_bytes())
+        except DecodeError:
+            return
+        acked.add((ack.vehicle_id, ack.pass_id))
+        progressed.set()
+
+    live = session.liveliness().declare_subscriber(keys.alive_keyexpr(net), on_alive, history=True)
+    acks = session.declare_subscriber(keys.ack_keyexpr(net), on_ack)
+    stop = threading.Event()
+    publish = ImuPublishers(session)
+    feeder = None
+    try:
+        if not both.wait(daemons_wait_s):
+            missing = " and ".join(r for r in ("edge", "cloud") if r not in roles)
+            raise ReplayError(f"no {missing} live on net {net!r} after {daemons_wait_s:.0f} s "
+                              "(is the router reachable, are the daemons started with the same --net?)")
+        sent_at: dict[tuple[str, str], float] = {}
+
+        def on_chunk(chunk):
+            if chunk.final:
+                sent_at[(chunk.vehicle_id, chunk.pass_id)] = time.monotonic()
+
+        by_pass = {(log.meta.vehicle_id, log.meta.pass_id): log for log in logs}
+        feeder = threading.Thread(target=replay, args=(logs, publish, net, rate, stop, on_chunk), daemon=True)
+        feeder.start()
+        resent = 0
+        with Progress(len(expected), "passes", enabled=progress, unit="acknowledged") as bar:
+            idle_since = time.monotonic()
+            while not expected <= acked:
+                if progressed.wait(0.5):
+                    progressed.clear()
+                    idle_since = time.monotonic()
+                now = time.monotonic()
+                if now - idle_since > idle_s:
+                    missing = sorted(p for _, p in expected - acked)
+                    raise ReplayError(f"timed out: no pass acknowledged for {idle_s:.0f} s; {len(missing)} "
+                                      f"pass(es) missing, e.g. {missing[:3]}")
+                if not feeder.is_alive():
+                    late = sorted(p for p, t in sent_at.items() if now - t > resend_s and p not in acked)
+                    if late:
+                        for p in late:
+                            sent_at[p] = now
+                        feeder = threading.Thread(target=replay, daemon=True,
+                                                  args=([by_pass[p] for p in late], publish, net, rate, stop, on_chunk))
+                        feeder.start()
+                        resent += len(late)
+                bar.update(len(acked & expected))
+        return ReplayResult(len(expected), len(acked & expected), time.monotonic() - t0, resent)
+    finally:
+        stop.set()
+        if feeder is not None:
+            feeder.join(timeout=10.0)
+        publish.close()
+        acks.undeclare()
+        live.undeclare()

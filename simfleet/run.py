@@ -35,6 +35,7 @@ from shared.transport import run_router, zenoh_config
 from shared.vehicles import MODELS
 
 from . import replay as replay_module
+from .control import sum_stats
 from .replay import ImuPublishers, replay
 
 STARTUP_TIMEOUT_S = 120.0  # first start compiles numba kernels into the cache
@@ -121,7 +122,13 @@ class Daemon:
         if code is None:
             return
         tail = (self.work / f"{self.name}.log").read_text(errors="replace").strip().splitlines()[-1:] or [""]
-        if code == 2 or self.restarts >= MAX_RESTARTS:  # 2: bad arguments or input; restarting cannot help
+        # 2: bad arguments; a one-line "driveby <daemon>: ..." refusal: bad input (its site, its
+        # state, its id taken). Restarting cannot help either; a crash (a traceback) it can. Except
+        # an id still held by this daemon's own previous process (the router has not yet seen it
+        # go): that passes.
+        refused = code == 1 and tail[0].startswith(("driveby cloud:", "driveby edge:"))
+        refused = refused and not (self.restarts > 0 and "already live" in tail[0])
+        if code == 2 or refused or self.restarts >= MAX_RESTARTS:
             raise RunError(f"{self.name} daemon exited with code {code}: {tail[0] or '(no output)'}")
         self.restarts += 1
         print(f"driveby run: {self.name} daemon exited with code {code}; restarting "
@@ -293,6 +300,8 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
             progressed.set()
             check_done()
 
+        wanted = {f"cloud/{cid}" for cid in cloud_ids} | {"edge/edge-1"}
+
         def on_alive(sample):
             try:
                 _, role, ident = keys.parse_alive_key(str(sample.key_expr))
@@ -300,7 +309,7 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
                 return
             if sample.kind == zenoh.SampleKind.PUT:
                 alive.add(f"{role}/{ident}")
-            if {f"cloud/{cid}" for cid in cloud_ids} | {"edge/edge-1"} <= alive:
+            if wanted <= alive:
                 ready.set()
 
         def on_ack(sample):
@@ -315,7 +324,11 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
         live = session.liveliness().declare_subscriber(keys.alive_keyexpr(net), on_alive, history=True)
         acks = session.declare_subscriber(keys.ack_keyexpr(net), on_ack)
         stats_subs = [session.declare_subscriber(keys.status_key(net, cid), on_status) for cid in cloud_ids]
-        _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start")
+        # A first start compiles the kernels (a minute or two): say so while it lasts.
+        with Progress(len(wanted), "daemons", enabled=progress, unit="live") as bar:
+            _wait(ready, STARTUP_TIMEOUT_S, procs, work, "edge and cloud daemons to start",
+                  lambda: bar.update(len(alive & wanted)))
+            bar.update(len(alive & wanted))
         # The loggers keep their recent chunks (publication cache): what a router restart or a
         # partition made the edge miss is fetched again, not lost.
         publish = ImuPublishers(session, cache_chunks=replay_module.CACHE_CHUNKS)
@@ -330,7 +343,8 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
         feeder.start()
         by_pass = {(log.meta.vehicle_id, log.meta.pass_id): log for log in logs}
         resent = 0
-        with Progress(len(expected), "passes", enabled=progress) as bar:
+        eta = Eta()
+        with Progress(len(expected), "passes", enabled=progress, unit="acked") as bar:
             idle_since = time.monotonic()
             while not all_done.is_set():
                 # Wake at least every SUPERVISE_S: a dead daemon is restarted promptly, not at the idle limit.
@@ -351,10 +365,11 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
                                                   args=([by_pass[p] for p in late], publish, net, rate, stop, on_chunk))
                         feeder.start()
                         resent += len(late)
-                bar.advance(len(acked & expected) - bar.done)
+                done = len(acked & expected)
                 rounds = max(st.get("calibration_rounds", 0) for st in statuses.values())
-                if rounds:
-                    bar.label = f"passes (calibration round {rounds})"
+                rounds_left = max(st.get("calibration_rounds_left_max", 0) for st in statuses.values())
+                note, left_s = eta.update(time.monotonic(), done, len(expected), rounds, rounds_left)
+                bar.update(done, note, left_s)
         feeder.join(timeout=10.0)
         publish.close()
         sharded = len(cloud_ids) > 1
@@ -378,24 +393,46 @@ def _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_i
         live.undeclare()
     written = _merge_exports([work / f"export-{cid}" for cid in cloud_ids], export_dir) if sharded \
         else bodies[0]["written"]
-    stats = bodies[0]["stats"] if not sharded else _sum_stats([b["stats"] for b in bodies])
+    stats = bodies[0]["stats"] if not sharded else sum_stats([b["stats"] for b in bodies])
     rounds = max(st.get("calibration_rounds", 0) for st in statuses.values())
     return RunResult(len(expected), len(acked & expected), written, stats, time.monotonic() - t0, int(rounds),
                      resent)
 
 
-def _sum_stats(parts: list[dict]) -> dict:
-    """The shards' aggregator counters added up (nested counters by reason too)."""
-    out: dict = {}
-    for st in parts:
-        for k, v in st.items():
-            if isinstance(v, dict):
-                sub = out.setdefault(k, {})
-                for r, n in v.items():
-                    sub[r] = sub.get(r, 0) + n
-            elif isinstance(v, (int, float)):
-                out[k] = out.get(k, 0) + v
-    return out
+class Eta:
+    """The progress line's note and estimate of the time left: the passes still to be acknowledged at
+    the rate so far, then the calibration rounds still possible (the cloud's bound: a budget per
+    epoch, ``calibration_rounds_left_max``) at the rounds' mean duration so far. Rounds usually stop
+    before their budget (a round that moves no vehicle ends its epoch), so once the passes are in
+    the estimate is an upper bound, and the line says so ("round k of ≤ N")."""
+
+    def __init__(self):
+        self.t0: float | None = None
+        self.first_round_at: float | None = None  # when the first round was seen
+        self.rounds_seen = 0
+
+    def update(self, now: float, done: int, total: int, rounds: int, rounds_left: int) -> tuple[str, float | None]:
+        if self.t0 is None:
+            self.t0 = now
+        if rounds > self.rounds_seen:
+            if self.first_round_at is None:
+                self.first_round_at = now
+            self.rounds_seen = rounds
+        left = None
+        if 0 < done < total:
+            left = (now - self.t0) * (total - done) / done
+        round_s = None
+        if self.first_round_at is not None and self.rounds_seen > 1:
+            round_s = (now - self.first_round_at) / (self.rounds_seen - 1)
+        if done >= total and rounds_left and round_s is not None:
+            left = rounds_left * round_s
+        if done >= total and rounds_left:
+            note = f"calibration round {rounds} of ≤ {rounds + rounds_left}"
+        elif done >= total:
+            note = "calibration rounds done, finishing estimates" if rounds else "finishing estimates"
+        else:
+            note = f"{rounds} calibration round{'s' if rounds != 1 else ''}"
+        return note, left
 
 
 def _check_alive(procs, work) -> None:
@@ -403,9 +440,10 @@ def _check_alive(procs, work) -> None:
         p.supervise()
 
 
-def _wait(event: threading.Event, timeout: float, procs, work, what: str) -> None:
+def _wait(event: threading.Event, timeout: float, procs, work, what: str, tick=lambda: None) -> None:
     deadline = time.monotonic() + timeout
     while not event.wait(0.5):
+        tick()
         _check_alive(procs, work)
         if time.monotonic() > deadline:
             raise RunError(f"timed out after {timeout:.0f} s waiting for {what}")

@@ -93,7 +93,7 @@ def test_bad_site_is_one_clear_line(site, tmp_path, capsys, edit, expect):
     bad = tmp_path / "bad.toml"
     if edit is not None:
         bad.write_text(edit(site.read_text()))
-    assert fleet.main(["--site", str(bad), "--vehicles", "2"]) == 2
+    assert fleet.main(["--site", str(bad), "--vehicles", "2"]) == 1  # a bad input file: 1 (bad usage: 2)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith(f"driveby fleet: {bad}: ") and expect in err
 

@@ -28,6 +28,7 @@ TRANSPORT_MODULES = frozenset({
     "shared.transport",
     "cloud.daemon.node",
     "edge.node",
+    "simfleet.control",
     "simfleet.fleet",
     "simfleet.replay",
     "simfleet.run",

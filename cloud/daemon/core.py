@@ -302,6 +302,7 @@ class Cloud:
         return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
                 "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0,
                 "calibration_epoch_passes": self.epochs.size,
+                "calibration_rounds_left_max": self.epochs.rounds_left_max(),
                 "unfused_passes": len(self._unfused),  # acknowledged, their corrected APs not yet in the estimates
                 **({"calibrations_applied": self.calibrations_applied,
                     "calibration_conflicts": self.calibration_conflicts} if self.settings.shard is not None else {})}

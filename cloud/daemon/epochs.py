@@ -99,10 +99,27 @@ class Epochs:
             return boundary
         return n if tail else None
 
-    def boundary(self) -> int:
-        """The completed-pass count at which the epoch after the current one is due."""
+    def boundary(self, size: int | None = None) -> int:
+        """The completed-pass count at which the epoch after the current one (or after one of
+        ``size`` passes) is due."""
+        size = self.size if size is None else size
         first = max(self.calibrator.min_passes, self.settings.epoch_first)
-        return first if self.size < first else self.size + min(self.size, self.settings.epoch_max_step)
+        return first if size < first else size + min(size, self.settings.epoch_max_step)
+
+    def rounds_left_max(self) -> int:
+        """At most how many rounds the passes completed so far still take: what the current epoch's
+        budget has left, and a full budget for each epoch still due for them (so a progress line can
+        say "round k of ≤ N" once the passes are in)."""
+        c = self.calibrator
+        n = len(self.order)
+        if c is None or n < c.min_passes:
+            return 0
+        left = 0 if self.finished() else max(0, c.max_rounds - (c.rounds - self.round0))
+        size = self.size
+        while size < n:
+            size = min(n, self.boundary(size))
+            left += c.max_rounds
+        return left
 
     def start(self, size: int, round0: int) -> None:
         """Begin (or, replaying the journal, restore) the epoch of the first ``size`` completed passes."""

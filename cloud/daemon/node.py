@@ -13,6 +13,7 @@ import logging
 import signal
 import struct
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -22,7 +23,9 @@ import zenoh
 
 from shared import keys
 from shared.registry import RegistryError, load_site
-from shared.transport import add_zenoh_arguments, config_from_args
+from shared.security import SecurityError
+from shared.transport import (LOG_LEVELS, IdInUseError, Presence, add_zenoh_arguments, config_from_args, default_id,
+                              zenoh_message)
 
 from cloud.daemon.core import Cloud
 from cloud.daemon.durable import AP, CALIB, DONE, Durability
@@ -60,6 +63,21 @@ class LatencyTrace:
         rows = self.rows[order]
         rows = rows[rows[:, 0] >= t]
         return rows[:, 0].tolist(), rows[:, 1].tolist()
+
+
+#: The attachment of the first reply to ``control/<id>/tables``: JSON naming the files that follow
+#: (each a reply whose attachment is its file name) and the aggregator's counters.
+MANIFEST = "manifest.json"
+
+
+def status_body(cloud: Cloud, node_id: str) -> dict:
+    """The answer to ``control/<id>/status``: the cloud's status (passes, calibration), its
+    aggregator's counters (segments accepted, rejected by reason), the vehicles it has heard of, and
+    each bridge's summary row and assessment (:func:`cloud.daemon.queries.bridge_state`)."""
+    bridges = {bid: json.loads(cloud.bridge_state(bid)) for bid in cloud.bridges.bridges}
+    return {"id": node_id, "net": cloud.net, **cloud.status(), "stats": cloud.aggregator.stats(),
+            "vehicles": sorted(cloud.vehicles),
+            "bridges": {bid: {"summary": b["summary"], "assessment": b["assessment"]} for bid, b in bridges.items()}}
 
 
 def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_export: Path | None = None,
@@ -141,6 +159,28 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
                 body = {"written": [str(p) for p in written], "stats": cloud.aggregator.stats()}
             query.reply(keys.control_key(cloud.net, node_id, "export"), json.dumps(body).encode())
 
+    def on_status(query):  # what `driveby status` prints
+        with query:
+            with lock:
+                body = status_body(cloud, node_id)
+            query.reply(keys.control_key(cloud.net, node_id, "status"), json.dumps(body).encode())
+
+    def on_tables(query):  # what `driveby export` writes: the export's files travel, the client writes them
+        with query:
+            with lock, tempfile.TemporaryDirectory(prefix="driveby-export-") as tmp:
+                try:
+                    written = cloud.export(Path(tmp))
+                    files = {p.name: p.read_bytes() for p in written}
+                except OSError as e:
+                    query.reply_err(f"export failed: {e}".encode())
+                    return
+                stats = cloud.aggregator.stats()
+            key = keys.control_key(cloud.net, node_id, "tables")
+            manifest = {"files": sorted(files), "stats": stats}
+            query.reply(key, json.dumps(manifest).encode(), attachment=MANIFEST.encode())
+            for name, data in files.items():
+                query.reply(key, data, attachment=name.encode())
+
     def on_stats(query):
         with query:
             with lock:
@@ -165,6 +205,8 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
         session.declare_subscriber(keys.done_keyexpr(cloud.net), lambda sample: apply(cloud.on_done, sample, DONE)),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "export"), on_export),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "stats"), on_stats),
+        session.declare_queryable(keys.control_key(cloud.net, node_id, "status"), on_status),
+        session.declare_queryable(keys.control_key(cloud.net, node_id, "tables"), on_tables),
         session.declare_queryable(keys.control_key(cloud.net, node_id, "latency"), on_latency),
     ]
     # A shard subscribes to, and answers state queries for, its own routes only: Zenoh routes each
@@ -218,11 +260,13 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
             d.undeclare()
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """``driveby cloud``'s options."""
     p = argparse.ArgumentParser(prog="driveby cloud", description="cloud aggregator daemon")
     add_zenoh_arguments(p)
     p.add_argument("--net", default="net", help="network name in the key space (the same on every daemon; default net)")
-    p.add_argument("--id", default="cloud-1", help="this daemon's id (liveliness, control keys)")
+    p.add_argument("--id", help="this daemon's id, unique on the net (liveliness, control keys, its TLS "
+                                "certificate's name with --tls-cert; default cloud-<host>)")
     p.add_argument("--site", required=True, help="site registry TOML")
     p.add_argument("--routes", metavar="R1,R2,…",
                    help="own only these routes (a shard: segments, state queries, bridges; default: every route)")
@@ -242,19 +286,32 @@ def main(argv: list[str] | None = None) -> int:
                         f"like spilled segments (default {DEFAULT_MAX_RESIDENT_PASSES}, a few kB each)")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
-    p.add_argument("--log-level", default="WARNING", help="logging level (DEBUG, INFO, WARNING, ERROR; default WARNING)")
+    p.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS,
+                   help="logging level (default WARNING; start, connection and peers are logged unless ERROR)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s cloud %(levelname)s %(message)s")
     try:
-        site = load_site(args.site)
         keys.check_id(args.net, "net")
-        keys.check_id(args.id, "id")
+        args.id = keys.check_id(args.id or default_id("cloud"), "id")
         conf = config_from_args(args)
         if args.max_resident_segments < 1:
             raise ValueError(f"--max-resident-segments: expected >= 1, got {args.max_resident_segments}")
         if args.max_resident_passes < MIN_RESIDENT_PASSES:
             raise ValueError(f"--max-resident-passes: expected >= {MIN_RESIDENT_PASSES}, "
                              f"got {args.max_resident_passes}")
+    except SecurityError as e:  # a TLS file it names is missing
+        print(f"driveby cloud: {e}", file=sys.stderr)
+        return 1
+    except ValueError as e:  # the command line itself: a usage error, as argparse's
+        print(f"driveby cloud: {e}", file=sys.stderr)
+        return 2
+    try:
+        site = load_site(args.site)
         shard = None
         if args.routes:
             shard = frozenset(r.strip() for r in args.routes.split(",") if r.strip())
@@ -265,9 +322,9 @@ def main(argv: list[str] | None = None) -> int:
                                  max_resident=args.max_resident_segments,
                                  max_resident_passes=args.max_resident_passes, spill_dir=args.state)
         journal = Journal(args.state) if args.state else None
-    except (RegistryError, ValueError, JournalError) as e:
+    except (RegistryError, ValueError, JournalError, OSError) as e:  # what the arguments name is unusable
         print(f"driveby cloud: {e}", file=sys.stderr)
-        return 2
+        return 1
     view = None
     if args.rrd or args.viewer:
         from cloud.view import View  # rerun: loaded only by a daemon that draws
@@ -280,6 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     durability = None
     try:
         with zenoh.open(conf) as session:
+            presence = Presence(session, args.net, "cloud", args.id, args.connect + args.listen, args.log_level)
             calib_prefix = keys.calib_key(args.net, "x")[:-1]
 
             def publish(key, payload):
@@ -300,17 +358,23 @@ def main(argv: list[str] | None = None) -> int:
             # and would land in the middle of the stream.
             gc.collect()
             gc.freeze()
-            serve(session, cloud, stop, args.export, durability)
+            try:
+                serve(session, cloud, stop, args.export, durability)
+            finally:
+                presence.close()
             if durability is not None:
                 durability.maybe_snapshot(force=True)  # a clean stop leaves a compact state: a fast restart
             if args.export:
                 cloud.export(args.export)
     except zenoh.ZError as e:
-        print(f"driveby cloud: zenoh: {e}", file=sys.stderr)
+        print(f"driveby cloud: zenoh: {zenoh_message(e)}", file=sys.stderr)
         return 1
     except JournalError as e:  # the state directory became unusable while running (or at recovery)
         print(f"driveby cloud: --state: {e}", file=sys.stderr)
-        return 2
+        return 1
+    except IdInUseError as e:
+        print(f"driveby cloud: {e}", file=sys.stderr)
+        return 1
     finally:
         if durability is not None:
             durability.close()
