@@ -8,8 +8,9 @@ straight-line distance between the fixes; the difference is exponentially distri
 ``beta_m``, and changing route away from a junction is impossible. Off-network is a state with a
 flat emission (a fix farther than ``radius_m`` from every route) and a switching cost, so a drive
 on unmapped roads is not forced onto the network. Forward–backward posteriors mark *ambiguous*
-fixes: where the chosen route's posterior probability falls below ``min_posterior`` (parallel
-roads, junctions), a fix is not trusted.
+fixes: where the chosen route's posterior probability falls below ``min_posterior``, or another
+route passes within ``margin_sigmas`` of the fix's own error (parallel roads, junctions), a fix is
+not trusted.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ class MatchSettings:
     the network-vs-straight distance mismatch per transition; ``junction_m``: two routes meet where
     their lines come this close; ``off_network_cost``: −log probability of entering or leaving the
     off-network state; ``min_posterior``: the matched route's posterior below which a fix is
-    ambiguous."""
+    ambiguous; ``margin_sigmas``: a fix is also ambiguous when another route passes within this
+    many of its 1σ of the chosen route's offset."""
 
     radius_m: float = 30.0
     sigma_floor_m: float = 1.0
@@ -43,6 +45,7 @@ class MatchSettings:
     junction_m: float = 3.0
     off_network_cost: float = 10.0
     min_posterior: float = 0.95
+    margin_sigmas: float = 2.0
 
     def __post_init__(self):
         for k, v in self.__dict__.items():
@@ -190,7 +193,13 @@ def match(net: Network, lat: np.ndarray, lon: np.ndarray, accuracy_m: np.ndarray
     chain = np.where(route >= 0, ch[idx, np.clip(path, 0, R - 1)], np.nan)
     offset = np.where(route >= 0, off[idx, np.clip(path, 0, R - 1)], np.min(off, axis=1))
     p = post[idx, path]
-    return Match(route, chain, offset, p, p < settings.min_posterior)
+    # The posterior pools evidence over the whole drive as if fix errors were independent; they are
+    # not (GNSS error wanders over tens of seconds), so a fix must also tell the routes apart itself:
+    # another route within margin_sigmas of its own 1σ of the chosen one's offset makes it ambiguous.
+    others = np.where(np.arange(R)[None, :] == np.clip(path, 0, R - 1)[:, None], np.inf, off)
+    margin = np.min(others, axis=1) - offset if R > 1 else np.full(k, np.inf)
+    ambiguous = (p < settings.min_posterior) | ((route >= 0) & (margin < settings.margin_sigmas * sigma))
+    return Match(route, chain, offset, p, ambiguous)
 
 
 def _lse(x: np.ndarray) -> float:

@@ -1,14 +1,15 @@
 """Logger orientation: a raw 3-axis IMU in the logger's own frame turned into the vehicle's channels.
 
 A phone or telematics box is mounted at an unknown, fixed angle. Its accelerometer measures the
-specific force f = a − g (so at rest it reads +9.81 m/s² *up*). Over a drive the vehicle's own
-accelerations average out (it starts and ends slow, turns both ways, roads are nearly level), so
-the long mean of f points up: that gives the vertical axis. The forward axis lies in the plane
-normal to it, at the angle where the horizontal specific force best follows the longitudinal
-acceleration of the GNSS track (least squares on low-passed signals); lateral completes a
-right-handed frame. Projected on those axes: ``body_acc`` = f·up − |ḡ| (gravity removed),
-``long_acc`` = f·forward (what brakes and accelerates the car) and, from the gyro,
-``pitch_rate`` = ω·(−lateral), positive when the nose rises (the half-car's convention).
+specific force f = a − g (at rest +9.81 m/s² *up*). The GNSS track tells what the vehicle's
+low-passed specific force must have been in the vehicle's own axes (x forward, y left, z up):
+(a_long, a_lat, |g|), with a_long the track's speed change and a_lat = v × heading rate. The
+rotation that best maps those onto the IMU's low-passed readings at the same instants (Wahba's
+problem, solved by SVD) gives up, forward and lateral together — the gravity direction from the
+data, the heading from the motion — without the bias a plain mean of f takes from turns that all
+go one way. Projected on those axes: ``body_acc`` = f·up − |g| (gravity removed), ``long_acc`` =
+f·forward and, from the gyro, ``pitch_rate`` = ω·(−lateral), positive when the nose rises (the
+half-car's convention).
 """
 
 from __future__ import annotations
@@ -48,54 +49,55 @@ def vertical_axis(acc: np.ndarray) -> tuple[np.ndarray, float]:
     return mean / g, g
 
 
-def estimate_frame(acc: np.ndarray, long_acc_ref: np.ndarray, weights: np.ndarray | None = None,
+def estimate_frame(f_logger: np.ndarray, f_vehicle: np.ndarray, weights: np.ndarray | None = None,
                    min_r2: float = 0.5) -> LoggerFrame:
     """The logger's orientation in the vehicle.
 
     Parameters
     ----------
-    acc : (n, 3) array
-        Specific force in the logger frame, m/s² (gravity included), low-passed or raw.
-    long_acc_ref : (n,) array
-        The vehicle's longitudinal acceleration from the GNSS track at the same instants (m/s²),
-        low-passed like ``acc``; NaN where unknown.
-    weights : (n,) array, optional
-        Non-negative weights of the samples in the heading fit.
+    f_logger : (k, 3) array
+        Low-passed specific force in the logger frame, m/s² (gravity included).
+    f_vehicle : (k, 3) array
+        What it must have been in the vehicle frame at the same instants (from the GNSS track):
+        ``(a_long, a_lat, g)``, m/s².
+    weights : (k,) array, optional
+        Non-negative weights of the pairs.
     min_r2 : float
-        The heading fit must explain at least this share of the reference's variance, or the
-        orientation is refused (a logger loose in the car, or a track without speed changes).
+        The rotation must explain at least this share of the track's horizontal acceleration
+        variance, or the orientation is refused (a logger loose in the car, or a track without
+        speed changes or turns).
     """
-    acc = np.asarray(acc, float)
-    up, g = vertical_axis(acc)
-    # Any two unit vectors normal to up span the horizontal plane.
-    seed = np.eye(3)[int(np.argmin(np.abs(up)))]
-    e1 = np.cross(up, seed)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
-    h = np.column_stack([acc @ e1, acc @ e2])
-    ok = np.isfinite(long_acc_ref)
-    w = np.ones(len(acc)) if weights is None else np.asarray(weights, float)
-    ok &= w > 0
+    f_logger = np.asarray(f_logger, float)
+    f_vehicle = np.asarray(f_vehicle, float)
+    w = np.ones(len(f_logger)) if weights is None else np.asarray(weights, float)
+    ok = np.isfinite(f_vehicle).all(axis=1) & np.isfinite(f_logger).all(axis=1) & (w > 0)
     if ok.sum() < 10:
-        raise OrientationError("too few samples with a GNSS track to find the forward axis")
-    sw = np.sqrt(w[ok])
-    y = long_acc_ref[ok]
-    # long_acc ≈ cos ψ h1 + sin ψ h2 + bias (the bias takes a road grade's share of gravity).
-    X = np.column_stack([h[ok], np.ones(ok.sum())])
-    coef, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
-    c, s = coef[0], coef[1]
-    norm = float(np.hypot(c, s))
-    if norm == 0.0:
-        raise OrientationError("the horizontal acceleration does not follow the track's speed changes")
-    resid = y - X @ coef
-    var = float(np.average((y - np.average(y, weights=w[ok])) ** 2, weights=w[ok]))
-    r2 = 1.0 - float(np.average(resid**2, weights=w[ok])) / var if var > 0 else 0.0
+        raise OrientationError("too few samples with a GNSS track to orient the logger")
+    _, g = vertical_axis(f_logger[ok])
+    A, B, w = f_logger[ok], f_vehicle[ok], w[ok]
+    R = _wahba(A, B, w)
+    # One trimmed refit: pairs the track cannot describe (a turn begun while braking into a stop,
+    # a window across a jolt) are outliers, not noise; 3 robust sigmas of the residual keep the rest.
+    res = np.linalg.norm(A @ R - B, axis=1)
+    inlier = res <= 3.0 * 1.4826 * np.median(res) + 1e-9
+    if inlier.sum() >= 10:
+        A, B, w = A[inlier], B[inlier], w[inlier]
+        R = _wahba(A, B, w)
+    horiz = B[:, :2]
+    fitted = (A @ R)[:, :2]
+    var = float(np.average(np.sum((horiz - np.average(horiz, axis=0, weights=w)) ** 2, axis=1), weights=w))
+    r2 = 1.0 - float(np.average(np.sum((horiz - fitted) ** 2, axis=1), weights=w)) / var if var > 0 else 0.0
     if r2 < min_r2:
-        raise OrientationError(f"the forward axis explains only {r2:.2f} of the track's longitudinal "
-                               f"acceleration (needs {min_r2:g}): logger not fixed in the vehicle?")
-    forward = (c * e1 + s * e2) / norm
-    lateral = np.cross(up, forward)
-    return LoggerFrame(up, forward, lateral, g, r2)
+        raise OrientationError(f"the logger's horizontal acceleration explains only {r2:.2f} of the track's "
+                               f"(needs {min_r2:g}): logger not fixed in the vehicle?")
+    return LoggerFrame(R[:, 2].copy(), R[:, 0].copy(), R[:, 1].copy(), g, r2)
+
+
+def _wahba(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The rotation R (logger ← vehicle) minimising Σ w |A − B Rᵀ|² (Kabsch, by SVD)."""
+    U, _, Vt = np.linalg.svd((B * w[:, None]).T @ A)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    return Vt.T @ D @ U.T
 
 
 def vehicle_channels(frame: LoggerFrame, acc: np.ndarray, gyro: np.ndarray | None) -> VehicleChannels:

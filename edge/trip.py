@@ -55,12 +55,14 @@ class TripSettings:
     max_fix_gap_s: float = 10.0
     min_pass_m: float = 40.0
     heading_window_s: float = 5.0
+    max_turn_rad: float = 0.2
     resample: ResampleSettings = field(default_factory=ResampleSettings)
     match: MatchSettings = field(default_factory=MatchSettings)
     fusion: FusionSettings = field(default_factory=FusionSettings)
 
     def __post_init__(self):
-        for k in ("min_speed_mps", "max_long_acc_mps2", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s"):
+        for k in ("min_speed_mps", "max_long_acc_mps2", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s",
+                  "max_turn_rad"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"TripSettings.{k}: must be a positive finite number, got {v!r}")
@@ -237,50 +239,53 @@ def _pass_log(meta: DriveLogMeta, k: int, route_id: str, t, chainage, speed, cha
 
 
 def _logger_frame(runs, t_fix, lat, lon, settings: TripSettings, name: str) -> LoggerFrame:
-    """The logger's orientation from all runs: gravity from the mean, heading from the GNSS track."""
-    t_all = np.concatenate([r.t for r in runs])
-    acc_all = np.concatenate([np.column_stack([r.signals[c] for c in ACC_COLUMNS]) for r in runs])
-    # The track's longitudinal acceleration at the fixes: a local quadratic in time over a window.
-    a_long, moving = track_long_acc(t_fix, lat, lon, settings.heading_window_s)
-    # The IMU low-passed over the same window, at the fixes.
+    """The logger's orientation: the IMU's and the GNSS track's accelerations at the fixes, each
+    taken by the same operator — the curvature of a local quadratic fit over ``heading_window_s``
+    to positions (the fixes) and to the IMU's double integral, sampled at the fixes (the fit's
+    constant and linear terms absorb the integration constants). Turning fixes are left out: while
+    the vehicle turns, its frame rotates within the window and the two would not compare."""
     w = settings.heading_window_s
-    csum = np.concatenate([np.zeros((1, 3)), np.cumsum(acc_all, axis=0)])
-    lo = np.searchsorted(t_all, t_fix - w / 2)
-    hi = np.searchsorted(t_all, t_fix + w / 2)
-    n = hi - lo
-    ok = moving & (n > 0.8 * w * (len(t_all) / max(t_all[-1] - t_all[0], 1e-9)))
-    mean = (csum[hi] - csum[lo]) / np.maximum(n, 1)[:, None]
+    a_track, yaw_rate, valid = track_acceleration(t_fix, lat, lon, w)
+    f_log = np.full((len(t_fix), 3), np.nan)
+    for run in runs:
+        acc = np.column_stack([run.signals[c] for c in ACC_COLUMNS])
+        h = float(run.t[1] - run.t[0])
+        vel = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (acc[1:] + acc[:-1]) * h, axis=0)])
+        pos = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h, axis=0)])
+        inside = np.flatnonzero((t_fix - w / 2 >= run.t[0]) & (t_fix + w / 2 <= run.t[-1]))
+        for i in inside:
+            sel = np.abs(t_fix - t_fix[i]) <= w / 2
+            if sel.sum() < 6:
+                continue
+            tt = t_fix[sel] - t_fix[i]
+            V = np.column_stack([np.ones(len(tt)), tt, tt**2])
+            X = np.column_stack([np.interp(t_fix[sel], run.t, pos[:, j]) for j in range(3)])
+            coef, *_ = np.linalg.lstsq(V, X - X.mean(axis=0), rcond=None)
+            f_log[i] = 2.0 * coef[2]
+    g = float(np.linalg.norm(np.nanmean(f_log, axis=0)))
+    straight = valid & (np.abs(yaw_rate) * w < settings.max_turn_rad)
+    f_vehicle = np.column_stack([a_track, np.full(len(t_fix), g)])
     try:
-        return estimate_frame_from(acc_all, mean[ok], a_long[ok])
+        return estimate_frame(f_log[straight], f_vehicle[straight])
     except ValueError as e:
         raise TripError(f"{name}: raw IMU: {e}") from None
 
 
-def estimate_frame_from(acc_all: np.ndarray, acc_at_fixes: np.ndarray, a_long: np.ndarray) -> LoggerFrame:
-    """Orientation with gravity from every sample and the heading fitted at the fixes."""
-    frame = estimate_frame(acc_at_fixes, a_long) if len(a_long) >= 10 else None
-    if frame is None:
-        raise ValueError("too few moving GNSS fixes to find the forward axis")
-    up_mean = np.asarray(acc_all, float).mean(axis=0)
-    g = float(np.linalg.norm(up_mean))
-    up = up_mean / g
-    fwd = frame.forward - (frame.forward @ up) * up
-    fwd /= np.linalg.norm(fwd)
-    return LoggerFrame(up, fwd, np.cross(up, fwd), g, frame.heading_fit_r2)
-
-
-def track_long_acc(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s: float,
-                   min_speed_mps: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
-    """Longitudinal acceleration (m/s²) of the GNSS track at each fix from a local quadratic fit of
-    the position over ``window_s``, and whether the fix was moving (fit valid, speed above
-    ``min_speed_mps``)."""
+def track_acceleration(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s: float,
+                       min_speed_mps: float = 3.0, still_mps: float = 0.3
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The GNSS track's acceleration in the vehicle's axes, ``(a_long, a_lat)`` (m/s², lateral to
+    the left) at each fix, from a local quadratic fit of the position over ``window_s``; its yaw
+    rate (rad/s); and whether it is known: moving faster than ``min_speed_mps`` (heading defined)
+    or standing (slower than ``still_mps``: zero)."""
     mid = len(lat) // 2
     local = CRS.from_dict({"proj": "aeqd", "lat_0": float(lat[mid]), "lon_0": float(lon[mid]), "datum": "WGS84",
                            "units": "m"})
     x, y = Transformer.from_crs("EPSG:4326", local, always_xy=True).transform(lon, lat)
     x, y = np.asarray(x), np.asarray(y)
-    out = np.full(len(t_fix), np.nan)
-    moving = np.zeros(len(t_fix), bool)
+    out = np.full((len(t_fix), 2), np.nan)
+    yaw = np.zeros(len(t_fix))
+    valid = np.zeros(len(t_fix), bool)
     lo = np.searchsorted(t_fix, t_fix - window_s / 2)
     hi = np.searchsorted(t_fix, t_fix + window_s / 2)
     for i in range(len(t_fix)):
@@ -292,9 +297,14 @@ def track_long_acc(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s
         cx, *_ = np.linalg.lstsq(V, x[a:b], rcond=None)
         cy, *_ = np.linalg.lstsq(V, y[a:b], rcond=None)
         v = np.array([cx[1], cy[1]])
+        acc = 2.0 * np.array([cx[2], cy[2]])
         sp = float(np.hypot(*v))
-        if sp < min_speed_mps:
-            continue
-        out[i] = 2.0 * (cx[2] * v[0] + cy[2] * v[1]) / sp
-        moving[i] = True
-    return out, moving
+        if sp >= min_speed_mps:
+            u = v / sp
+            out[i] = (acc @ u, u[0] * acc[1] - u[1] * acc[0])
+            yaw[i] = out[i, 1] / sp
+            valid[i] = True
+        elif sp < still_mps:
+            out[i] = 0.0
+            valid[i] = True
+    return out, yaw, valid

@@ -41,6 +41,7 @@ SIM_GAMMA = 0.5  # average acceleration: no numerical damping in the truth
 ORIGIN = (52.0, 4.37)  # lat, lon of the network's local frame
 TAPER_M = 8.0  # each route's surface tapers to zero over its ends, so routes join without a step
 TRUTH_SPACING_M = 0.05
+CORNER_M = 15.0
 
 #: Route id → vertices in the local frame (east, north metres); chainage runs along the list.
 ROUTES_EN = {
@@ -171,14 +172,15 @@ def speed_profile(path_len: float, stops_at: list[float], cruise: float, accel: 
                 break
         else:
             to_stop = stops[nxt] - s
-            v_lim = math.sqrt(max(2.0 * brake * 0.9 * max(to_stop - 0.5, 0.0), 0.0))
+            # The braking curve with margin, so the lagged acceleration still stops short of the line.
+            v_lim = math.sqrt(2.0 * brake * 0.8 * max(to_stop - 1.0, 0.0))
             target = min(cruise, v_lim)
             if not slow_done and brake_at - 40.0 < s < brake_at:
                 target = min(target, 0.5 * cruise)
             if not slow_done and s >= brake_at:
                 slow_done = True
             a_cmd = float(np.clip(2.0 * (target - v), -brake, accel))
-            if to_stop < 0.3 and v < 0.3:
+            if to_stop < 1.5 and v < 0.4:  # creeping the last metre: stand still
                 v = a = a_cmd = 0.0
                 nxt += 1
                 wait = stop_s
@@ -189,10 +191,13 @@ def speed_profile(path_len: float, stops_at: list[float], cruise: float, accel: 
         if v == 0.0 and a < 0:
             a = 0.0
         s += v * dt
+    S.append(s)
+    V.append(0.0)
+    A.append(0.0)
     return np.array(S), np.array(V), np.array(A)
 
 
-def _rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
+def logger_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.ndarray:
     """Logger ← vehicle rotation (vehicle axes: x forward, y left, z up)."""
     r, p, y = np.radians([roll_deg, pitch_deg, yaw_deg])
     Rx = np.array([[1, 0, 0], [0, math.cos(r), -math.sin(r)], [0, math.sin(r), math.cos(r)]])
@@ -211,8 +216,9 @@ def simulate_trip(sc: NetworkScenario, legs: list[tuple[str, int]], geoms: dict[
     lengths = [geoms[r].length_m for r, _ in legs]
     starts = np.concatenate(([0.0], np.cumsum(lengths)))
     cruise = float(rng.uniform(*sc.cruise_mps))
-    # Stops at the junctions after the first leg (lights), a braking mid-way along the first leg.
+    # Stops at every other junction and at a light on the last route; a braking along the first.
     stops = [float(starts[k]) for k in range(1, len(legs)) if k % 2 == 1]
+    stops.append(float(starts[-2] + 0.7 * lengths[-1]))  # a light along the last route
     s, v, a_long = speed_profile(float(starts[-1]), stops, cruise, sc.accel_mps2, sc.brake_mps2, sc.stop_s, dt,
                                  brake_at=float(starts[0] + 0.6 * lengths[0]))
     n = len(s)
@@ -247,10 +253,14 @@ def simulate_trip(sc: NetworkScenario, legs: list[tuple[str, int]], geoms: dict[
     body = measured_channels(system, state)[:, 0]
     # Heading and curvature of the path (for the lateral acceleration and yaw rate).
     x, y = latlon_to_local(lat, lon)
-    heading = np.unwrap(np.arctan2(np.gradient(y), np.gradient(x) + 1e-12))
-    ds = np.maximum(np.gradient(s), 1e-9)
-    kappa = np.where(v > 0.5, np.gradient(heading) / ds, 0.0)
-    kappa = np.convolve(kappa, np.ones(201) / 201, mode="same")  # the polyline's corners, rounded
+    # Curvature along the path, the polyline's corners rounded over CORNER_M of road (a driver's
+    # line), then yaw rate = v·κ: a vehicle standing at a corner does not turn.
+    grid = np.arange(0.0, s[-1] + 0.1, 0.1)
+    gx, gy = np.interp(grid, s, x), np.interp(grid, s, y)
+    heading = np.unwrap(np.arctan2(np.gradient(gy), np.gradient(gx)))
+    width = int(CORNER_M / 0.1) | 1
+    kappa_grid = np.convolve(np.gradient(heading, grid), np.ones(width) / width, mode="same")
+    kappa = np.interp(s, grid, kappa_grid)
     yaw_rate = v * kappa
     a_lat = v * yaw_rate
     # Logger samples: every SUBSTEPS fine steps, jittered, with a gap in the second leg's cruise.
@@ -264,7 +274,7 @@ def simulate_trip(sc: NetworkScenario, legs: list[tuple[str, int]], geoms: dict[
     f_vehicle = np.column_stack([a_long[k], a_lat[k], noisy_body + GRAVITY])
     f_vehicle[:, :2] += rng.normal(0.0, 0.02, (len(k), 2))
     gyro_vehicle = np.column_stack([np.zeros(len(k)), np.zeros(len(k)), yaw_rate[k]]) + rng.normal(0.0, 1e-3, (len(k), 3))
-    R = _rotation(*sc.tilt_deg)
+    R = logger_rotation(*sc.tilt_deg)
     acc_log = f_vehicle @ R.T
     gyro_log = gyro_vehicle @ R.T
     # GNSS: fixes every 1/gnss_rate_hz at the nearest logger sample, wandering error + noise, a dropout.
