@@ -15,6 +15,8 @@ from pathlib import Path
 
 from shared.blas import single_threaded_blas
 
+from .importers.cli import add_import_arguments, run_import
+
 
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", nargs="?", help="scenario name (see --list)")
@@ -166,12 +168,13 @@ def main(argv: list[str] | None = None) -> int:
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
     _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
     _reproduce_args(sub.add_parser("reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))
+    add_import_arguments(sub.add_parser("import", help="convert a logger export into a drive log (with positions)"))
     for name, what in (("edge", "the edge daemon (see driveby edge --help)"),
                        ("cloud", "the cloud aggregator daemon (see driveby cloud --help)"),
                        ("fleet", "live simulated fleet publishers (see driveby fleet --help)")):
         sub.add_parser(name, help=what, add_help=False)
     args = p.parse_args(argv)
-    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": _cmd_reproduce}
+    handlers = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": _cmd_reproduce, "import": run_import}
     try:
         return handlers[args.command](args)
     except KeyboardInterrupt:
