@@ -27,7 +27,7 @@ class FusionSettings:
     same without one; ``q_bias``: bias random-walk density, (m/s²)²/s; ``bias_sd``: prior 1σ of the
     bias, m/s²; ``rate_hz``: the rate the filter runs at (the IMU is averaged down to it)."""
 
-    q_acc: float = 0.05
+    q_acc: float = 0.002
     q_acc_no_imu: float = 2.0
     q_bias: float = 1e-4
     bias_sd: float = 0.3

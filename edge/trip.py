@@ -20,6 +20,7 @@ registry declares as its own route.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -35,6 +36,8 @@ from .fusion import FusionSettings, smooth_track
 from .mapmatch import MatchSettings, Network, build_network, match
 from .orientation import LoggerFrame, estimate_frame, vehicle_channels
 from .resample import ResampleSettings, resample
+
+logger = logging.getLogger(__name__)
 
 #: Reasons a stretch of a drive is not fused as road, as counted in `TripResult.cut_s`.
 REASONS = ("imu_gap", "off_network", "ambiguous", "against_chainage", "gnss_gap", "slow", "long_acc", "settling",
@@ -87,6 +90,35 @@ def site_network(site: Site, settings: MatchSettings = MatchSettings()) -> Netwo
     if not routes:
         raise TripError("the site registry has no route with geometry: a drive with positions cannot be matched")
     return build_network(routes, settings)
+
+
+def split_drives(paths: list, logs: list[DriveLog], site: Site, settings: TripSettings = TripSettings()
+                 ) -> tuple[list, list[DriveLog], dict[str, float]]:
+    """Passes pass through; every drive with positions is cut into passes over the site's routes.
+
+    Returns the source path of each resulting pass (for messages), the passes, and the seconds cut
+    per reason over all drives. Raises `TripError` naming the file of a log that is neither.
+    """
+    out_paths, out_logs = [], []
+    cut = dict.fromkeys(REASONS, 0.0)
+    network = None
+    for path, log in zip(paths, logs):
+        if log.is_pass:
+            out_paths.append(path)
+            out_logs.append(log)
+            continue
+        if not log.has_positions:
+            raise TripError(f"{path}: neither a pass (chainage, route, uniform step, the model's channels) nor a "
+                            "drive with lat/lon")
+        network = network if network is not None else site_network(site, settings.match)
+        res = split_trip(log, network, settings, str(path))
+        for k, v in res.cut_s.items():
+            cut[k] += v
+        logger.info("%s: %d passes; cut %s", path, len(res.passes),
+                    ", ".join(f"{k} {v:.1f} s" for k, v in res.cut_s.items() if v > 0))
+        out_paths += [path] * len(res.passes)
+        out_logs += res.passes
+    return out_paths, out_logs, cut
 
 
 def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSettings(),

@@ -33,10 +33,12 @@ from shared.geo import RouteGeometry
 from shared.profiles import RoadProfile, iso8608_profile, tyre_filter
 from shared.registry import Bridge, Route, Site, VehicleClass, dump_site
 from shared.sensors import add_noise
+from shared.vbi import simulate_vbi
 from shared.vehicles import vehicle_from_params
 from shared.vehicles.base import GRAVITY
 
 SUBSTEPS = 4  # the simulator integrates 4× finer than the logger's nominal rate
+RUN_IN_M = 30.0  # a clean pass is already driving when its logger's record starts
 SIM_GAMMA = 0.5  # average acceleration: no numerical damping in the truth
 ORIGIN = (52.0, 4.37)  # lat, lon of the network's local frame
 TAPER_M = 8.0  # each route's surface tapers to zero over its ends, so routes join without a step
@@ -89,6 +91,7 @@ class NetworkScenario:
     tilt_deg: tuple[float, float, float] = (12.0, -20.0, 115.0)  # logger roll, pitch, yaw in the vehicle
     fleet_mean: tuple[tuple[str, float], ...] = ()  # the vehicle class: (name, value) pairs
     fleet_std: tuple[tuple[str, float], ...] = ()
+    clean: bool = False  # the reference: the same roads as clean single-route passes, no drives
 
     @property
     def passes(self) -> int:
@@ -101,7 +104,10 @@ def network_scenarios(fleet_table: dict) -> dict[str, NetworkScenario]:
     s = NetworkScenario("network", "4 quarter-car trips over a 4-route network with coordinates (bridge on R4): "
                         "stops, braking, turns, 5 Hz GNSS with metres of error and a dropout, a tilted 200 Hz "
                         "phone IMU with jitter and a gap", **cls)
-    return {s.name: s}
+    ref = NetworkScenario("network-clean", "the network's roads and vehicles as clean single-route passes (each "
+                          "vehicle once along every route at constant speed, exact chainage): the reference",
+                          clean=True, **cls)
+    return {s.name: s, ref.name: ref}
 
 
 def local_to_latlon(east, north) -> tuple[np.ndarray, np.ndarray]:
@@ -325,6 +331,16 @@ def generate_network(sc: NetworkScenario, out_dir: Path, seed: int = 0, passes: 
     mean, std = dict(sc.fleet_mean), dict(sc.fleet_std)
     fleet = [{k_: float(mean[k_] + std[k_] * np.clip(rng.standard_normal(), -3, 3)) for k_ in mean}
              for _ in range(sc.n_vehicles)]
+    if sc.clean:
+        records = [simulate_clean_pass(sc, rid, geoms[rid], surfaces[rid], fleet[v], f"veh-{v + 1:04d}",
+                                       int(rng.integers(2**31)), dict(fleet[v]) if nominal == "true" else dict(mean),
+                                       out_dir / "logs")
+                   for v in range(sc.n_vehicles) for rid in sorted(geoms)]
+        write_network_site(out_dir / "site.toml", geoms, mean, std, sc.vehicle_model)
+        doc = network_truth(sc, seed, geoms, surfaces, fleet, [])
+        doc["passes"] = records
+        (out_dir / "truth.json").write_text(json.dumps(doc))
+        return doc
     trips = []
     for i in range(n_trips):
         vid = f"veh-{i % sc.n_vehicles + 1:04d}"
@@ -338,6 +354,43 @@ def generate_network(sc: NetworkScenario, out_dir: Path, seed: int = 0, passes: 
     doc = network_truth(sc, seed, geoms, surfaces, fleet, trips)
     (out_dir / "truth.json").write_text(json.dumps(doc))
     return doc
+
+
+def simulate_clean_pass(sc: NetworkScenario, rid: str, geom: RouteGeometry, surface: RoadProfile, params: dict,
+                        vehicle_id: str, seed: int, nominal: dict | None, logs_dir: Path) -> dict:
+    """One clean pass of ``rid``: in motion from before chainage 0 at a constant speed, the logger's
+    own sample grid, exact chainage and speed (the surface is flat beyond the route's tapered ends)."""
+    rng = np.random.default_rng(seed)
+    fs = sc.sample_rate_hz
+    speed = float(rng.uniform(*sc.cruise_mps))
+    L = geom.length_m
+
+    def elevation(x):
+        return surface.at(np.clip(x, 0.0, L))
+
+    def slope(x):
+        h = 1e-3
+        return (elevation(x + h) - elevation(x - h)) / (2 * h)
+
+    system = vehicle_from_params(sc.vehicle_model, params).system()
+    x0 = -RUN_IN_M
+    resp = simulate_vbi(system, elevation, slope, x0, speed, (L - x0) / speed, 1.0 / (fs * SUBSTEPS), gamma=SIM_GAMMA)
+    x = resp.x_cg[::SUBSTEPS]
+    keep = (x >= 0.0) & (x <= L)
+    body = add_noise(resp.channels[::SUBSTEPS, 0][keep], sc.noise_pct, rng).astype(np.float32)
+    n = int(keep.sum())
+    pass_id = f"clean_{rid}_{vehicle_id}"
+    meta = DriveLogMeta("driveby-drive-log", 1, vehicle_id, rid, sc.vehicle_model, fs, "2026-11-20T10:00:00Z", None,
+                        nominal, pass_id)
+    write_drive_log(logs_dir / f"{pass_id}.parquet",
+                    DriveLog(meta, np.arange(n) / fs, x[keep], np.full(n, speed), {"body_acc": body}, True))
+    return {"pass_id": pass_id, "vehicle_id": vehicle_id, "route": rid, "speed_mps": speed}
+
+
+def route_truths(truth: dict) -> dict[str, dict]:
+    """Each route of a network truth in the single-route form `simfleet.evaluate` scores against."""
+    return {rid: {"route": {"id": rid, "length_m": r["length_m"]}, "profile": r["profile"]}
+            for rid, r in truth["routes"].items()}
 
 
 def write_network_site(path: Path, geoms: dict[str, RouteGeometry], mean: dict, std: dict, model: str) -> None:

@@ -80,7 +80,10 @@ def test_track_follows_a_braking_vehicle_through_a_dropout():
                       np.full(fix.sum(), sd))
     assert np.median(np.abs(tr.s - s)) < 0.5 and np.max(np.abs(tr.s - s)) < 2.0
     assert np.max(np.abs(tr.v - v)[100:-100]) < 0.3
-    assert np.max(np.abs(tr.a - a)) < 0.2  # the 0.05 m/s² accelerometer bias is learnt
+    # The 0.05 m/s² accelerometer bias is learnt: what is left is the sensor's white noise (0.05 rms),
+    # which a 1 s mean brings to 0.005.
+    err_1s = np.convolve(tr.a - a, np.ones(100) / 100, mode="valid")
+    assert abs(np.mean(tr.a - a)) < 0.01 and np.max(np.abs(err_1s)) < 0.04
     inside = (tr.s_sd[(t > 33) & (t < 35)]).min()
     assert inside > tr.s_sd[(t > 10) & (t < 12)].max()  # the dropout shows in the posterior spread
 
