@@ -10,6 +10,7 @@ import pyarrow.parquet as pq
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
 from simfleet.network import speed_profile
+from simfleet.run import run
 
 
 def test_sim_network_writes_drives_a_geometry_registry_and_truth(tmp_path):
@@ -50,3 +51,19 @@ def test_speed_profile_starts_and_ends_at_rest_and_stops_where_told():
     assert a.min() >= -2.5 - 1e-9 and a.max() <= 1.5 + 1e-9 and v.max() <= 14.0 * 1.02  # the driver's lag overshoots a little
     mid = (s > 560) & (s < 600)
     assert v[mid].min() < 0.6 * 14.0  # the mid-route braking
+
+
+def test_drives_with_positions_only_run_end_to_end_over_zenoh(tmp_path):
+    """``driveby run`` on logs without chainage or route: cut into passes, processed by the real edge
+    and cloud daemons over Zenoh, exported with coordinates."""
+    out = tmp_path / "net"
+    r = subprocess.run([sys.executable, "-m", "simfleet", "sim", "network", "--out", str(out), "--passes", "1"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    res = run(out / "logs", out / "site.toml", tmp_path / "export", calibration="nominal", progress=False)
+    assert res.passes >= 4 and res.acked == res.passes  # one drive became several single-route passes
+    rough = pq.read_table(tmp_path / "export" / "roughness.parquet").to_pydict()
+    assert {"R1", "R2", "R3"} <= set(rough["route_id"])  # trip 1 drives R1, R2 and R3
+    assert np.isfinite(rough["start_lat"]).all() and np.isfinite(rough["end_lon"]).all()
+    features = json.loads((tmp_path / "export" / "roughness.geojson").read_text())["features"]
+    assert len(features) == len(rough["route_id"])
