@@ -1,4 +1,11 @@
-"""Drive logs, the field-data input contract (interfaces.md §1): one Parquet file per pass, validated."""
+"""Drive logs, the field-data input contract (interfaces.md §1, §5): one Parquet file per pass or per
+whole drive, validated.
+
+A *pass* (§1) is one route at a uniform sample step with chainage. A *drive* (§5) carries GNSS
+positions (``lat``/``lon``, NaN between fixes) and may lack ``chainage``/``route_id``, run on a
+logger's non-uniform timestamps, and carry the raw IMU in the logger's frame instead of the model's
+channels; the edge cuts it into passes (`edge.trip`).
+"""
 
 from __future__ import annotations
 
@@ -37,6 +44,14 @@ MODEL_PARAMS: dict[str, tuple[str, ...]] = {
     "carriage": ("mv", "Iv", "mb", "Ib", "mw", "kp", "cp", "ks", "cs", "Lb", "Lv", "v"),
 }
 
+#: Optional GNSS columns of a drive (§5): WGS84 degrees and the receiver's 1σ, NaN between fixes.
+POSITION_COLUMNS = ("lat", "lon", "gnss_accuracy_m")
+#: Optional raw IMU in the logger's frame (§5): m/s² with gravity, rad/s.
+ACC_COLUMNS = ("acc_x", "acc_y", "acc_z")
+GYRO_COLUMNS = ("gyro_x", "gyro_y", "gyro_z")
+IMU_COLUMNS = ACC_COLUMNS + GYRO_COLUMNS
+_RESERVED = ("t", "chainage", "speed", *POSITION_COLUMNS, *IMU_COLUMNS)
+
 # Relative and absolute tolerance on each step of `t` against 1/sample_rate_hz; a few ulps of the
 # largest |t| are added so long logs stored as float64 are not rejected for rounding alone.
 _STEP_RTOL = 1e-6
@@ -72,14 +87,16 @@ class DriveLogError(ValueError):
 class DriveLogMeta:
     """The ``driveby`` key-value metadata of a drive log (interfaces.md §1).
 
-    ``sample_rate_hz`` in Hz, ``lane_offset_m`` in m (None when unknown), ``nominal_params`` maps
-    every parameter name of ``vehicle_model`` (``MODEL_PARAMS``) to a positive SI value, or is None.
+    ``sample_rate_hz`` in Hz (nominal for a drive with logger timestamps), ``lane_offset_m`` in m
+    (None when unknown), ``nominal_params`` maps every parameter name of ``vehicle_model``
+    (``MODEL_PARAMS``) to a positive SI value, or is None. ``route_id`` is None only for a drive
+    with positions (§5), which the edge matches to the network.
     """
 
     format: str
     version: int
     vehicle_id: str
-    route_id: str
+    route_id: str | None
     vehicle_model: str
     sample_rate_hz: float
     start_time_utc: str
@@ -95,22 +112,46 @@ class DriveLogMeta:
 
 @dataclass(frozen=True, eq=False)
 class DriveLog:
-    """One vehicle pass: time (s), chainage (m), speed (m/s) and the model's channels (float32).
+    """One vehicle pass or drive: time (s), chainage (m), speed (m/s) and the model's channels (float32).
 
     ``speed_measured`` is False when the file had no ``speed`` column and ``speed`` was derived
     from ``chainage`` by a centred gradient. ``channels`` holds the channels ``vehicle_model`` needs
     (``MODEL_CHANNELS``); other columns of the file are ignored.
+
+    A drive (§5) may also carry ``lat``/``lon`` (float64 degrees) and ``gnss_accuracy_m`` (float32,
+    m, 1σ), NaN between fixes, and ``imu`` (``IMU_COLUMNS`` → float32, logger frame; the three
+    accelerations, optionally with the three rates). With positions, ``chainage`` and ``speed`` may
+    be None, ``t`` may be non-uniform, and with ``imu`` the model's channels may be absent.
     """
 
     meta: DriveLogMeta
     t: np.ndarray
-    chainage: np.ndarray
-    speed: np.ndarray
+    chainage: np.ndarray | None
+    speed: np.ndarray | None
     channels: dict[str, np.ndarray]
     speed_measured: bool = True
+    lat: np.ndarray | None = None
+    lon: np.ndarray | None = None
+    gnss_accuracy_m: np.ndarray | None = None
+    imu: dict[str, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self.t)
+
+    @property
+    def has_positions(self) -> bool:
+        """True when the log carries GNSS positions (§5)."""
+        return self.lat is not None
+
+    @property
+    def is_pass(self) -> bool:
+        """True when the edge can process the log as it is: one route, chainage, a uniform step and
+        the model's channels. Otherwise it is a drive for the trip splitter (`edge.trip`)."""
+        if self.chainage is None or self.meta.route_id is None:
+            return False
+        if any(ch not in self.channels for ch in MODEL_CHANNELS[self.meta.vehicle_model]):
+            return False
+        return _time_grid_problem(np.asarray(self.t, np.float64), self.meta.sample_rate_hz) is None
 
 
 # --- public functions -------------------------------------------------------------------------
@@ -158,35 +199,57 @@ def drive_log_from_table(
     """
     if default_pass_id is None:
         default_pass_id = Path(name).stem
-    meta = _check_meta(_meta_from_schema(table.schema, name, default_pass_id), name)
+    names = table.schema.names
+    positions = "lat" in names or "lon" in names
+    meta = _check_meta(_meta_from_schema(table.schema, name, default_pass_id, positions), name, positions)
     if table.num_rows < 2:
         raise DriveLogError(name, "column 't'", f"needs at least 2 rows, has {table.num_rows}")
 
     t = _column(table, "t", name, _FLOAT64)
-    chainage = _column(table, "chainage", name, _FLOAT64)
-    speed_measured = "speed" in table.schema.names
+    lat = lon = accuracy = imu = None
+    if positions:
+        lat = _column(table, "lat", name, _FLOAT64)
+        lon = _column(table, "lon", name, _FLOAT64)
+        if "gnss_accuracy_m" in names:
+            accuracy = _column(table, "gnss_accuracy_m", name, _FLOAT32_OR_64).astype(np.float32, copy=False)
+    if any(c in names for c in IMU_COLUMNS):
+        present = ACC_COLUMNS + (GYRO_COLUMNS if any(c in names for c in GYRO_COLUMNS) else ())
+        imu = {c: _column(table, c, name, _FLOAT32_OR_64).astype(np.float32, copy=False) for c in present}
+    chainage = None
+    if "chainage" in names or not positions:
+        chainage = _column(table, "chainage", name, _FLOAT64)
+    speed_measured = "speed" in names
     if speed_measured:
         speed = _column(table, "speed", name, _FLOAT64)
-    else:
+    elif chainage is not None:
         # A bad chainage must be blamed on chainage, not on the speed derived from it.
         _check_finite(chainage, "chainage", name)
-        speed = np.gradient(chainage, meta.dt)
+        if positions:  # a logger's timestamps: the gradient over t itself
+            _check_finite(t, "t", name)
+            _check_increasing(t, name)
+            speed = np.gradient(chainage, t)
+        else:
+            speed = np.gradient(chainage, meta.dt)
+    else:
+        speed = None
     channels = {}
     for ch in MODEL_CHANNELS[meta.vehicle_model]:
-        if ch not in table.schema.names:
+        if ch not in names:
+            if imu is not None:
+                continue  # derived from the raw IMU at the edge
             raise DriveLogError(
                 name, f"column {ch!r}", f"missing (required by vehicle_model {meta.vehicle_model!r})"
             )
         channels[ch] = _column(table, ch, name, _FLOAT32_OR_64).astype(np.float32, copy=False)
 
-    log = DriveLog(meta, t, chainage, speed, channels, speed_measured)
+    log = DriveLog(meta, t, chainage, speed, channels, speed_measured, lat, lon, accuracy, imu)
     _check_arrays(log, name)
     return log
 
 
 def validate_drive_log(log: DriveLog, name: str = "<drive log>") -> None:
     """Check an in-memory `DriveLog` against the contract; raise `DriveLogError` naming ``name``."""
-    _check_meta(log.meta, name)
+    _check_meta(log.meta, name, log.lat is not None)
     _check_arrays(log, name)
 
 
@@ -199,23 +262,36 @@ def drive_log_to_table(log: DriveLog, name: str = "<drive log>") -> pa.Table:
     """
     import pyarrow as pa  # pyarrow only where a table is built (see the module top)
 
-    meta = _check_meta(log.meta, name)
+    meta = _check_meta(log.meta, name, log.lat is not None)
     _check_arrays(log, name)
-    columns = {"t": np.asarray(log.t, np.float64), "chainage": np.asarray(log.chainage, np.float64)}
-    if log.speed_measured:
+    columns = {"t": np.asarray(log.t, np.float64)}
+    if log.chainage is not None:
+        columns["chainage"] = np.asarray(log.chainage, np.float64)
+    if log.speed_measured and log.speed is not None:
         columns["speed"] = np.asarray(log.speed, np.float64)
     required = MODEL_CHANNELS[meta.vehicle_model]
-    for ch in (*required, *sorted(set(log.channels) - set(required))):
+    for ch in (*[c for c in required if c in log.channels], *sorted(set(log.channels) - set(required))):
         columns[ch] = np.asarray(log.channels[ch], np.float32)
+    if log.lat is not None:
+        columns["lat"] = np.asarray(log.lat, np.float64)
+        columns["lon"] = np.asarray(log.lon, np.float64)
+        if log.gnss_accuracy_m is not None:
+            columns["gnss_accuracy_m"] = np.asarray(log.gnss_accuracy_m, np.float32)
+    for c in IMU_COLUMNS:
+        if log.imu is not None and c in log.imu:
+            columns[c] = np.asarray(log.imu[c], np.float32)
     doc: dict[str, Any] = {
         "format": meta.format,
         "version": meta.version,
         "vehicle_id": meta.vehicle_id,
-        "route_id": meta.route_id,
+    }
+    if meta.route_id is not None:
+        doc["route_id"] = meta.route_id
+    doc.update({
         "vehicle_model": meta.vehicle_model,
         "sample_rate_hz": meta.sample_rate_hz,
         "start_time_utc": meta.start_time_utc,
-    }
+    })
     if meta.lane_offset_m is not None:
         doc["lane_offset_m"] = meta.lane_offset_m
     if meta.nominal_params is not None:
@@ -270,8 +346,10 @@ def _key(name: str) -> str:
     return f"key {METADATA_KEY + '.' + name if name else METADATA_KEY!r}"
 
 
-def _meta_from_schema(schema: pa.Schema, file: str, default_pass_id: str) -> DriveLogMeta:
-    """Parse the JSON under ``driveby`` into an unchecked `DriveLogMeta` (values as found)."""
+def _meta_from_schema(schema: pa.Schema, file: str, default_pass_id: str, positions: bool = False) -> DriveLogMeta:
+    """Parse the JSON under ``driveby`` into an unchecked `DriveLogMeta` (values as found).
+
+    ``positions``: the table has GNSS positions, so ``route_id`` may be absent (§5)."""
     raw = (schema.metadata or {}).get(METADATA_KEY.encode())
     if raw is None:
         raise DriveLogError(file, _key(""), "metadata missing")
@@ -284,14 +362,14 @@ def _meta_from_schema(schema: pa.Schema, file: str, default_pass_id: str) -> Dri
     if not isinstance(doc, dict):
         raise DriveLogError(file, _key(""), f"metadata must be a JSON object, not {_jtype(doc)}")
     for k in _REQUIRED_KEYS:
-        if k not in doc:
+        if k not in doc and not (k == "route_id" and positions):
             raise DriveLogError(file, _key(k), "missing")
     pass_id = doc.get("pass_id")
     return DriveLogMeta(
         format=doc["format"],
         version=doc["version"],
         vehicle_id=doc["vehicle_id"],
-        route_id=doc["route_id"],
+        route_id=doc.get("route_id"),
         vehicle_model=doc["vehicle_model"],
         sample_rate_hz=doc["sample_rate_hz"],
         start_time_utc=doc["start_time_utc"],
@@ -301,8 +379,10 @@ def _meta_from_schema(schema: pa.Schema, file: str, default_pass_id: str) -> Dri
     )
 
 
-def _check_meta(meta: DriveLogMeta, file: str) -> DriveLogMeta:
-    """Validate ``meta``; return it with numbers normalised to ``float``/``int``."""
+def _check_meta(meta: DriveLogMeta, file: str, positions: bool = False) -> DriveLogMeta:
+    """Validate ``meta``; return it with numbers normalised to ``float``/``int``.
+
+    ``positions``: the log has GNSS positions, so ``route_id`` may be None (§5)."""
     if not isinstance(meta, DriveLogMeta):
         raise DriveLogError(file, _key(""), f"expected a DriveLogMeta, got {type(meta).__name__}")
     if meta.format != FORMAT:
@@ -312,7 +392,8 @@ def _check_meta(meta: DriveLogMeta, file: str) -> DriveLogMeta:
             file, _key("version"), f"unsupported version {meta.version!r} (supported: {SUPPORTED_VERSIONS})"
         )
     for k in ("vehicle_id", "route_id", "pass_id"):
-        _check_id(getattr(meta, k), k, file)
+        if not (k == "route_id" and positions and meta.route_id is None):
+            _check_id(getattr(meta, k), k, file)
     if not isinstance(meta.vehicle_model, str) or meta.vehicle_model not in MODEL_CHANNELS:
         raise DriveLogError(
             file,
@@ -428,39 +509,105 @@ def _check_arrays(log: DriveLog, file: str) -> None:
     n = len(log.t)
     if n < 2:
         raise DriveLogError(file, "column 't'", f"needs at least 2 rows, has {n}")
-    _check_time_grid(np.asarray(log.t, np.float64), log.meta.sample_rate_hz, file)
-    _check_array(log.chainage, "chainage", n, file)
-    _check_array(log.speed, "speed", n, file)
+    t = np.asarray(log.t, np.float64)
+    positions = log.lat is not None or log.lon is not None
+    if positions:
+        _check_positions(log, n, file)
+        _check_increasing(t, file)  # a logger's timestamps: the edge resamples them
+    else:
+        _check_time_grid(t, log.meta.sample_rate_hz, file)
+    if log.chainage is not None or not positions:
+        _check_array(log.chainage, "chainage", n, file)
+    if log.speed is not None or log.chainage is not None:
+        _check_array(log.speed, "speed", n, file)
     if not isinstance(log.speed_measured, bool):
         raise DriveLogError(file, "column 'speed'", "speed_measured must be a bool")
+    if log.imu is not None:
+        if not isinstance(log.imu, dict):
+            raise DriveLogError(file, "imu", f"must be a dict, got {type(log.imu).__name__}")
+        for c in log.imu:
+            if c not in IMU_COLUMNS:
+                raise DriveLogError(file, f"column {c!r}", f"not a raw IMU column ({', '.join(IMU_COLUMNS)})")
+        for group in (ACC_COLUMNS, GYRO_COLUMNS):
+            given = [c for c in group if c in log.imu]
+            if given and len(given) < 3 or group is ACC_COLUMNS and not given:
+                missing = next(c for c in group if c not in log.imu)
+                raise DriveLogError(file, f"column {missing!r}", f"missing (the raw IMU needs all of {', '.join(group)})")
+        for c, a in log.imu.items():
+            _check_array(a, c, n, file)
     if not isinstance(log.channels, dict):
         raise DriveLogError(file, "channels", f"must be a dict, got {type(log.channels).__name__}")
     model = log.meta.vehicle_model
     for ch in MODEL_CHANNELS[model]:
-        if ch not in log.channels:
+        if ch not in log.channels and log.imu is None:
             raise DriveLogError(file, f"column {ch!r}", f"missing (required by vehicle_model {model!r})")
     for ch, a in log.channels.items():
-        if not isinstance(ch, str) or ch in ("t", "chainage", "speed"):
+        if not isinstance(ch, str) or ch in _RESERVED:
             raise DriveLogError(file, f"column {ch!r}", "not a valid channel name")
         _check_array(a, ch, n, file)
 
 
-def _check_time_grid(t: np.ndarray, fs: float, file: str) -> None:
-    step = np.diff(t)
-    back = step <= 0
+def _check_positions(log: DriveLog, n: int, file: str) -> None:
+    """``lat``/``lon`` (and ``gnss_accuracy_m``): NaN together between fixes, in range at fixes."""
+    for c in ("lat", "lon"):
+        a = getattr(log, c)
+        where = f"column {c!r}"
+        if a is None:
+            raise DriveLogError(file, where, "missing (lat and lon go together)")
+        if not isinstance(a, np.ndarray) or a.dtype.kind != "f" or a.ndim != 1:
+            raise DriveLogError(file, where, "must be a 1-D float numpy array")
+        if len(a) != n:
+            raise DriveLogError(file, where, f"has {len(a)} rows, 't' has {n}")
+        if np.isinf(a).any():
+            raise DriveLogError(file, where, f"infinite value at row {int(np.argmax(np.isinf(a)))}")
+    fix = ~np.isnan(log.lat)
+    differ = fix != ~np.isnan(log.lon)
+    if differ.any():
+        raise DriveLogError(file, "column 'lon'", f"NaN in one of lat/lon but not the other at row {int(np.argmax(differ))}")
+    if fix.sum() < 2:
+        raise DriveLogError(file, "column 'lat'", f"needs at least 2 GNSS fixes, has {int(fix.sum())}")
+    for c, lim in (("lat", 90.0), ("lon", 180.0)):
+        bad = fix & (np.abs(np.nan_to_num(getattr(log, c))) > lim)
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise DriveLogError(file, f"column {c!r}", f"{getattr(log, c)[row]:g} outside [-{lim:g}, {lim:g}] at row {row}")
+    acc = log.gnss_accuracy_m
+    if acc is not None:
+        where = "column 'gnss_accuracy_m'"
+        if not isinstance(acc, np.ndarray) or acc.dtype.kind != "f" or acc.ndim != 1 or len(acc) != n:
+            raise DriveLogError(file, where, f"must be a 1-D float array of {n} rows")
+        bad = fix & ~(np.isfinite(acc) & (acc > 0))
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise DriveLogError(file, where, f"must be positive and finite at a fix, got {acc[row]} at row {row}")
+
+
+def _check_increasing(t: np.ndarray, file: str) -> None:
+    back = np.diff(t) <= 0
     if back.any():
         row = int(np.argmax(back)) + 1
         raise DriveLogError(file, "column 't'", f"not strictly increasing at row {row}")
+
+
+def _time_grid_problem(t: np.ndarray, fs: float) -> str | None:
+    """Why ``t`` is not the uniform grid of step ``1/fs`` (None if it is)."""
+    step = np.diff(t)
+    back = step <= 0
+    if back.any():
+        return f"not strictly increasing at row {int(np.argmax(back)) + 1}"
     dt = 1.0 / fs
     tol = _STEP_RTOL * dt + _STEP_ATOL + 4.0 * float(np.spacing(np.max(np.abs(t))))
     off = np.abs(step - dt) > tol
     if off.any():
         row = int(np.argmax(off)) + 1
-        raise DriveLogError(
-            file,
-            "column 't'",
-            f"irregular step {step[row - 1]:.9g} s before row {row}, expected 1/sample_rate_hz = {dt:.9g} s",
-        )
+        return f"irregular step {step[row - 1]:.9g} s before row {row}, expected 1/sample_rate_hz = {dt:.9g} s"
+    return None
+
+
+def _check_time_grid(t: np.ndarray, fs: float, file: str) -> None:
+    problem = _time_grid_problem(t, fs)
+    if problem is not None:
+        raise DriveLogError(file, "column 't'", problem)
 
 
 # --- small helpers ----------------------------------------------------------------------------

@@ -22,6 +22,8 @@ from pathlib import Path
 
 from shared.blas import single_threaded_blas
 
+from .importers.cli import add_import_arguments, run_import
+
 
 def add_sim_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", nargs="?", help="scenario name (see --list)")
@@ -246,6 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
     _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
     _reproduce_args(sub.add_parser("reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))
+    add_import_arguments(sub.add_parser("import", help="convert a logger export into a drive log (with positions)"))
     for name, what in (("edge", "the edge daemon (see driveby edge --help)"),
                        ("cloud", "the cloud aggregator daemon (see driveby cloud --help)"),
                        ("fleet", "live simulated fleet publishers (see driveby fleet --help)"),
@@ -265,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 HANDLERS = {"sim": run_sim, "run": _cmd_run, "demo": _cmd_demo, "reproduce": _cmd_reproduce, "status": _cmd_status,
-            "export": _cmd_export, "replay": _cmd_replay, "view": _cmd_view}
+            "export": _cmd_export, "replay": _cmd_replay, "view": _cmd_view, "import": run_import}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import zenoh
 
+from edge.trip import TripError, split_drives
 from shared import keys
 from shared.drivelog import DriveLog, DriveLogError, list_drive_logs, read_drive_log
 from shared.progress import Progress
@@ -74,7 +75,8 @@ def load_inputs(logs_dir: Path, site_path: Path) -> tuple[Site, list[DriveLog]]:
     try:
         paths = list_drive_logs(logs_dir)
         logs = [read_drive_log(p) for p in paths]
-    except DriveLogError as e:
+        paths, logs, _ = split_drives(paths, logs, site)  # whole drives with positions → passes (§5)
+    except (DriveLogError, TripError) as e:
         raise RunError(str(e)) from None
     if not logs:
         raise RunError(f"{logs_dir}: no drive logs (*.parquet) found")

@@ -146,3 +146,8 @@ def fleet_class(scenario: Scenario) -> tuple[dict[str, float], dict[str, float]]
 from .rail import rail_scenarios  # noqa: E402
 
 SCENARIOS.update(rail_scenarios())
+
+# Network worlds (whole drives over routes with coordinates): simfleet.network.
+from .network import network_scenarios  # noqa: E402
+
+SCENARIOS.update(network_scenarios(TABLE_4_1))

@@ -19,6 +19,7 @@ from shared.sensors import add_noise
 from shared.vbi import simulate_vbi
 from shared.vehicles import vehicle_from_params
 
+from .network import generate_network
 from .rail import generate_rail
 from .scenarios import Scenario, draw_fleet, fleet_class
 
@@ -174,6 +175,8 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
         old.unlink()
     if getattr(scenario, "kind", "road") == "rail":  # a carriage's batch of runs: simfleet.rail
         return generate_rail(scenario, out_dir, seed, passes, noise_pct, nominal, workers, progress)
+    if getattr(scenario, "kind", "road") == "network":  # whole drives over a network: simfleet.network
+        return generate_network(scenario, out_dir, seed, passes, noise_pct, nominal)
     rng = np.random.default_rng(seed)
     n_veh = vehicles if vehicles is not None else scenario.n_vehicles
     n_pass = passes if passes is not None else (scenario.n_passes or n_veh)

@@ -535,3 +535,101 @@ def test_validate_in_memory_log():
 def test_table_round_trip_without_files():
     log = make_log("bogie_half_car", speed_measured=False)
     assert_logs_equal(log, drive_log_from_table(drive_log_to_table(log), "mem", default_pass_id="x"))
+
+
+# --- whole drives (interfaces.md §5) ----------------------------------------------------------
+
+
+def make_drive(n=50, seed=0, chainage=False, route=False, imu=True, gyro=True, channels=False):
+    """A drive: logger timestamps with jitter, GNSS every 10th row, raw IMU, no chainage/route."""
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(np.full(n, 0.01) + rng.uniform(-0.002, 0.002, n))
+    lat = np.full(n, np.nan)
+    lon = np.full(n, np.nan)
+    acc = np.full(n, np.nan, np.float32)
+    lat[::10] = 52.0 + 1e-5 * np.arange(0, n, 10)
+    lon[::10] = 4.0
+    acc[::10] = 3.0
+    meta = make_meta()
+    if not route:
+        meta = DriveLogMeta(**{**meta.__dict__, "route_id": None})
+    raw = None
+    if imu:
+        cols = ("acc_x", "acc_y", "acc_z") + (("gyro_x", "gyro_y", "gyro_z") if gyro else ())
+        raw = {c: rng.normal(0.0, 1.0, n).astype(np.float32) for c in cols}
+    ch = {"body_acc": rng.normal(0.0, 1.0, n).astype(np.float32)} if channels else {}
+    x = 12.0 * t if chainage else None
+    return DriveLog(meta, t, x, None if x is None else np.full(n, 12.0), ch, True, lat, lon, acc, raw)
+
+
+@pytest.mark.parametrize("chainage,route,gyro,channels", [(False, False, True, False), (True, True, False, True)])
+def test_drive_round_trip(tmp_path, chainage, route, gyro, channels):
+    log = make_drive(chainage=chainage, route=route, gyro=gyro, channels=channels)
+    path = tmp_path / "drive.parquet"
+    write_drive_log(path, log)
+    back = read_drive_log(path)
+    assert back.meta == log.meta
+    assert back.has_positions and not back.is_pass  # irregular timestamps: a drive for the trip splitter
+    np.testing.assert_array_equal(back.t, log.t)
+    np.testing.assert_array_equal(back.lat, log.lat)  # NaN between fixes survives
+    np.testing.assert_array_equal(back.lon, log.lon)
+    np.testing.assert_array_equal(back.gnss_accuracy_m, log.gnss_accuracy_m)
+    assert back.imu.keys() == log.imu.keys()
+    for c in log.imu:
+        np.testing.assert_array_equal(back.imu[c], log.imu[c])
+    assert (back.chainage is None) == (not chainage)
+    assert back.channels.keys() == log.channels.keys()
+    names = pq.read_schema(path).names
+    assert ("chainage" in names) == chainage and "lat" in names and "acc_z" in names
+    assert "route_id" in json.loads(pq.read_schema(path).metadata[b"driveby"]) or not route
+
+
+def test_a_pass_is_a_pass_and_a_drive_is_not():
+    assert make_log().is_pass and not make_log().has_positions
+    assert not make_drive().is_pass
+
+
+def test_a_pass_with_positions_reads_as_a_pass(tmp_path):
+    log = make_log(n=30)
+    lat = np.full(30, np.nan)
+    lat[::5] = 52.0
+    with_pos = DriveLog(log.meta, log.t, log.chainage, log.speed, log.channels, True, lat, lat * 0 + 4.0)
+    write_drive_log(tmp_path / "p.parquet", with_pos)
+    back = read_drive_log(tmp_path / "p.parquet")
+    assert back.is_pass and back.has_positions
+
+
+def test_drive_without_positions_still_needs_chainage_and_route(tmp_path):
+    table = drive_log_to_table(make_drive(chainage=True, route=True, channels=True))
+    plain = table.drop_columns(["lat", "lon", "gnss_accuracy_m"])
+    doc = meta_doc(plain)
+    pq.write_table(with_meta(plain.drop_columns(["chainage"]), doc), tmp_path / "a.parquet")
+    assert_rejected(tmp_path / "a.parquet", "column 'chainage'", "missing")  # optional only with positions
+    del doc["route_id"]
+    pq.write_table(with_meta(plain, doc), tmp_path / "b.parquet")
+    assert_rejected(tmp_path / "b.parquet", "key 'driveby.route_id'", "missing")
+
+
+@pytest.mark.parametrize("corrupt,fragments", [
+    (lambda tb: tb.drop_columns(["lon"]), ("column 'lon'", "missing")),
+    (lambda tb: with_column(tb, "lat", pa.array(np.where(np.isnan(tb["lat"].to_numpy()), np.nan, 95.0))),
+     ("column 'lat'", "outside [-90, 90] at row 0")),
+    (lambda tb: with_column(tb, "lon", pa.array(np.where(np.arange(tb.num_rows) == 10, np.nan, tb["lon"].to_numpy()))),
+     ("column 'lon'", "NaN in one of lat/lon", "row 10")),
+    (lambda tb: with_column(tb, "gnss_accuracy_m", pa.array(np.zeros(tb.num_rows, np.float32))),
+     ("column 'gnss_accuracy_m'", "positive", "row 0")),
+    (lambda tb: tb.drop_columns(["acc_y"]), ("column 'acc_y'", "missing")),
+    (lambda tb: tb.drop_columns(["gyro_z"]), ("column 'gyro_z'", "missing")),
+    (lambda tb: with_column(tb, "acc_z", pa.array(np.full(tb.num_rows, np.inf, np.float32))),
+     ("column 'acc_z'", "non-finite", "row 0")),
+    (lambda tb: with_column(with_column(tb, "lat", pa.array(np.full(tb.num_rows, np.nan))), "lon",
+                            pa.array(np.full(tb.num_rows, np.nan))), ("column 'lat'", "2 GNSS fixes")),
+    (lambda tb: with_column(tb, "t", pa.array(tb["t"].to_numpy()[::-1].copy())), ("column 't'", "not strictly increasing")),
+    (lambda tb: tb.drop_columns(["acc_x", "acc_y", "acc_z", "gyro_x", "gyro_y", "gyro_z"]),
+     ("column 'body_acc'", "missing")),
+])
+def test_corrupt_drive_is_rejected_in_one_line(tmp_path, corrupt, fragments):
+    table = drive_log_to_table(make_drive())
+    path = tmp_path / "drive.parquet"
+    pq.write_table(corrupt(table), path)
+    assert_rejected(path, *fragments)

@@ -25,7 +25,7 @@ BRIDGE_STATES = [
 ]
 EXPECTED = ["road-qc", "road-hc", "road-qc-gnss", "carpet", *BRIDGE_STATES,
             *(f"{b}-rough" for b in BRIDGE_STATES), "fleet-large",
-            "rail-track", *(f"rail-bridge-state{s}-profile{p}" for s in range(1, 8) for p in (1, 2))]
+            "rail-track", *(f"rail-bridge-state{s}-profile{p}" for s in range(1, 8) for p in (1, 2)), "network", "network-clean"]
 GENERATED = ["road-qc", "road-hc", "carpet", "bridge-crack10-10m", "bearing-1e10"]
 PASSES = 3
 SEED = 11

@@ -1,0 +1,342 @@
+"""A whole drive → single-route passes the edge processes unchanged (interfaces.md §5).
+
+Steps, each its own module: the raw IMU's orientation (`edge.orientation`), the logger's timestamps
+onto the nominal grid, cut at IMU gaps (`edge.resample`), GNSS fixes matched to the network
+(`edge.mapmatch`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
+IMU's along-track acceleration (`edge.fusion`). What is left is cut into passes; a sample is kept
+only if the vehicle is on one unambiguously matched route, moving in the route's direction faster
+than ``min_speed_mps``, with |longitudinal acceleration| at most ``max_long_acc_mps2`` and a fix
+within ``max_fix_gap_s``, and not within ``pad_s`` of a sample that is not.
+
+Why braking and acceleration are cut, not corrected: the inverse's vehicle models (thesis §2.2)
+are vertical — bounce and pitch driven by the profile at constant speed. Braking pitches the body
+through load transfer (∝ a·h/L) with the centre-of-gravity height h unknown per vehicle, and a
+correction would need a longitudinal model the fleet calibration cannot identify; the transient it
+leaves in ``body_acc`` would read as road. So such stretches (and the body's settling, ``pad_s``)
+are cut and counted. Passes driven against chainage are rejected, not reversed: the vehicle's
+response cannot be run backwards in time, and the other carriageway is another surface, which a
+registry declares as its own route.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta
+from typing import NamedTuple
+
+import numpy as np
+from pyproj import CRS, Transformer
+
+from shared.drivelog import ACC_COLUMNS, GYRO_COLUMNS, MODEL_CHANNELS, DriveLog, DriveLogMeta
+from shared.registry import Site
+
+from .fusion import FusionSettings, smooth_track
+from .mapmatch import MatchSettings, Network, build_network, match
+from .orientation import LoggerFrame, estimate_frame, vehicle_channels
+from .resample import ResampleSettings, resample
+
+logger = logging.getLogger(__name__)
+
+#: Reasons a stretch of a drive is not fused as road, as counted in `TripResult.cut_s`.
+REASONS = ("imu_gap", "off_network", "ambiguous", "against_chainage", "gnss_gap", "slow", "long_acc", "settling",
+           "too_short")
+
+
+class TripError(ValueError):
+    """A drive the splitter cannot use at all; the message is one line."""
+
+
+@dataclass(frozen=True)
+class TripSettings:
+    """Thresholds of the splitter (SI units); see the module docstring."""
+
+    min_speed_mps: float = 4.0
+    max_long_acc_mps2: float = 0.4
+    pad_s: float = 2.0
+    max_fix_gap_s: float = 10.0
+    min_pass_m: float = 40.0
+    heading_window_s: float = 5.0
+    max_turn_rad: float = 0.2
+    resample: ResampleSettings = field(default_factory=ResampleSettings)
+    match: MatchSettings = field(default_factory=MatchSettings)
+    fusion: FusionSettings = field(default_factory=FusionSettings)
+
+    def __post_init__(self):
+        for k in ("min_speed_mps", "max_long_acc_mps2", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s",
+                  "max_turn_rad"):
+            v = getattr(self, k)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"TripSettings.{k}: must be a positive finite number, got {v!r}")
+
+
+class TripResult(NamedTuple):
+    """The passes cut from a drive, the seconds cut for each reason (`REASONS`), the fixes' match
+    (route index, chainage per fix, in the drive's fix order) and the logger frame (None when the
+    log had the vehicle's channels already)."""
+
+    passes: list[DriveLog]
+    cut_s: dict[str, float]
+    fix_t: np.ndarray
+    fix_route: list[str | None]
+    fix_chainage: np.ndarray
+    frame: LoggerFrame | None
+
+
+def site_network(site: Site, settings: MatchSettings = MatchSettings()) -> Network:
+    """The matching network of a site's routes that have geometry."""
+    routes = {r.id: r.geometry for r in site.routes if r.geometry is not None}
+    if not routes:
+        raise TripError("the site registry has no route with geometry: a drive with positions cannot be matched")
+    return build_network(routes, settings)
+
+
+def split_drives(paths: list, logs: list[DriveLog], site: Site, settings: TripSettings = TripSettings()
+                 ) -> tuple[list, list[DriveLog], dict[str, float]]:
+    """Passes pass through; every drive with positions is cut into passes over the site's routes.
+
+    Returns the source path of each resulting pass (for messages), the passes, and the seconds cut
+    per reason over all drives. Raises `TripError` naming the file of a log that is neither.
+    """
+    out_paths, out_logs = [], []
+    cut = dict.fromkeys(REASONS, 0.0)
+    network = None
+    for path, log in zip(paths, logs):
+        if log.is_pass:
+            out_paths.append(path)
+            out_logs.append(log)
+            continue
+        if not log.has_positions:
+            raise TripError(f"{path}: neither a pass (chainage, route, uniform step, the model's channels) nor a "
+                            "drive with lat/lon")
+        network = network if network is not None else site_network(site, settings.match)
+        res = split_trip(log, network, settings, str(path))
+        for k, v in res.cut_s.items():
+            cut[k] += v
+        logger.info("%s: %d passes; cut %s", path, len(res.passes),
+                    ", ".join(f"{k} {v:.1f} s" for k, v in res.cut_s.items() if v > 0))
+        out_paths += [path] * len(res.passes)
+        out_logs += res.passes
+    return out_paths, out_logs, cut
+
+
+def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSettings(),
+               name: str = "<drive log>") -> TripResult:
+    """Cut the drive ``log`` (with ``lat``/``lon``) into passes over ``network``'s routes."""
+    if log.lat is None:
+        raise TripError(f"{name}: no lat/lon: not a drive the splitter can match")
+    fs = log.meta.sample_rate_hz
+    t = np.asarray(log.t, float)
+    cut = dict.fromkeys(REASONS, 0.0)
+    fix = np.isfinite(log.lat)
+    t_fix, lat, lon = t[fix], log.lat[fix], log.lon[fix]
+    acc_fix = None if log.gnss_accuracy_m is None else np.asarray(log.gnss_accuracy_m, float)[fix]
+    m = match(network, lat, lon, acc_fix, settings.match)
+    sd_fix = np.where(np.isfinite(acc_fix), acc_fix, settings.match.default_sigma_m) if acc_fix is not None \
+        else np.full(len(t_fix), settings.match.default_sigma_m)
+    sd_fix = np.maximum(sd_fix, settings.match.sigma_floor_m)
+
+    model = log.meta.vehicle_model
+    wanted = MODEL_CHANNELS[model]
+    raw = log.imu is not None
+    if raw:
+        signals = {c: log.imu[c] for c in (*ACC_COLUMNS, *[g for g in GYRO_COLUMNS if g in log.imu])}
+        if "body_pitch_rate" in wanted and GYRO_COLUMNS[0] not in log.imu:
+            raise TripError(f"{name}: vehicle_model {model!r} needs body_pitch_rate: the raw IMU has no gyro")
+    else:
+        signals = {c: log.channels[c] for c in wanted}
+    try:
+        runs, lost = resample(t, signals, fs, settings.resample)
+    except ValueError as e:
+        raise TripError(f"{name}: column 't': {e}") from None
+    cut["imu_gap"] += lost
+    frame = None
+    if raw:
+        frame = _logger_frame(runs, t_fix, lat, lon, settings, name)
+
+    passes: list[DriveLog] = []
+    for run in runs:
+        if raw:
+            acc = np.column_stack([run.signals[c] for c in ACC_COLUMNS])
+            gyro = np.column_stack([run.signals[c] for c in GYRO_COLUMNS]) if GYRO_COLUMNS[0] in run.signals else None
+            vc = vehicle_channels(frame, acc, gyro)
+            channels = {"body_acc": vc.body_acc}
+            if vc.pitch_rate is not None:
+                channels["body_pitch_rate"] = vc.pitch_rate
+            long_acc = vc.long_acc
+        else:
+            channels = dict(run.signals)
+            long_acc = None
+        channels = {c: channels[c] for c in wanted}
+        passes += _passes_of_run(run.t, channels, long_acc, t_fix, m, sd_fix, network, settings, log.meta,
+                                 len(passes), cut)
+    names = network.route_ids
+    return TripResult(passes, cut, t_fix, [None if r < 0 else names[r] for r in m.route], m.chainage, frame)
+
+
+def _passes_of_run(t, channels, long_acc, t_fix, m, sd_fix, network, settings, meta, k0, cut) -> list[DriveLog]:
+    """The passes within one IMU run (uniform ``t``); adds the seconds cut to ``cut``."""
+    dt = float(t[1] - t[0])
+    inside = (t_fix >= t[0]) & (t_fix <= t[-1])
+    fi = np.flatnonzero(inside)
+    keep = np.zeros(len(t), bool)
+    reason = np.full(len(t), "", dtype=object)
+    chain = np.full(len(t), np.nan)
+    speed = np.full(len(t), np.nan)
+    route_of = np.full(len(t), -1)
+    if len(fi) == 0:
+        cut["gnss_gap"] += len(t) * dt
+        return []
+    # Every sample takes the match of its nearest fix; stretches are runs of one route, unambiguous.
+    near = fi[np.clip(np.searchsorted(t_fix[fi], t), 0, len(fi) - 1)]
+    prev = fi[np.clip(np.searchsorted(t_fix[fi], t) - 1, 0, len(fi) - 1)]
+    near = np.where(np.abs(t_fix[prev] - t) < np.abs(t_fix[near] - t), prev, near)
+    gap = np.abs(t_fix[near] - t)
+    label = np.where(m.ambiguous[near], -2, m.route[near])  # −2 ambiguous, −1 off the network
+    reason[label == -1] = "off_network"
+    reason[label == -2] = "ambiguous"
+    # Stretches: maximal runs of fixes with the same usable route.
+    fix_label = np.where(m.ambiguous[fi], -2, m.route[fi])
+    edges = np.flatnonzero(np.diff(fix_label)) + 1
+    for a, b in zip(np.concatenate(([0], edges)), np.concatenate((edges, [len(fi)]))):
+        r = int(fix_label[a])
+        if r < 0 or b - a < 3:
+            continue
+        idx = fi[a:b]
+        c_fix = m.chainage[idx]
+        slope = np.polyfit(t_fix[idx] - t_fix[idx[0]], c_fix, 1)[0]
+        direction = 1.0 if slope >= 0 else -1.0
+        sel = (t >= t_fix[idx[0]]) & (t <= t_fix[idx[-1]])
+        if sel.sum() < 2:
+            continue
+        track = smooth_track(t[sel], None if long_acc is None else long_acc[sel], t_fix[idx], direction * c_fix,
+                             sd_fix[idx], settings.fusion)
+        where = np.flatnonzero(sel)
+        chain[where] = direction * track.s
+        speed[where] = track.v
+        route_of[where] = r
+        ok = np.full(len(where), True)
+        rs = np.full(len(where), "", dtype=object)
+        tests = (
+            ("against_chainage", np.full(len(where), direction < 0)),
+            ("gnss_gap", gap[where] > settings.max_fix_gap_s),
+            ("slow", track.v < settings.min_speed_mps),
+            ("long_acc", np.abs(track.a) > settings.max_long_acc_mps2),
+        )
+        for why, bad in tests:
+            rs[ok & bad] = why
+            ok &= ~bad
+        keep[where] = ok
+        reason[where] = np.where(ok, "", rs)
+    reason[(reason == "") & ~keep] = "off_network"  # samples outside every stretch (before the first fix…)
+    # The body settles after each cut: widen every cut by pad_s (counted as settling).
+    pad = int(round(settings.pad_s / dt))
+    bad = ~keep
+    if pad and bad.any():
+        widened = np.convolve(bad.astype(float), np.ones(2 * pad + 1), mode="same") > 0
+        reason[widened & keep] = "settling"
+        keep &= ~widened
+    # Route changes inside a kept run split it.
+    out = []
+    runs_edges = np.flatnonzero(np.diff(np.concatenate(([0], keep.astype(int), [0]))))
+    for a, b in zip(runs_edges[::2], runs_edges[1::2]):
+        for a2, b2 in _same_route(route_of, a, b):
+            length = abs(chain[b2 - 1] - chain[a2])
+            if b2 - a2 < 2 or length < settings.min_pass_m:
+                reason[a2:b2] = "too_short"
+                continue
+            out.append(_pass_log(meta, k0 + len(out), network.route_ids[route_of[a2]], t[a2:b2], chain[a2:b2],
+                                 speed[a2:b2], {c: v[a2:b2] for c, v in channels.items()}))
+    for why in REASONS:
+        cut[why] += float(np.sum(reason == why)) * dt
+    return out
+
+
+def _same_route(route_of, a, b):
+    e = np.flatnonzero(np.diff(route_of[a:b])) + 1 + a
+    starts = np.concatenate(([a], e))
+    ends = np.concatenate((e, [b]))
+    return list(zip(starts, ends))
+
+
+def _pass_log(meta: DriveLogMeta, k: int, route_id: str, t, chainage, speed, channels) -> DriveLog:
+    start = datetime.fromisoformat(meta.start_time_utc) + timedelta(seconds=float(t[0]))
+    stamp = start.isoformat().replace("+00:00", "Z")
+    pm = DriveLogMeta(meta.format, meta.version, meta.vehicle_id, route_id, meta.vehicle_model, meta.sample_rate_hz,
+                      stamp, meta.lane_offset_m, meta.nominal_params, f"{meta.pass_id}-{k + 1:02d}-{route_id}")
+    # The pass keeps the drive's clock (uniform on the nominal grid), so it can be traced back.
+    return DriveLog(pm, np.asarray(t, float), np.asarray(chainage, float), np.asarray(speed, float),
+                    {c: np.asarray(v, np.float32) for c, v in channels.items()}, True)
+
+
+def _logger_frame(runs, t_fix, lat, lon, settings: TripSettings, name: str) -> LoggerFrame:
+    """The logger's orientation: the IMU's and the GNSS track's accelerations at the fixes, each
+    taken by the same operator — the curvature of a local quadratic fit over ``heading_window_s``
+    to positions (the fixes) and to the IMU's double integral, sampled at the fixes (the fit's
+    constant and linear terms absorb the integration constants). Turning fixes are left out: while
+    the vehicle turns, its frame rotates within the window and the two would not compare."""
+    w = settings.heading_window_s
+    a_track, yaw_rate, valid = track_acceleration(t_fix, lat, lon, w)
+    f_log = np.full((len(t_fix), 3), np.nan)
+    for run in runs:
+        acc = np.column_stack([run.signals[c] for c in ACC_COLUMNS])
+        h = float(run.t[1] - run.t[0])
+        vel = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (acc[1:] + acc[:-1]) * h, axis=0)])
+        pos = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (vel[1:] + vel[:-1]) * h, axis=0)])
+        inside = np.flatnonzero((t_fix - w / 2 >= run.t[0]) & (t_fix + w / 2 <= run.t[-1]))
+        for i in inside:
+            sel = np.abs(t_fix - t_fix[i]) <= w / 2
+            if sel.sum() < 6:
+                continue
+            tt = t_fix[sel] - t_fix[i]
+            V = np.column_stack([np.ones(len(tt)), tt, tt**2])
+            X = np.column_stack([np.interp(t_fix[sel], run.t, pos[:, j]) for j in range(3)])
+            coef, *_ = np.linalg.lstsq(V, X - X.mean(axis=0), rcond=None)
+            f_log[i] = 2.0 * coef[2]
+    g = float(np.linalg.norm(np.nanmean(f_log, axis=0)))
+    straight = valid & (np.abs(yaw_rate) * w < settings.max_turn_rad)
+    f_vehicle = np.column_stack([a_track, np.full(len(t_fix), g)])
+    try:
+        return estimate_frame(f_log[straight], f_vehicle[straight])
+    except ValueError as e:
+        raise TripError(f"{name}: raw IMU: {e}") from None
+
+
+def track_acceleration(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s: float,
+                       min_speed_mps: float = 3.0, still_mps: float = 0.3
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The GNSS track's acceleration in the vehicle's axes, ``(a_long, a_lat)`` (m/s², lateral to
+    the left) at each fix, from a local quadratic fit of the position over ``window_s``; its yaw
+    rate (rad/s); and whether it is known: moving faster than ``min_speed_mps`` (heading defined)
+    or standing (slower than ``still_mps``: zero)."""
+    mid = len(lat) // 2
+    local = CRS.from_dict({"proj": "aeqd", "lat_0": float(lat[mid]), "lon_0": float(lon[mid]), "datum": "WGS84",
+                           "units": "m"})
+    x, y = Transformer.from_crs("EPSG:4326", local, always_xy=True).transform(lon, lat)
+    x, y = np.asarray(x), np.asarray(y)
+    out = np.full((len(t_fix), 2), np.nan)
+    yaw = np.zeros(len(t_fix))
+    valid = np.zeros(len(t_fix), bool)
+    lo = np.searchsorted(t_fix, t_fix - window_s / 2)
+    hi = np.searchsorted(t_fix, t_fix + window_s / 2)
+    for i in range(len(t_fix)):
+        a, b = lo[i], hi[i]
+        if b - a < 6 or t_fix[b - 1] - t_fix[a] < 0.6 * window_s:
+            continue
+        tt = t_fix[a:b] - t_fix[i]
+        V = np.column_stack([np.ones(b - a), tt, tt**2])
+        cx, *_ = np.linalg.lstsq(V, x[a:b], rcond=None)
+        cy, *_ = np.linalg.lstsq(V, y[a:b], rcond=None)
+        v = np.array([cx[1], cy[1]])
+        acc = 2.0 * np.array([cx[2], cy[2]])
+        sp = float(np.hypot(*v))
+        if sp >= min_speed_mps:
+            u = v / sp
+            out[i] = (acc @ u, u[0] * acc[1] - u[1] * acc[0])
+            yaw[i] = out[i, 1] / sp
+            valid[i] = True
+        elif sp < still_mps:
+            out[i] = 0.0
+            valid[i] = True
+    return out, yaw, valid
