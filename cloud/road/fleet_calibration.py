@@ -519,9 +519,12 @@ class FleetCalibrator:
           (:func:`cloud.road.calibration.consensus_sensitivity`); each vehicle gets its own move's
           spread, as the scatter of its move about the fleet's mean move plus that mean move
           (shared by every vehicle: it does not average out over the fleet);
+        * the distance the rounds stopped short of their fixed point, shared by every vehicle: the
+          last round's common change over the contraction ``g`` (:meth:`_contraction`);
         * a quantity whose common mode the rounds froze (its common change does not contract,
           :meth:`_contraction` at most :data:`MIN_CONTRACTION`) is not pinned by the data at all:
-          its common part is then the class prior's for the mean of N vehicles.
+          its common part is then the class prior's for the mean of N vehicles, plus the distance
+          the fleet's mean stands from the class mean.
         """
         by_vehicle: dict[str, list[ApSegment]] = {}
         for s in segments:
@@ -581,7 +584,19 @@ class FleetCalibrator:
             g = self._contraction(model, common.shape[1])
             cls = self.site.vehicle_class(model)
             _, prior_sd = class_prior(model, cls.mean, cls.std)
-            var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0), prior_sd**2 / len(moves))
+            # Frozen: the class mean is the estimate of the fleet's mean, as the prior knows it, and the
+            # fleet stands wherever the rounds left it: its distance from there is error too.
+            names = self.vehicles[next(iter(moves))].fit.names
+            at_class = np.log([to_calibration(model, cls.mean)[n] for n in names])
+            away = np.mean([np.log([to_calibration(model, self.vehicles[v].params)[n] for n in names]) - at_class
+                            for v in moves], axis=0)
+            # Not frozen: the rounds stopped short of their fixed point by about the last common change
+            # over the contraction (what the next rounds would still move the fleet by).
+            hist = self.common_trend.get(model, [])
+            last = np.asarray(hist[-1][1]) if hist and len(hist[-1][1]) == g.size else np.zeros(g.size)
+            short = last / np.maximum(g, MIN_CONTRACTION)
+            var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0) + short**2,
+                                  prior_sd**2 / len(moves) + away**2)
             for vid, m in moves.items():
                 out[vid] = np.mean((m - common) ** 2, axis=0) + var_common
         return out
