@@ -517,8 +517,11 @@ class FleetCalibrator:
           error, with the passes' excess error, :func:`cloud.road.long_wave.pass_error_draws`), the
           same draws for every vehicle, each moving every vehicle's fit
           (:func:`cloud.road.calibration.consensus_sensitivity`); each vehicle gets its own move's
-          spread, as the scatter of its move about the fleet's mean move plus that mean move
-          (shared by every vehicle: it does not average out over the fleet);
+          spread, as the scatter of its move about the fleet's mean move plus that mean move (shared
+          by every vehicle: it does not average out over the fleet), the mean move over the common
+          mode's contraction ``g`` (:meth:`_contraction`): the rounds follow a common change of the
+          fits by only ``g`` of it per round (the consensus follows the fleet), so the fixed point
+          they settle at moves by ``1/g`` times it;
         * the distance the rounds stopped short of their fixed point, shared by every vehicle: the
           last round's common change over the contraction ``g`` (:meth:`_contraction`);
         * a quantity whose common mode the rounds froze (its common change does not contract,
@@ -595,7 +598,7 @@ class FleetCalibrator:
             hist = self.common_trend.get(model, [])
             last = np.asarray(hist[-1][1]) if hist and len(hist[-1][1]) == g.size else np.zeros(g.size)
             short = last / np.maximum(g, MIN_CONTRACTION)
-            var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0) + short**2,
+            var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2,
                                   prior_sd**2 / len(moves) + away**2)
             for vid, m in moves.items():
                 out[vid] = np.mean((m - common) ** 2, axis=0) + var_common
