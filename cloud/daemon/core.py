@@ -413,7 +413,7 @@ class Cloud:
         calibrated before its passes elsewhere made another shard its owner is that one's now)."""
         if self.calibrator is None:
             return []
-        return [r for r in self.calibrator.table() if self.owns(r["vehicle_id"])]
+        return [r for r in self.calibrator.table(self.fused_segments()) if self.owns(r["vehicle_id"])]
 
     # -- bridges ---------------------------------------------------------------------------------
     def _bridge_uncertainty(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
@@ -538,8 +538,9 @@ class Cloud:
         drift and calibration error each pass adds beyond the likelihood's white noise, measured band
         by band from their disagreement: :mod:`cloud.road.long_wave`)."""
         segs = self.fused_segments()  # what the posterior holds (chainage-aligned, continuous-time)
-        # With the drift nuisance on, the passes' scatter adds only what exceeds its learnt level.
-        return {rid: with_long_wave_band(s, segs, drift=drift_of(self.profile, rid))
+        # With the drift nuisance on, the passes' scatter adds only what exceeds its learnt level;
+        # the long waves the edges' drift control removed are restored (the road up to level and slope).
+        return {rid: with_long_wave_band(s, segs, drift=drift_of(self.profile, rid), restore_trend=True)
                 for rid, s in self.profile.snapshot().items()}
 
     def export(self, out_dir: Path) -> list[Path]:

@@ -534,6 +534,7 @@ class PassRemap:
             vals, cons = (_lowpass_grid(a, ap.spacing_m, self.settings.lowpass_cpm) for a in (ap.values, consensus))
         ap_t = np.stack([np.interp(xt + off[i], x, vals[:, i]) for i in range(n_contacts)], axis=1)
         self.profile_t = np.stack([np.interp(xt + off[i], x, cons[:, i]) for i in range(n_contacts)], axis=1)
+        self._grid = (x, xt, off, ap.spacing_m)  # where a change of the consensus is read (consensus_response)
         self.z = channels_from_ap(vehicle_from_params(model, params0).system(), ap_t,
                                   newmark_constants(self.dt, self.ap_gamma))
         self.skip = int(self.WARMUP_S / self.dt)
@@ -550,6 +551,21 @@ class PassRemap:
                                 newmark_constants(self.dt, gamma))
         r = ((pred - self.z)[self.skip:] / self.scale).ravel()
         if self.start_basis is not None:  # the unknown start state, profiled out
+            r = r - self.start_basis @ (self.start_basis.T @ r)
+        return r
+
+    def consensus_response(self, params: dict, delta: np.ndarray) -> np.ndarray:
+        """The change of :meth:`residual` when the consensus changes by ``delta`` (m, on the pass's grid
+        slice, (n_points, n_contacts)): the prediction is linear in the profile it is driven by."""
+        x, xt, off, spacing = self._grid
+        d = np.where(np.isfinite(delta), delta, 0.0)
+        if self.settings.lowpass_cpm:
+            d = _lowpass_grid(d, spacing, self.settings.lowpass_cpm)
+        d_t = np.stack([np.interp(xt + off[i], x, d[:, i]) for i in range(d.shape[1])], axis=1)
+        gamma = edge_gamma(self.model) if self.predict_gamma is None else self.predict_gamma
+        pred = channels_from_ap(vehicle_from_params(self.model, params).system(), d_t, newmark_constants(self.dt, gamma))
+        r = (pred[self.skip:] / self.scale).ravel()
+        if self.start_basis is not None:
             r = r - self.start_basis @ (self.start_basis.T @ r)
         return r
 
@@ -604,3 +620,43 @@ def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray
     params = from_calibration(model, dict(zip(names, mean)), ref_value)
     return VehicleFit(names, mean, np.exp(sol.x - 1.96 * se), np.exp(sol.x + 1.96 * se), params,
                       float(np.sqrt(np.mean(data_res(sol.x) ** 2))), n_res)
+
+
+def consensus_sensitivity(model: str, params: dict, passes: list[tuple[PassAp, np.ndarray]],
+                          deltas: list[np.ndarray], prior: tuple[np.ndarray, np.ndarray], ref_value: float,
+                          ap_gamma: float | None = None) -> np.ndarray:
+    """How a vehicle's fitted log-ratios move when the consensus it was fitted against moves (errors in
+    variables: the reference profile is an estimate, not the road).
+
+    ``passes`` as :func:`fit_vehicle`'s, at the vehicle's fitted ``params``; ``deltas[p]`` (K, n_points,
+    n_contacts): K changes of pass p's consensus (draws of its error, the same K for every pass).
+    Linearised at ``params`` with :func:`fit_vehicle`'s weights (misfit scale, effective sample
+    count, class prior), each change moves the optimum by one Gauss–Newton step,
+    ``δθ = −(JᵀJ)⁻¹ Jᵀ δr``. Returns (K, quantities) in log units, in :func:`calibration_names` order.
+    """
+    names = calibration_names(model)
+    offsets = vehicle_from_params(model, params).system().offsets_m
+    remaps = [PassRemap(model, params, ap, cons, offsets, ap_gamma) for ap, cons in passes]
+    _, sd = prior
+    theta = np.log(np.array([to_calibration(model, params)[n] for n in names]))
+
+    def data_res(th):
+        return np.concatenate([r.residual(from_calibration(model, dict(zip(names, np.exp(th))), ref_value))
+                               for r in remaps])
+
+    r0 = data_res(theta)
+    n_res = r0.size
+    sigma = max(float(np.sqrt(np.mean(r0**2))), 1e-9)
+    taus = [_autocorrelation_time(col) for r in remaps for col in r.residual(params).reshape(r.n, -1).T]
+    w = math.sqrt(float(max(n_res, 1)) / float(np.mean(taus)) / max(n_res, 1)) / sigma
+    J = np.empty((n_res, theta.size))
+    for j in range(theta.size):
+        step = np.zeros_like(theta)
+        step[j] = FD_STEP
+        J[:, j] = (data_res(theta + step) - data_res(theta - step)) / (2 * FD_STEP) * w
+    A = J.T @ J + np.diag(1.0 / sd**2)
+    out = np.zeros((deltas[0].shape[0] if deltas else 0, theta.size))
+    for k in range(out.shape[0]):
+        dr = np.concatenate([r.consensus_response(params, d[k]) for r, d in zip(remaps, deltas)]) * w
+        out[k] = -np.linalg.solve(A, J.T @ dr)
+    return out

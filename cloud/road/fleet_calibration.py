@@ -42,6 +42,7 @@ import copy
 import dataclasses
 import hashlib
 import logging
+import math
 import time
 
 import numpy as np
@@ -49,9 +50,11 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from cloud.road.calibration import (REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior, fit_fleet,
-                                    fit_vehicle, from_calibration, to_calibration)
+from cloud.road.calibration import (REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior,
+                                    consensus_sensitivity, fit_fleet, fit_vehicle, from_calibration, to_calibration)
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_ap_resampled, pass_speed, pass_values
+from cloud.road.long_wave import pass_error_draws
+from cloud.road.mean_profile import MeanProfile
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +63,7 @@ SIGNIFICANT = 0.25  # a vehicle moves when some quantity changes by more than th
 MIN_CONTRACTION = 0.1  # a common mode whose change falls by less than this per unit step is frozen
 TREND_ROUNDS = 24  # refinements remembered for the common-mode trend
 REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle round (≈ 16 %)
+CONSENSUS_DRAWS = 16  # draws of the consensus's error an exported interval's errors-in-variables term is made of
 #: Models calibrated per vehicle in acceleration space against the leave-one-out consensus (sensor
 #: noise is white there). For a quarter-car fleet at 2 % noise that is more accurate than the joint
 #: AP-space step, whose AP misfit the inverse's noise amplification at short wavelengths weighs
@@ -483,19 +487,137 @@ class FleetCalibrator:
             log.warning("vehicle step failed: %s", e)
             return None
 
-    def table(self) -> list[dict]:
-        """Rows of ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95."""
+    def table(self, segments: list[ApSegment] | None = None) -> list[dict]:
+        """Rows of ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95.
+
+        The interval is centred on the published value. For per-vehicle models it carries, beside the
+        last vehicle step's own Laplace spread, what that step takes as known (:meth:`_fleet_error`,
+        from ``segments``, the held segments as the vehicle step sees them; without them, the step's
+        spread alone): the consensus it was fitted against, and the part of that error every vehicle
+        shares."""
         rows = []
+        extra = self._fleet_error(segments or [])
         for vid, st in sorted(self.vehicles.items()):
             if st.fit is None:
                 continue
             cal = to_calibration(st.model, st.params)
+            se = np.log(st.fit.hi95 / st.fit.lo95) / (2 * 1.96)
+            if vid in extra and extra[vid].shape == se.shape:
+                se = np.sqrt(se**2 + extra[vid])
             for i, n in enumerate(st.fit.names):
-                # Interval from the last vehicle step, centred on the published value.
-                lo = cal[n] * st.fit.lo95[i] / st.fit.mean[i]
-                hi = cal[n] * st.fit.hi95[i] / st.fit.mean[i]
-                rows.append({"vehicle_id": vid, "param": n, "mean": cal[n], "lo95": lo, "hi95": hi})
+                rows.append({"vehicle_id": vid, "param": n, "mean": cal[n], "lo95": cal[n] * math.exp(-1.96 * se[i]),
+                             "hi95": cal[n] * math.exp(1.96 * se[i])})
         return rows
+
+    def _fleet_error(self, segments: list[ApSegment], n_draws: int = CONSENSUS_DRAWS) -> dict[str, np.ndarray]:
+        """Per vehicle of a :data:`PER_VEHICLE` model, the variance (log units) its step's Laplace
+        interval leaves out (errors in variables), from the held ``segments``:
+
+        * the consensus's own error: ``n_draws`` draws of it (the precision-weighted mean's stated
+          error, with the passes' excess error, :func:`cloud.road.long_wave.pass_error_draws`), the
+          same draws for every vehicle, each moving every vehicle's fit
+          (:func:`cloud.road.calibration.consensus_sensitivity`); each vehicle gets its own move's
+          spread, as the scatter of its move about the fleet's mean move plus that mean move (shared
+          by every vehicle: it does not average out over the fleet), the mean move over the common
+          mode's contraction ``g`` (:meth:`_contraction`): the rounds follow a common change of the
+          fits by only ``g`` of it per round (the consensus follows the fleet), so the fixed point
+          they settle at moves by ``1/g`` times it;
+        * the distance the rounds stopped short of their fixed point, shared by every vehicle: the
+          last round's common change over the contraction ``g`` (:meth:`_contraction`);
+        * a quantity whose common mode the rounds froze (its common change does not contract,
+          :meth:`_contraction` at most :data:`MIN_CONTRACTION`) is not pinned by the data at all:
+          its common part is then the class prior's for the mean of N vehicles, plus the distance
+          the fleet's mean stands from the class mean.
+        """
+        by_vehicle: dict[str, list[ApSegment]] = {}
+        for s in segments:
+            st = self.vehicles.get(s.vehicle_id)
+            if st is not None and st.fit is not None and st.model in PER_VEHICLE:
+                by_vehicle.setdefault(s.vehicle_id, []).append(s)
+        if not by_vehicle:
+            return {}
+        # The consensus the vehicle step compares against: the precision-weighted mean of the passes.
+        consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, segments[0].spacing_m)
+        for s in segments:
+            if consensus.accepts(s):
+                consensus.update(s)
+        snaps = consensus.snapshot()
+        rng = np.random.default_rng(0)  # an export is a function of the held segments
+        draws = {}
+        for rid, snap in snaps.items():
+            held = [s for s in segments if s.route_id == rid]
+            sd = np.nan_to_num((snap.hi95_m - snap.lo95_m) / (2 * 1.96))
+            draws[rid] = sd * rng.standard_normal((n_draws, sd.size)) + np.nan_to_num(
+                pass_error_draws(snap, held, n_draws, rng))
+        out = {}
+        by_model: dict[str, dict[str, np.ndarray]] = {}
+        for vid, vs in sorted(by_vehicle.items()):
+            st = self.vehicles[vid]
+            items, deltas = [], []
+            n_axles = max(s.axle for s in vs)
+            passes: dict[str, list[ApSegment]] = {}
+            for s in vs:
+                passes.setdefault(s.pass_id, []).append(s)
+            for ss in passes.values():
+                snap = snaps.get(ss[0].route_id)
+                if snap is None:
+                    continue
+                lo, vals = pass_values(ss, n_axles)
+                hi = min(lo + vals.shape[0], snap.elevation_m.size)
+                vals = vals[: hi - lo]
+                cons = snap.elevation_m[lo:hi]
+                if np.isfinite(cons).sum() < 200 or np.isfinite(vals).all(axis=1).sum() < 200:
+                    continue
+                items.append((PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps, self._dt(ss[0])),
+                              np.repeat(cons[:, None], n_axles, 1)))
+                deltas.append(np.repeat(draws[ss[0].route_id][:, lo:hi, None], n_axles, 2))
+            if not items:
+                continue
+            cls = self.site.vehicle_class(st.model)
+            ref, _ = REFERENCE[st.model]
+            try:
+                moves = consensus_sensitivity(st.model, st.params, items, deltas, class_prior(st.model, cls.mean, cls.std),
+                                              st.params[ref], ap_gamma=0.5 if self._continuous(st.model) else None)
+            except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
+                log.warning("consensus sensitivity failed for %s: %s", vid, e)
+                continue
+            by_model.setdefault(st.model, {})[vid] = moves
+        for model, moves in by_model.items():
+            common = np.mean(list(moves.values()), axis=0)  # (draws, quantities)
+            g = self._contraction(model, common.shape[1])
+            cls = self.site.vehicle_class(model)
+            _, prior_sd = class_prior(model, cls.mean, cls.std)
+            # Frozen: the class mean is the estimate of the fleet's mean, as the prior knows it, and the
+            # fleet stands wherever the rounds left it: its distance from there is error too.
+            names = self.vehicles[next(iter(moves))].fit.names
+            at_class = np.log([to_calibration(model, cls.mean)[n] for n in names])
+            away = np.mean([np.log([to_calibration(model, self.vehicles[v].params)[n] for n in names]) - at_class
+                            for v in moves], axis=0)
+            # Not frozen: the rounds stopped short of their fixed point by about the last common change
+            # over the contraction (what the next rounds would still move the fleet by).
+            hist = self.common_trend.get(model, [])
+            last = np.asarray(hist[-1][1]) if hist and len(hist[-1][1]) == g.size else np.zeros(g.size)
+            short = last / np.maximum(g, MIN_CONTRACTION)
+            var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2,
+                                  prior_sd**2 / len(moves) + away**2)
+            for vid, m in moves.items():
+                out[vid] = np.mean((m - common) ** 2, axis=0) + var_common
+        return out
+
+    def _contraction(self, model: str, n: int) -> np.ndarray:
+        """Per quantity, the fraction of a fleet-common change the rounds follow per round (the slope
+        of the common change against the common steps taken, :meth:`_common_relaxation`), clipped to
+        at most 1; 1 where the rounds give no trend."""
+        hist = self.common_trend.get(model, [])
+        g = np.ones(n)
+        if len(hist) < 3 or len(hist[-1][1]) != n:
+            return g
+        S = np.array([h[0] for h in hist])
+        D = np.array([h[1] for h in hist])
+        for j in range(n):
+            if np.ptp(S[:, j]) > self.tol:
+                g[j] = min(-np.polyfit(S[:, j], D[:, j], 1)[0], 1.0)
+        return g
 
 
 __all__ = ["FleetCalibrator", "calibration_names"]

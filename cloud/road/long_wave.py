@@ -20,10 +20,15 @@ Student-t, not normal: its variance is scaled by ``(t_ν,0.975 / 1.96)²`` so th
 a 95 % band — a factor that matters with a handful of passes and fades (→ 1) as passes arrive.
 With one pass there is no scatter and no term.
 
-What the band covers: the road less each pass's ±150 m drift trend (over the stretch that pass
-covers), averaged over the passes, up to a constant level (:func:`simfleet.evaluate.drift_controlled_truth`).
-Errors every pass shares (a calibration bias common to the fleet, the inverse's discretisation)
-do not show in the scatter and are not in this term.
+What the passes measure, and the scatter band covers: the road less each pass's ±150 m drift
+trend (over the stretch that pass covers), averaged over the passes, up to a constant level
+(:func:`simfleet.evaluate.drift_controlled_truth`). Errors every pass shares (a calibration bias
+common to the fleet, the inverse's discretisation) do not show in the scatter and are not in this
+term. One of them is known: the drift control itself took the road's long waves out of every pass
+alike. :func:`removed_trend` restores them from the consensus where the trend operator leaves
+enough of them to invert (a Neumann series in the known operator, its first left-out term added to
+the band), so that the exported mean and band (``restore_trend``) are of the road up to a level and
+a slope over the drift control's window, which no pass measures.
 
 With the per-pass drift nuisance on (:mod:`.pass_drift`, ``drift = (sd, knot_m)``) the posterior's
 band already holds each pass's drift as a homogeneous process of the learnt level; each band's
@@ -43,10 +48,12 @@ to a segment update, and a retracted segment is simply not among those held.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 
 import numpy as np
+from scipy.ndimage import correlate1d
 from scipy.stats import t as student_t
 
 from shared.schema import ApSegment
@@ -302,11 +309,146 @@ def pass_error_draws(snap: ProfileSnapshot, segments: list[ApSegment], n: int,
 
 
 def with_pass_error_band(snap: ProfileSnapshot, segments: list[ApSegment], longest: bool = True,
-                         drift: tuple[float, float] | None = None) -> ProfileSnapshot:
-    """``snap`` with :func:`pass_error_variance` added to the variance of its 95 % band."""
+                         drift: tuple[float, float] | None = None, restore_trend: bool = False) -> ProfileSnapshot:
+    """``snap`` with :func:`pass_error_variance` added to the variance of its 95 % band; with
+    ``restore_trend`` then also what the edges' drift control removed (:func:`with_removed_trend`),
+    so that mean and band are of the road up to a level and slope."""
     sd_post = (snap.hi95_m - snap.lo95_m) / (2 * _Z95)
-    sd = np.sqrt(sd_post**2 + pass_error_variance(snap, segments, longest=longest, drift=drift))
-    return dataclasses.replace(snap, lo95_m=snap.elevation_m - _Z95 * sd, hi95_m=snap.elevation_m + _Z95 * sd)
+    var = sd_post**2 + pass_error_variance(snap, segments, longest=longest, drift=drift)
+    sd = np.sqrt(var)
+    out = dataclasses.replace(snap, lo95_m=snap.elevation_m - _Z95 * sd, hi95_m=snap.elevation_m + _Z95 * sd)
+    # (after the passes' scatter: their residuals are about the drift-controlled consensus they measure)
+    return with_removed_trend(out, segments) if restore_trend else out
+
+
+
+# -- what the edges' drift control removed -------------------------------------------------------
+
+#: Half-width (m) of the edge's drift control (``EdgeConfig.drift_half_width_m``'s default): every
+#: pass's AP has its own local linear trend over ±this removed before it is sent.
+DRIFT_HALF_WIDTH_M = 150.0
+#: Lattice step (m) the removed trend is restored on: it lives at wavelengths of fifty metres and
+#: more, which a metre lattice resolves at a thousandth of the grid's cost.
+TREND_STEP_M = 1.0
+
+
+def _pass_extents(snap: ProfileSnapshot, segments: list[ApSegment]) -> list[tuple[int, int]]:
+    """Each pass's ``[lo, hi)`` on the route grid (one per vehicle, pass and axle), sorted."""
+    P = snap.elevation_m.size
+    ext: dict[tuple, list[int]] = {}
+    for s in segments:
+        if s.route_id == snap.route_id:
+            e = ext.setdefault((s.vehicle_id, s.pass_id, s.axle), [P, 0])
+            e[0], e[1] = min(e[0], max(s.start_index, 0)), max(e[1], min(s.end_index, P))
+    return sorted((a, b) for a, b in ext.values() if b > a)
+
+
+def _local_linear_trend(y: np.ndarray, valid: np.ndarray, half: int) -> np.ndarray:
+    """The edge's drift trend of ``y`` (:func:`edge.drift.local_linear_trend`, vectorised): at every
+    point the intercept of the line fitted with triangular weights ``1 − |d|/(half + 1)`` to the valid
+    points within ``±half``."""
+    d = np.arange(-half, half + 1, dtype=float)
+    w = 1.0 - np.abs(d) / (half + 1.0)
+    v = valid.astype(float)
+    s0, s1, s2 = (correlate1d(v, w * d**p, mode="constant") for p in range(3))
+    yv = np.where(valid, y, 0.0)
+    t0 = correlate1d(yv, w, mode="constant")
+    t1 = correlate1d(yv, w * d, mode="constant")
+    det = s0 * s2 - s1 * s1
+    line = det > 1e-12 * s0 * s0
+    flat = t0 / np.where(s0 > 0, s0, 1.0)
+    return np.where(line, (s2 * t0 - s1 * t1) / np.where(line, det, 1.0), flat)
+
+
+def less_local_line(y: np.ndarray, window: int) -> np.ndarray:
+    """``y`` less, at every point, the least-squares line through the ``window`` points around it
+    (centred, moved inwards at the ends; all of them when fewer) evaluated there."""
+    n = y.size
+    window = min(window, n)
+    i = np.arange(n)
+    a = np.clip(i - window // 2, 0, n - window)
+    b = a + window
+    x = (i - (n - 1) / 2.0) / max(n, 1)  # centred and scaled: the sums stay well conditioned
+
+    def cum(v):
+        return np.concatenate([[0.0], np.cumsum(v)])
+
+    cx, cxx, cy, cxy = cum(x), cum(x * x), cum(y), cum(x * y)
+    m = float(window)
+    sx, sxx, sy, sxy = cx[b] - cx[a], cxx[b] - cxx[a], cy[b] - cy[a], cxy[b] - cxy[a]
+    det = m * sxx - sx * sx
+    ok = det > 1e-15
+    slope = np.where(ok, (m * sxy - sx * sy) / np.where(ok, det, 1.0), 0.0)
+    return y - ((sy - slope * sx) / m + slope * x)
+
+
+def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m: float = DRIFT_HALF_WIDTH_M,
+                  step_m: float = TREND_STEP_M) -> tuple[np.ndarray, np.ndarray]:
+    """The road's long waves the edges' drift control took out, estimated from the consensus, and
+    the size of what that estimate leaves: ``(restore, remainder)`` (m) per grid point.
+
+    Each pass measures the road less its own local linear trend over ±``half_width_m`` (over the
+    stretch it covers), so the consensus is ``μ ≈ (I − T̄)R``, ``T̄`` the average of the passes' trend
+    operators at a point. Every pass shares that loss, so their scatter cannot show it; but ``T̄`` is
+    known, and where it takes little (wavelengths up to about its width) ``R = Σ_k T̄ᵏ μ`` converges
+    fast: ``restore = T̄μ`` is its first term and ``remainder = T̄²μ`` the first term left out (the
+    size of the band's term for it). Where ``T̄`` takes almost everything (waves several times
+    ``half_width_m``) the series does not converge and nothing is restored: a level and slope over
+    ``2·half_width_m`` (or over a shorter covered stretch) are what the data cannot give, so both
+    are returned less their line over that window. Computed on a lattice of ``step_m`` (the
+    consensus averaged over it) and interpolated; zero where no pass has been.
+    """
+    P = snap.elevation_m.size
+    restore, remainder = np.zeros(P), np.zeros(P)
+    ext = _pass_extents(snap, segments)
+    if not ext or half_width_m <= 0 or P < 2:
+        return restore, remainder
+    h = float(snap.chainage_m[1] - snap.chainage_m[0])
+    k = max(1, int(round(step_m / h)))
+    half = max(1, int(round(half_width_m / (k * h))))
+    mu = snap.elevation_m
+    ok = np.isfinite(mu)
+    # The consensus on the lattice: the mean of each lattice cell's valid points.
+    n = (P + k - 1) // k
+    pad = n * k - P
+    cells_ok = np.concatenate([ok, np.zeros(pad, dtype=bool)]).reshape(n, k)
+    cells = np.concatenate([np.where(ok, mu, 0.0), np.zeros(pad)]).reshape(n, k)
+    cnt = cells_ok.sum(axis=1)
+    valid = cnt > 0
+    v = np.where(valid, cells.sum(axis=1) / np.maximum(cnt, 1), 0.0)
+    spans = collections.Counter((a // k, min((b - 1) // k + 1, n)) for a, b in ext)
+
+    def mean_trend(y):
+        total, count = np.zeros(n), np.zeros(n)
+        for (a, b), m in spans.items():
+            if b - a >= 2:
+                total[a:b] += m * _local_linear_trend(y[a:b], valid[a:b], half)
+                count[a:b] += m
+        return np.where(count > 0, total / np.maximum(count, 1), 0.0), count > 0
+
+    t1, covered = mean_trend(v)
+    t2, _ = mean_trend(t1)
+    c1, c2 = np.zeros(n), np.zeros(n)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], covered.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):  # each contiguous covered stretch
+        c1[a:b] = less_local_line(t1[a:b], 2 * half + 1)
+        c2[a:b] = less_local_line(t2[a:b], 2 * half + 1)
+    centre = (np.arange(n) + 0.5) * k - 0.5  # each cell's centre on the grid
+    xi = np.arange(P)
+    restore = np.where(ok, np.interp(xi, centre, c1), 0.0)
+    remainder = np.where(ok, np.interp(xi, centre, c2), 0.0)
+    return restore, remainder
+
+
+def with_removed_trend(snap: ProfileSnapshot, segments: list[ApSegment],
+                       half_width_m: float = DRIFT_HALF_WIDTH_M) -> ProfileSnapshot:
+    """``snap`` with :func:`removed_trend` restored to its mean and its remainder added (as an sd) to
+    its band: the band then holds the road up to a level and slope (over ``2·half_width_m``), not
+    the drift-controlled profile the passes measure."""
+    restore, remainder = removed_trend(snap, segments, half_width_m)
+    sd = np.sqrt(((snap.hi95_m - snap.lo95_m) / (2 * _Z95)) ** 2 + remainder**2)
+    mean = snap.elevation_m + restore
+    return dataclasses.replace(snap, elevation_m=mean, lo95_m=mean - _Z95 * sd, hi95_m=mean + _Z95 * sd)
 
 
 with_long_wave_band = with_pass_error_band  # the former name (it only looked at >10 m)
