@@ -41,7 +41,7 @@ also carries a chainage shift (prior sd ``position_sd_m``). The shift is tested 
 (against the log's chainage, :data:`SHIFT_CHI2`) and held at zero where consistent: held where the
 middle stage left it instead (centimetres), the last stage's speeds would take up its error.
 
-Gauss–Newton with Levenberg damping on all 8·n_b + 6 unknowns at once (the normal matrix of the
+Gauss–Newton with Levenberg damping on all 8·n_b + 8 unknowns at once (the normal matrix of the
 profiled consensus has a closed form from per-run blocks, :func:`calibrate_batch`), in stages of
 decreasing shortest wavelength; σ² is re-estimated from the residual with its along-track
 correlation; the 95 % intervals are the Gauss–Newton sandwich at the optimum, H⁻¹ (JᵀΣJ/σ⁴ + prior)
@@ -77,7 +77,6 @@ from typing import Sequence
 import numpy as np
 import scipy.fft
 
-from shared.vehicles.carriage import Carriage
 
 from cloud.rail.carriage_inverse import (BODY0_NAMES, INVERSE_NAMES, N_SENS, carriage_aps_runs,
                                          carriage_aps_sensitivities)
@@ -86,9 +85,16 @@ from cloud.rail.mapping import EDGE_M, GRID_M, Mapper, window
 from cloud.rail.records import RailRun
 
 RUN_NAMES = ("mv", "Iv", "v")
-#: Global properties calibrated with the batch (their class sd is the prior); the wheelset mass does
-#: not enter the wheels-on-rail model and the lengths are known from drawings.
+#: Global properties of the inverse calibrated with the batch (their class sd is the prior): the
+#: columns of :data:`~cloud.rail.carriage_inverse.INVERSE_NAMES` after the run's own two.
 GLOBAL_FIT = ("mb", "Ib", "kp", "cp", "ks", "cs")
+#: The carriage's lengths, calibrated with the batch too (their class sd is the prior): the bogie
+#: spacing sets every run's speed scale (a bump reaches wheel 3 2·Lv/v after wheel 1), so a
+#: carriage whose Lv is off its class mean would put every speed off by as much, and the GNSS
+#: speeds' per-run errors, averaged over the batch, are what anchors it.
+LENGTH_FIT = ("Lb", "Lv")
+#: Not passed to the inverse as a calibrated column: the wheelset mass does not enter the
+#: wheels-on-rail model; the lengths are arguments of the inverse, not columns of θ.
 FIXED = ("mw", "Lb", "Lv")
 #: Shortest wavelength compared in each stage, m (continuation: long waves first, where the misfit is
 #: smooth in every property, then sharper). Below 2 m there is mostly noise and sleeper-scale detail.
@@ -107,7 +113,7 @@ ANTIALIAS_FACTOR = 4.0
 MAX_WAVELENGTH_M = 60.0
 SPEED_SEARCH_M = 6.0  # shortest wavelength of the speed's grid search (:func:`_speed_from_wheels`), m
 SPEED_STEP = 0.01  # its step in log speed
-FD_LOG_STEP = 1e-3  # the speed's Jacobian column: a finite difference of the mapping, log speed
+FD_LOG_STEP = 1e-3  # the lengths' Jacobian columns through the inverse: a one-sided difference, log length
 #: The stages before the last stop on steps below this (log): they only bring the last one into its
 #: basin, which it then converges from to ``tol`` (the stage's optimum is not the last stage's).
 STAGE_TOL_LOG = 1e-3
@@ -144,14 +150,14 @@ class RunEstimate:
 @dataclasses.dataclass(frozen=True)
 class BatchFit:
     runs: list[RunEstimate]
-    globals_: dict[str, float]  # the batch's estimate of the carriage's global properties
+    globals_: dict[str, float]  # the batch's estimate of the carriage's global properties (GLOBAL_FIT + LENGTH_FIT)
     grid_m: np.ndarray  # the comparison window, m
     consensus_m: np.ndarray  # the batch's AP on it (cubic removed), m
     sigma_m: float  # residual sd per grid point, m
     correlation: float  # residual correlation factor (information per point ÷ this)
     iterations: int
     seconds: float
-    #: The global properties' posterior covariance of their logs (:data:`GLOBAL_FIT` order), marginal
+    #: The global properties' posterior covariance of their logs (:data:`GLOBAL_FIT` + :data:`LENGTH_FIT` order), marginal
     #: over the runs: what a later batch that holds these globals carries into its intervals
     #: (``calibrate_batch(held_globals_cov=…)``).
     globals_log_cov: np.ndarray | None = None
@@ -185,6 +191,12 @@ REST_SD = 1e-7
 #: A run whose fitted chainage shift is within this of zero (Wald χ², 1 dof, 99.9 %) keeps the
 #: log's chainage (module docstring).
 SHIFT_CHI2 = 10.8276
+
+
+def wheel_offsets(Lb: float, Lv: float) -> np.ndarray:
+    """The carriage's wheel positions ahead of the body's centre of gravity (m; wheel 1 leads), as
+    :meth:`shared.vehicles.carriage.Carriage.wheel_offsets_m`."""
+    return np.array([Lv + Lb, Lv - Lb, -Lv + Lb, -Lv - Lb])
 
 
 def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, fixed: dict[str, float],
@@ -284,6 +296,15 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_
         if done:
             break
     return x, e, D, A, sigma2, kappa, it
+
+
+def _rate(aps: np.ndarray, lengths: np.ndarray, dts: np.ndarray) -> np.ndarray:
+    """(R, N, 4) each run's AP rate in time (m/s), central differences within its first
+    ``lengths[r]`` samples (one-sided at their ends; zero past them)."""
+    out = np.zeros_like(aps)
+    for r, (m, dt) in enumerate(zip(lengths, dts)):
+        out[r, :m] = np.gradient(aps[r, :m], dt, axis=0)
+    return out
 
 
 def _correlation_factor(e: np.ndarray) -> float:
@@ -425,16 +446,20 @@ def calibrate_batch(
         if not (prior_mean.get(k, 0) > 0 and prior_sd.get(k, -1) >= 0):
             raise ValueError(f"calibrate_batch: the class needs a positive mean and an sd of {k}")
     fixed = {k: float(prior_mean[k]) for k in FIXED}
-    offsets = Carriage(**fixed, **{k: prior_mean[k] for k in GLOBAL_FIT}, mv=1.0, Iv=1.0, v=1.0).wheel_offsets_m()
-    slack = 4 * speed_rel_sd
-    grid = window(runs, offsets, window_m, speed_slack=slack)
+    offsets = wheel_offsets(fixed["Lb"], fixed["Lv"])
+    # The speeds' search range: the GNSS error and the bogie spacing's (which moves every speed alike)
+    length_sd = prior_sd["Lv"] / prior_mean["Lv"]
+    slack = max(4 * speed_rel_sd, 3 * math.hypot(speed_rel_sd, length_sd))
+    # Trial lengths move the wheels: the window keeps clear of where the longest could put them.
+    grid = window(runs, offsets * (1 + 3 * length_sd), window_m, speed_slack=slack)
     # Samples past the last the window can need (trailing wheel, slowest trial speed) are not
     # inverted: the inverse is causal, and a decimated stage's anti-alias filter is applied to the
     # whole record first.
-    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min())
+    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min() * (1 + 3 * length_sd))
                                               / (r.speed_mps * (1 - slack)) / r.dt)) + 2) for r in runs]
     mapper = stage = None
-    n_g = len(GLOBAL_FIT)
+    n_i = len(GLOBAL_FIT)  # the globals of the inverse's θ; the lengths follow them in x
+    n_g = n_i + len(LENGTH_FIT)
     L = N_LOCAL
     # per run (N_LOCAL): log mv, log Iv, log v, the record's chainage shift and the body's initial
     # state (nuisances: the first sample's chainage is the log's, the state a weak prior's)
@@ -442,8 +467,8 @@ def calibrate_batch(
     mu_loc[:, :3] = [[math.log(prior_mean["mv"]), math.log(prior_mean["Iv"]), math.log(r.speed_mps)] for r in runs]
     s_loc = np.concatenate([[prior_sd["mv"] / prior_mean["mv"], prior_sd["Iv"] / prior_mean["Iv"], speed_rel_sd,
                              position_sd_m], BODY0_PRIOR_SD / BODY0_UNIT])
-    mu_g = np.log([prior_mean[k] for k in GLOBAL_FIT])
-    s_g = np.array([max(prior_sd[k] / prior_mean[k], 1e-4) for k in GLOBAL_FIT])
+    mu_g = np.log([prior_mean[k] for k in GLOBAL_FIT + LENGTH_FIT])
+    s_g = np.array([max(prior_sd[k] / prior_mean[k], 1e-4) for k in GLOBAL_FIT + LENGTH_FIT])
     mu = np.concatenate([mu_loc.ravel(), mu_g])
     P = np.concatenate([np.tile(1.0 / s_loc**2, n), 1.0 / s_g**2])
     # a step's cap: the log coordinates' (the misfit is far from quadratic beyond); the initial
@@ -471,10 +496,12 @@ def calibrate_batch(
         p = np.exp(loc[:, :3])  # (n, 3): mv, Iv, v
         body0 = loc[:, _I_BODY:] * BODY0_UNIT
         x0 = x0s + loc[:, _I_SHIFT]
-        theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob), (n, n_g))])  # INVERSE_NAMES order
+        theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob[:n_i]), (n, n_i))])  # INVERSE_NAMES order
+        Lb, Lv = np.exp(glob[n_i:])
+        offsets = wheel_offsets(Lb, Lv)
         z, lengths, dts, N_t = stage["z"], stage["lengths"], stage["dts"], stage["z"].shape[1]
         if not with_jac:
-            aps = carriage_aps_runs(theta, np.arange(n), fixed["Lb"], fixed["Lv"], z, lengths, dts,
+            aps = carriage_aps_runs(theta, np.arange(n), Lb, Lv, z, lengths, dts,
                                     stage["work"][: n * N_t * 4].reshape(n, N_t, 4), body0=body0)
             A = mapper.map_runs(aps[:, None], dts, x0, p[:, 2:3], lengths, offsets)[:, 0, 0]
             return A - A.mean(axis=(0, 1)), None, A
@@ -490,16 +517,22 @@ def calibrate_batch(
         for r0 in range(0, n, JACOBIAN_CHUNK_RUNS):
             rs = slice(r0, min(n, r0 + JACOBIAN_CHUNK_RUNS))
             c = rs.stop - r0
-            sens = carriage_aps_sensitivities(theta[rs], fixed["Lb"], fixed["Lv"], z[rs], lengths[rs], dts[rs],
+            sens = carriage_aps_sensitivities(theta[rs], Lb, Lv, z[rs], lengths[rs], dts[rs],
                                               stage["work"][: c * N_t * 4 * N_SENS].reshape(c, N_t, N_SENS, 4),
                                               body0=body0[rs], body_derivatives=with_body)[:, :rows]
             args = (dts[rs], x0[rs])
             mapped = mapper.map_runs(sens, *args, p[rs, 2:3], lengths[rs], offsets)[:, :, 0]  # (c, rows, 4, K)
             A[rs] = mapped[:, 0]
-            faster = mapper.map_runs(sens[:, :1], *args, p[rs, 2:3] * h, lengths[rs], offsets)[:, 0, 0]
             D[rs, :2] = mapped[:, 1:3]
-            np.subtract(faster, A[rs], out=D[rs, 2])
-            D[rs, 2] /= FD_LOG_STEP
+            # The speed's and lengths' columns move where each sample lands on the grid: the AP's
+            # slope there (its rate in time over the speed) times the move, analytic. (Finite
+            # differences of the mapping would not cancel along the common scale of speeds and
+            # lengths — which only stretches the consensus — and their error there read as
+            # information the data do not have.)
+            slope = mapper.interpolate(_rate(sens[:, 0], lengths[rs], dts[rs])[:, None], *args, p[rs, 2:3],
+                                       lengths[rs], offsets)[:, 0, 0] / p[rs, 2, None, None]  # (c, 4, K)
+            travel = mapper.grid[None, None] - x0[rs, None, None] - offsets[None, :, None]  # v·t, m
+            D[rs, 2] = mapper.finish(-travel * slope)
             if _I_SHIFT in active:
                 ahead, behind = (mapper.map_runs(sens[:, :1], dts[rs], x0[rs] + d, p[rs, 2:3], lengths[rs],
                                                  offsets)[:, 0, 0] for d in (SHIFT_FD_M, -SHIFT_FD_M))
@@ -507,7 +540,16 @@ def calibrate_batch(
                 D[rs, _I_SHIFT] /= 2 * SHIFT_FD_M
             if with_body:
                 np.multiply(mapped[:, 9:9 + nb], BODY0_UNIT[:, None, None], out=D[rs, _I_BODY:_I_BODY + nb])
-            D[rs, L:] = mapped[:, 3:9]
+            D[rs, L:L + n_i] = mapped[:, 3:9]
+            # The lengths' columns: the wheels' offsets move (analytic, as the speed's) and the
+            # inverse's pitch terms change (a one-sided difference: one inverse per run and length).
+            for j, moved in enumerate((np.array([Lb, -Lb, Lb, -Lb]), np.array([Lv, Lv, -Lv, -Lv]))):
+                trial = np.array([Lb, Lv])
+                trial[j] *= h
+                aps = carriage_aps_runs(theta[rs], np.arange(c), *trial, z[rs], lengths[rs], dts[rs],
+                                        body0=body0[rs])
+                inverse = mapper.map_runs(aps[:, None], *args, p[rs, 2:3], lengths[rs], offsets)[:, 0, 0]
+                D[rs, L + n_i + j] = (inverse - A[rs]) / FD_LOG_STEP + mapper.finish(-moved[None, :, None] * slope)
         return A - A.mean(axis=(0, 1)), D, A
 
     def normal_equations(e, D, JtJ=None):
@@ -574,8 +616,15 @@ def calibrate_batch(
     shift_idx = np.arange(n) * L + _I_SHIFT
     body = np.arange(n)[:, None] * L + _I_BODY + np.arange(len(BODY0_NAMES))[None]  # the runs' initial states
     theta0 = np.array([prior_mean[k] for k in INVERSE_NAMES])
-    x[2: L * n: L] += _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
-                                         mapper_for(SPEED_SEARCH_M), slack)
+    found = _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
+                               mapper_for(SPEED_SEARCH_M), slack)
+    # The wheels give each speed relative to the class's bogie spacing: v/Lv. The batch's mean of
+    # log(found / reported) is minus the spacing's log error plus the GNSS errors' mean (sd
+    # speed_rel_sd/√n): the lengths start at that scale's posterior mean under their class prior,
+    # the speeds with them.
+    scale = -float(np.mean(found)) * length_sd**2 / (length_sd**2 + speed_rel_sd**2 / n)
+    x[2: L * n: L] += found + scale
+    x[L * n + n_i:] += scale
     it = 0
     for i_stage, min_wavelength in enumerate(stages_m):
         last = i_stage == len(stages_m) - 1
@@ -642,9 +691,6 @@ def calibrate_batch(
     sd = np.sqrt(np.diag(cov))
     loc, glob = unpack(x)
     sd_loc = sd[: L * n].reshape(n, L)[:, :3].copy()
-    # The speed is measured against the bogie spacing 2·Lv (module docstring): its relative error
-    # moves every run's speed alike, outside the data's reach.
-    sd_loc[:, 2] = np.hypot(sd_loc[:, 2], prior_sd["Lv"] / prior_mean["Lv"])
     estimates = []
     for r, run in enumerate(runs):
         mean = {k: float(math.exp(loc[r, j])) for j, k in enumerate(RUN_NAMES)}
@@ -652,6 +698,6 @@ def calibrate_batch(
         hi = {k: float(math.exp(loc[r, j] + Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         estimates.append(RunEstimate(run.pass_id, mean, lo, hi, bool(at_rest[r]), float(wald[r]),
                                      float(loc[r, _I_SHIFT])))
-    globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT)}
+    globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT + LENGTH_FIT)}
     return BatchFit(estimates, globals_fit, mapper.grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
                     time.perf_counter() - t_start, cov[L * n:, L * n:].copy())
