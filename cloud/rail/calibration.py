@@ -15,10 +15,21 @@ mapped APs (the track profile profiled out, as in :mod:`cloud.road.calibration`)
 class (mean, sd) of ``mv`` and ``Iv`` from the registry and the run's GNSS speed with its relative
 error.
 
-One consensus for all four wheels makes the speed identifiable in absolute terms: the same
-rail bump reaches wheel 3 2·Lv/v after wheel 1, whatever the GNSS says (so the speed is as good as
-the bogie spacing Lv is known; its class sd is added to the speed's interval). Each run's speed is
-started from a grid search of its own wheels' agreement (:func:`_speed_from_wheels`).
+One consensus for all four wheels makes the speed identifiable against the carriage's lengths:
+the same rail bump reaches wheel 3 2·Lv/v after wheel 1, whatever the GNSS says. The lengths
+(:data:`LENGTH_FIT`) are calibrated with the batch under their class prior: a carriage whose bogie
+spacing is off its class mean would otherwise put every run's speed off by as much. The wheels'
+delays fix the ratios of the speeds and lengths; their common scale only stretches the consensus.
+The data do see that scale a little — on a wave longer than the wheelbase a bogie's pitch is the
+rail's slope and its vertical velocity v times that slope, so the accelerometer against the gyro
+reads the speed — but roughly (the misfit along the scale is bumpy at the noise's level, and
+Gauss–Newton's local curvature there claims a precision the misfit does not have), and it rests on
+the two sensors' relative scale factors, which no log calibrates. So the scale is placed by the
+anchors alone (:func:`_anchored_scale`): the GNSS speeds, whose per-run errors average out over
+the batch, and the lengths' class prior; the last stage holds the lengths there, and every speed's
+95 % interval carries that scale's sd (:func:`_anchor_sd`). Each run's speed is started from a
+grid search of its own wheels' agreement relative to the class's lengths
+(:func:`_speed_from_wheels`), the common scale from the batch mean of those against the GNSS.
 
 Beyond the thesis, the carriage's global properties (``mb, Ib, kp, cp, ks, cs``, common to every
 run) are calibrated with the batch, their class sd (~5 %) as the prior: with them fixed at the class
@@ -296,6 +307,25 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_
         if done:
             break
     return x, e, D, A, sigma2, kappa, it
+
+
+def _anchor_sd(n: int, speed_rel_sd: float, length_log_sd: np.ndarray) -> float:
+    """The log sd of the common scale of speeds and lengths that the anchors place: ``n`` GNSS
+    speeds (relative sd ``speed_rel_sd`` each) and the lengths' class prior (log sds)."""
+    return float((n / speed_rel_sd**2 + np.sum(1.0 / length_log_sd**2)) ** -0.5)
+
+
+def _anchored_scale(log_v: np.ndarray, log_lengths: np.ndarray, log_v_reported: np.ndarray,
+                    log_lengths_prior: np.ndarray, speed_rel_sd: float,
+                    length_log_sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``log_v`` (the runs' speeds) and ``log_lengths`` (Lb, Lv) moved together by the common log
+    scale λ that the anchors alone place: the weighted mean of the reported speeds' and the class
+    lengths' offsets from them (GNSS errors independent per run, sd ``speed_rel_sd``; the lengths'
+    prior log sds ``length_log_sd``). Their ratios — what the wheels' delays measure — are kept."""
+    w_v, w_l = 1.0 / speed_rel_sd**2, 1.0 / np.asarray(length_log_sd) ** 2
+    lam = (w_v * np.sum(log_v_reported - log_v) + np.sum(w_l * (log_lengths_prior - log_lengths))) \
+        / (w_v * len(log_v) + np.sum(w_l))
+    return log_v + lam, log_lengths + lam
 
 
 def _rate(aps: np.ndarray, lengths: np.ndarray, dts: np.ndarray) -> np.ndarray:
@@ -630,6 +660,14 @@ def calibrate_batch(
         last = i_stage == len(stages_m) - 1
         mapper = mapper_for(min_wavelength)
         stage = stage_channels(min_wavelength, final_decimation if last else None)
+        if last:
+            # The common scale of speeds and lengths as the anchors alone place it (module
+            # docstring), the ratios the data found kept; the last stage holds the lengths there.
+            lengths_at = slice(L * n + n_i, None)
+            x[2: L * n: L], x[lengths_at] = _anchored_scale(x[2: L * n: L], x[lengths_at], mu[2: L * n: L],
+                                                            mu_g[n_i:], speed_rel_sd, s_g[n_i:])
+            mu[lengths_at] = x[lengths_at]
+            P[lengths_at] = 1.0 / REST_SD**2
         # The records' chainage shifts are fitted in the middle stages only. The first holds them
         # where the logs put them: with the run properties still at the class means its shifts take
         # up misfit (decimetre steps on exact chainages) and cost iterations, and its waves are long
@@ -681,6 +719,10 @@ def calibrate_batch(
     meat = noise_information(e, D, L, active) / sigma2**2 + np.diag(P) + Q
     H_inv = np.linalg.inv(H)
     cov = H_inv @ meat @ H_inv
+    # The lengths were held at the anchored scale: their uncertainty is that scale's (the ratio of
+    # the two the data fix far better), and it moves every speed alike.
+    anchor_sd = _anchor_sd(n, speed_rel_sd, s_g[n_i:])
+    cov[L * n + n_i:, L * n + n_i:] = anchor_sd**2
     if held_globals_cov is not None:
         # The runs' estimates given the held globals, plus the held values' error propagated through
         # their sensitivity to them: Σ_loc = H_ll⁻¹ M_ll H_ll⁻¹ + S Σ_g Sᵀ with S = −H_ll⁻¹ H_lg.
@@ -691,6 +733,7 @@ def calibrate_batch(
     sd = np.sqrt(np.diag(cov))
     loc, glob = unpack(x)
     sd_loc = sd[: L * n].reshape(n, L)[:, :3].copy()
+    sd_loc[:, 2] = np.hypot(sd_loc[:, 2], anchor_sd)
     estimates = []
     for r, run in enumerate(runs):
         mean = {k: float(math.exp(loc[r, j])) for j, k in enumerate(RUN_NAMES)}
