@@ -479,13 +479,18 @@ def calibrate_batch(
     offsets = wheel_offsets(fixed["Lb"], fixed["Lv"])
     # The speeds' search range: the GNSS error and the bogie spacing's (which moves every speed alike)
     length_sd = prior_sd["Lv"] / prior_mean["Lv"]
+    # The lengths are calibrated where the class leaves them looser than the batch's GNSS speeds
+    # can place the common scale; declared tighter (design drawings), they are held at the class
+    # means, and the scale is theirs.
+    fit_lengths = max(length_sd, prior_sd["Lb"] / prior_mean["Lb"]) * math.sqrt(n) >= speed_rel_sd
     slack = max(4 * speed_rel_sd, 3 * math.hypot(speed_rel_sd, length_sd))
     # Trial lengths move the wheels: the window keeps clear of where the longest could put them.
-    grid = window(runs, offsets * (1 + 3 * length_sd), window_m, speed_slack=slack)
+    reach = offsets * (1 + 3 * length_sd) if fit_lengths else offsets
+    grid = window(runs, reach, window_m, speed_slack=slack)
     # Samples past the last the window can need (trailing wheel, slowest trial speed) are not
     # inverted: the inverse is causal, and a decimated stage's anti-alias filter is applied to the
     # whole record first.
-    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min() * (1 + 3 * length_sd))
+    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - reach.min())
                                               / (r.speed_mps * (1 - slack)) / r.dt)) + 2) for r in runs]
     mapper = stage = None
     n_i = len(GLOBAL_FIT)  # the globals of the inverse's θ; the lengths follow them in x
@@ -501,6 +506,9 @@ def calibrate_batch(
     s_g = np.array([max(prior_sd[k] / prior_mean[k], 1e-4) for k in GLOBAL_FIT + LENGTH_FIT])
     mu = np.concatenate([mu_loc.ravel(), mu_g])
     P = np.concatenate([np.tile(1.0 / s_loc**2, n), 1.0 / s_g**2])
+    lengths_at = slice(L * n + n_i, None)
+    if not fit_lengths:
+        P[lengths_at] = 1.0 / REST_SD**2
     # a step's cap: the log coordinates' (the misfit is far from quadratic beyond); the initial
     # state enters linearly
     max_step = np.concatenate([np.tile(np.r_[np.full(3, 0.2), 1.0, np.full(len(BODY0_NAMES), np.inf)], n),
@@ -573,7 +581,8 @@ def calibrate_batch(
             D[rs, L:L + n_i] = mapped[:, 3:9]
             # The lengths' columns: the wheels' offsets move (analytic, as the speed's) and the
             # inverse's pitch terms change (a one-sided difference: one inverse per run and length).
-            for j, moved in enumerate((np.array([Lb, -Lb, Lb, -Lb]), np.array([Lv, Lv, -Lv, -Lv]))):
+            D[rs, L + n_i:] = 0.0
+            for j, moved in enumerate((np.array([Lb, -Lb, Lb, -Lb]), np.array([Lv, Lv, -Lv, -Lv])) if fit_lengths else ()):
                 trial = np.array([Lb, Lv])
                 trial[j] *= h
                 aps = carriage_aps_runs(theta[rs], np.arange(c), *trial, z[rs], lengths[rs], dts[rs],
@@ -652,7 +661,7 @@ def calibrate_batch(
     # log(found / reported) is minus the spacing's log error plus the GNSS errors' mean (sd
     # speed_rel_sd/√n): the lengths start at that scale's posterior mean under their class prior,
     # the speeds with them.
-    scale = -float(np.mean(found)) * length_sd**2 / (length_sd**2 + speed_rel_sd**2 / n)
+    scale = -float(np.mean(found)) * length_sd**2 / (length_sd**2 + speed_rel_sd**2 / n) if fit_lengths else 0.0
     x[2: L * n: L] += found + scale
     x[L * n + n_i:] += scale
     it = 0
@@ -660,10 +669,9 @@ def calibrate_batch(
         last = i_stage == len(stages_m) - 1
         mapper = mapper_for(min_wavelength)
         stage = stage_channels(min_wavelength, final_decimation if last else None)
-        if last:
+        if last and fit_lengths:
             # The common scale of speeds and lengths as the anchors alone place it (module
             # docstring), the ratios the data found kept; the last stage holds the lengths there.
-            lengths_at = slice(L * n + n_i, None)
             x[2: L * n: L], x[lengths_at] = _anchored_scale(x[2: L * n: L], x[lengths_at], mu[2: L * n: L],
                                                             mu_g[n_i:], speed_rel_sd, s_g[n_i:])
             mu[lengths_at] = x[lengths_at]
@@ -720,9 +728,17 @@ def calibrate_batch(
     H_inv = np.linalg.inv(H)
     cov = H_inv @ meat @ H_inv
     # The lengths were held at the anchored scale: their uncertainty is that scale's (the ratio of
-    # the two the data fix far better), and it moves every speed alike.
-    anchor_sd = _anchor_sd(n, speed_rel_sd, s_g[n_i:])
-    cov[L * n + n_i:, L * n + n_i:] = anchor_sd**2
+    # the two the data fix far better), and it moves every speed alike. Held at the class means,
+    # it is the class's: the bogie spacing's sd (the speeds are measured against it).
+    if fit_lengths:
+        anchor_sd = _anchor_sd(n, speed_rel_sd, s_g[n_i:])
+        cov[lengths_at, lengths_at] = anchor_sd**2
+    elif held_globals_cov is None:
+        anchor_sd = float(s_g[-1])
+        cov[lengths_at, lengths_at] = np.diag(s_g[n_i:] ** 2)
+    else:  # held at another batch's estimate: its uncertainty
+        anchor_sd = float(math.sqrt(np.asarray(held_globals_cov)[-1, -1]))
+        cov[lengths_at, lengths_at] = np.asarray(held_globals_cov)[n_i:, n_i:]
     if held_globals_cov is not None:
         # The runs' estimates given the held globals, plus the held values' error propagated through
         # their sensitivity to them: Σ_loc = H_ll⁻¹ M_ll H_ll⁻¹ + S Σ_g Sᵀ with S = −H_ll⁻¹ H_lg.
