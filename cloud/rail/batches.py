@@ -281,7 +281,7 @@ class RailViewRows:
         return sorted({vid for vid, _, _ in self.runs})
 
 
-def _stiffness(bridge, influence: BogieInfluence, aps: list, span: tuple[float, float],
+def span_stiffness(bridge, influence: BogieInfluence, aps: list, span: tuple[float, float],
                resamples: int = STIFFNESS_RESAMPLES) -> tuple[float, float, float]:
     """The span's E·I over its design (one factor): the design's static line of the bogie
     (:func:`cloud.rail.bridge.design_scale`) over the batch's load-regression line, by area; the 95 %
@@ -444,13 +444,13 @@ class RailBatches:
             bs.reference = healthy.mril
             if len(current) < self.bridge_min_runs:
                 bs.latest, bs.n_runs = healthy.mril, len(base)
-                bs.stiffness = _stiffness(bridge, healthy, [aps[i] for i in base], span)
+                bs.stiffness = span_stiffness(bridge, healthy, [aps[i] for i in base], span)
                 return None
             reg = registered_runs([aps[i] for i in current], *span, reference=healthy.difference_line)
             latest = influence_of_aps(reg, *span)
             ind = damage_from_batch_means(pooled_healthy(healthy, [healthy, latest]), latest)
             bs.latest, bs.n_runs = latest.mril, len(current)
-            bs.stiffness = _stiffness(bridge, latest, reg, span)
+            bs.stiffness = span_stiffness(bridge, latest, reg, span)
         except (ValueError, np.linalg.LinAlgError) as e:
             bs.error = str(e)
             log.warning("rail bridge %s: %s", bridge.id, e)

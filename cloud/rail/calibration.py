@@ -236,6 +236,27 @@ def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, 
     return steps[np.argmin(cost, axis=1)]
 
 
+def _wheelbase_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, fixed: dict[str, float],
+                           log_speeds: np.ndarray, mapper: "Mapper", slack: float) -> float:
+    """log(Lb / class Lb) at which every run's four wheels agree best at its speed ``log_speeds``
+    (log of the reported), Lv at the class's (global grid search, as :func:`_speed_from_wheels`):
+    a wheelbase off its class mean by more than a short wave's basin would start Gauss–Newton
+    where the wheels' delays are matched wrongly (the speed search relative to the class's Lv
+    finds v/Lv whatever the wheelbase; this finds Lb/Lv)."""
+    n = len(runs)
+    aps = carriage_aps_runs(np.repeat(theta[None], n, axis=0), np.arange(n), fixed["Lb"], fixed["Lv"],
+                            stage["z"], stage["lengths"], stage["dts"])[:, None]
+    v = np.array([r.speed_mps for r in runs]) * np.exp(log_speeds)
+    x0 = np.array([r.x0_m for r in runs])
+    steps = np.linspace(-slack, slack, int(round(2 * slack / SPEED_STEP)) + 1)
+    cost = []
+    for s in steps:
+        A = mapper.map_runs(aps, stage["dts"], x0, v[:, None], stage["lengths"],
+                            wheel_offsets(fixed["Lb"] * math.exp(s), fixed["Lv"]))[:, 0, 0]  # (n, 4, K)
+        cost.append(float(((A - A.mean(axis=1, keepdims=True)) ** 2).sum()))
+    return float(steps[int(np.argmin(cost))])
+
+
 def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1, final_jacobian=True,
                   max_step=0.2, Q=None):
     """Levenberg-damped Gauss–Newton on ‖e(x)‖²/(2σ²) + ½‖x − μ‖²_P, σ² re-estimated each step;
@@ -664,6 +685,9 @@ def calibrate_batch(
     scale = -float(np.mean(found)) * length_sd**2 / (length_sd**2 + speed_rel_sd**2 / n) if fit_lengths else 0.0
     x[2: L * n: L] += found + scale
     x[L * n + n_i:] += scale
+    if fit_lengths:
+        x[L * n + n_i] += _wheelbase_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, found,
+                                                 mapper_for(SPEED_SEARCH_M), 3 * s_g[n_i])
     it = 0
     for i_stage, min_wavelength in enumerate(stages_m):
         last = i_stage == len(stages_m) - 1
