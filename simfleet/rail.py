@@ -26,6 +26,11 @@ healthy span's, so the loss against the design drawings (the "effective" level) 
 Each state's batch is a different set of journeys (``RailScenario.batch``: other run properties and
 sensor noise; the same carriage, track and span), as the thesis's "data from 50 different train
 journeys" for each state.
+
+``rail-track-prior`` and ``rail-bridge-prior-loss0/10`` are a second kind of carriage: its lengths
+are known no better than its other globals (the class declares ±5 % for all), and it is drawn with
+its bogie spacing 6.5 % short (``RailScenario.carriage_error``), so every speed the wheels' delays
+give against the class's spacing is 6.8 % off until the batch calibrates the lengths.
 """
 
 from __future__ import annotations

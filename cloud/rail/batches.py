@@ -26,7 +26,8 @@ the runs. The bridge's healthy baseline is the set of runs of the first session 
 crossed it: while that session lasts it grows with every fit; restored from the cloud's state in a
 later session (:meth:`RailBatches.restore_baseline`; the daemon journals
 :attr:`RailStep.baselines`) it is fixed, and the runs that are not in it are the current batch, read
-against it: D1/D2 (eq. 3.24) from the change of the batch means with the healthy line pooled over
+against it (a daemon restarted mid-session is a later session too: the state does not say whether a
+batch was complete): D1/D2 (eq. 3.24) from the change of the batch means with the healthy line pooled over
 both batches (:func:`cloud.rail.bridge.damage_from_batch_means`, :func:`~cloud.rail.bridge.pooled_healthy`),
 and the alarm. (The bridge element posterior of :mod:`cloud.bridge.monitor` models single-contact
 vehicles on a rigid deck, not a carriage on ballasted track: the rail readings take its place in
