@@ -50,7 +50,7 @@ from cloud.bridge.mril import DamageIndicators, MrIl, damage_indicators
 from cloud.rail.bridge import (calibration_draw, calibration_sds, damage_from_batch_means, design_scale,
                                influence_of_aps, pooled_healthy, readable_line, registered_runs, resampled_runs,
                                run_aps)
-from cloud.rail.calibration import GLOBAL_FIT, calibrate_batch
+from cloud.rail.calibration import GLOBAL_FIT, LENGTH_FIT, calibrate_batch
 from cloud.rail.records import RailRun
 from cloud.reference.rail_cross_entropy import cross_entropy_batch
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
@@ -220,8 +220,9 @@ def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str,
     # (v2: the calibration's inverse at γ = 0.5 and the held globals' covariance; v3: its low-pass in
     # space, after the inverse; v4: each run's initial state and chainage shift; v5: the shift reported;
     # v6: a shift consistent with the log's chainage held there; v7: sandwich intervals (the residual's own
-    # noise covariance), which the damaged batches' held globals carry; older caches are not reused)
-    cached = d / ("fit-v7.pkl" if carriage_globals is None else "fit-healthy-globals-v7.pkl")
+    # noise covariance), which the damaged batches' held globals carry; v8: the lengths Lb, Lv calibrated
+    # too; older caches are not reused)
+    cached = d / ("fit-v8.pkl" if carriage_globals is None else "fit-healthy-globals-v8.pkl")
     runs, cls, bridge = load_runs(d)
     if cached.exists():
         with open(cached, "rb") as f:
@@ -229,8 +230,8 @@ def analyse_batch(d: Path, state: int, profile: int, carriage_globals: dict[str,
     else:
         mean, std = dict(cls.mean), dict(cls.std)
         if carriage_globals is not None:
-            mean.update({k: carriage_globals[k] for k in GLOBAL_FIT})
-            std.update({k: 0.0 for k in GLOBAL_FIT})  # held (calibrate_batch floors the sd at 1e-4 relative)
+            mean.update({k: carriage_globals[k] for k in GLOBAL_FIT + LENGTH_FIT})
+            std.update({k: 0.0 for k in GLOBAL_FIT + LENGTH_FIT})  # held (calibrate_batch floors the sd at 1e-4 relative)
         fit = calibrate_batch(runs, mean, std, window_m=(0.0, bridge.start_chainage_m - CALIBRATION_MARGIN_M),
                               held_globals_cov=carriage_globals_cov)
         with open(cached, "wb") as f:

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from cloud.bridge.mril import damage_indicators
+from cloud.rail.batches import span_stiffness
 from cloud.rail.bridge import (MODELS, difference_shift, bogie_influence, damage_from_batch_means, influence_of_aps,
-                                pooled_healthy, run_aps)
+                                pooled_healthy, registered_runs, run_aps)
 from cloud.rail.calibration import calibrate_batch
 from simfleet.rail import RailBridgeSpec
 from simfleet.reproduce_rail import load_runs, true_effective_levels
@@ -21,9 +22,9 @@ from simfleet.sim import generate
 N_RUNS = 10
 
 
-def calibrated_batch(tmp_path, name, loss):
+def calibrated_batch(tmp_path, name, loss, scenario="rail-bridge-state7-profile1"):
     """A quick batch (runs, its calibration off the bridge, class, bridge) and its truth (read only to score)."""
-    scenario = dataclasses.replace(SCENARIOS["rail-bridge-state7-profile1"], route_length_m=70.0, batch=0,
+    scenario = dataclasses.replace(SCENARIOS[scenario], route_length_m=70.0, batch=0,
                                    bridge=RailBridgeSpec(start_m=40.2, global_loss=loss))  # same runs for both
     generate(scenario, tmp_path / name, seed=3, passes=N_RUNS, workers=2, progress=False)
     runs, cls, bridge = load_runs(tmp_path / name)
@@ -163,3 +164,50 @@ def test_true_effective_level_of_a_uniform_loss_is_the_loss():
     weak_middle = [ei * (0.7 if 6 <= i <= 10 else 1.0) for i in range(spec.n_elements)]
     d1, d2 = true_effective_levels({"bridge": {"span_m": spec.span_m, "EI": weak_middle}}, x)
     assert 0 < d2 < 30 and d1 > d2  # a weak middle shows more at mid-span than in the area
+
+
+@pytest.fixture(scope="module")
+def prior_batches(tmp_path_factory):
+    """The rail-bridge-prior carriage (globals and lengths from a ±5 % class prior: seed 3's bogie
+    spacing Lv 6.5 % short, its wheelbase Lb 6.5 % long) in quick batches (10 runs, 40 m approach),
+    healthy and 13 %-damaged (the same runs)."""
+    tmp = tmp_path_factory.mktemp("rail_bridge_prior")
+    return (calibrated_batch(tmp, "healthy", 0.0, "rail-bridge-prior-loss0"),
+            calibrated_batch(tmp, "damaged", 0.13, "rail-bridge-prior-loss0"))
+
+
+def test_a_carriage_off_its_class_lengths_calibrates_before_the_bridge(prior_batches):
+    """Off the bridge (a 24 m window), the lengths are found: Lb/Lv from the wheels' agreement (a grid
+    search, then Gauss–Newton; from the class's ratio, 14 % off, Gauss–Newton alone settled 3 % off with
+    every global 5–11 % off), the common scale from the GNSS mean (10 runs: sd 0.6 %). Measured (seed
+    3): Lb +0.3 %, Lv +0.7 %, speeds +0.65 %, globals within 2.6 %."""
+    (runs, fit, cls, bridge), truth = prior_batches[0]
+    car = truth["vehicles"]["car-0001"]
+    gnss = float(np.mean([np.log(p["v_gnss"] / p["v"]) for p in truth["passes"]]))
+    # the wheelbase to the wheels' delays, the spacing (the common scale) to the GNSS mean's sd
+    assert abs(np.log(fit.globals_["Lb"] / fit.globals_["Lv"] * car["Lv"] / car["Lb"])) < 0.01
+    assert abs(np.log(fit.globals_["Lv"] / car["Lv"]) - gnss) < 0.005
+    assert max(abs(fit.globals_[k] / car[k] - 1) for k in ("mb", "Ib", "kp", "cp", "ks", "cs")) < 0.05
+
+
+@pytest.mark.xfail(strict=True, reason="open: with the lengths calibrated (speeds +0.65 %, the GNSS mean's: the "
+                   "span ~30 cm off in chainage; per-run masses within 15 %) the quick batches' load regression is "
+                   "no deflection line; with the lengths held at the truth (speeds exact, masses within 8 %) the "
+                   "same batches read 15.4/15.7 %. The 28-run batches of the full world read within a point")
+def test_a_carriage_off_its_class_lengths_reads_the_bridge(prior_batches):
+    """The 13 % loss read as the daemon reads it (every run registered, the healthy line pooled over
+    both batches), and one batch's stiffness interval holding the truth. Measured (seed 3): D1/D2
+    42.0/57.8 %; stiffness 7.5 [0.41, 140] (true 1.01): the line's area is near zero."""
+    ((runs, fit, cls, bridge), truth), ((d_runs, d_fit, _, _), _) = prior_batches
+    span = (bridge.start_chainage_m, bridge.span_m)
+    h_aps = registered_runs(run_aps(runs, fit, cls.mean, "carriage"), *span)
+    healthy = influence_of_aps(h_aps, *span)
+    d_aps = registered_runs(run_aps(d_runs, d_fit, cls.mean, "carriage"), *span, reference=healthy.difference_line)
+    damaged = influence_of_aps(d_aps, *span)
+    ind = damage_from_batch_means(pooled_healthy(healthy, [healthy, damaged]), damaged)
+    mean, lo, hi = span_stiffness(bridge, healthy, h_aps, span)
+    true_ratio = float(np.mean(truth["bridge"]["stiffness_ratio"]))
+    print(f"D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} %; stiffness {mean:.3f} [{lo:.3f}, {hi:.3f}], true {true_ratio:.3f}")
+    # ±5 points: the old world's bound on these quick batches (the blind test's 50 runs: driveby reproduce rail)
+    assert abs(ind.D1_pct - 13.0) < 5.0 and abs(ind.D2_pct - 13.0) < 5.0, ind
+    assert lo <= true_ratio <= hi

@@ -151,7 +151,7 @@ def test_held_globals_carry_their_uncertainty(batch, fit):
     intervals: given the globals, plus their error propagated — on the batch the covariance came
     from, the marginal interval of the fit with the globals free. Measured (seed 5, 4 runs): log
     width of mv's 95 % interval 0.078 free, 0.022 held as exact, 0.078 held with the covariance
-    (Iv 0.079 / 0.020 / 0.079); the speed's does not depend on them."""
+    (Iv 0.079 / 0.020 / 0.079); the speed's carries the held bogie spacing's error the same way."""
     _, _, site, runs = batch
     cls = site.vehicle_class("carriage")
     mean, sd = dict(cls.mean), dict(cls.std)
@@ -163,11 +163,10 @@ def test_held_globals_carry_their_uncertainty(batch, fit):
     def width(f, k):
         return np.array([np.log(r.hi95[k] / r.lo95[k]) for r in f.runs])
 
-    for k in ("mv", "Iv"):
+    for k in ("mv", "Iv", "v"):
         assert all(a.mean[k] == b.mean[k] for a, b in zip(exact.runs, carried.runs))  # the same point
         assert np.all(width(carried, k) > 2.5 * width(exact, k)), k
         np.testing.assert_allclose(width(carried, k), width(fit, k), rtol=0.02)
-    np.testing.assert_allclose(width(carried, "v"), width(exact, "v"), rtol=0.05)
 
 
 def _prior_explained_log_scale_error(truth: dict, cls) -> float:
@@ -448,3 +447,46 @@ def test_noise_information_is_the_profiled_jacobians_quadratic_form():
     assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
     inactive = [r * L + j for r in range(n) for j in range(L) if j not in active]
     assert not got[inactive].any() and not got[:, inactive].any()
+
+
+@pytest.fixture(scope="module")
+def prior_batches(tmp_path_factory):
+    """The rail-track-prior carriage (globals and lengths drawn from a ±5 % class prior, its bogie
+    spacing 6.5 % short): three seeds of 8 runs over 100 m (the full world is 50 over 150 m)."""
+    out = []
+    for seed in (0, 1, 2):
+        d = tmp_path_factory.mktemp(f"prior{seed}")
+        generate(dataclasses.replace(SCENARIOS["rail-track-prior"], route_length_m=100.0), d, seed=seed, passes=8,
+                 workers=2, progress=False)
+        runs, cls, _ = load_runs(d)
+        out.append((json.loads((d / "truth.json").read_text()), runs, calibrate_batch(runs, cls.mean, cls.std)))
+    return out
+
+
+def test_a_carriage_off_its_class_lengths_calibrates(prior_batches):
+    """With the bogie spacing 6.5 % off its class mean (held at the class, the speeds were 6.8 % off
+    and the masses 14 %), the lengths are calibrated with the batch: the wheels' delays fix every
+    speed against them, and the common scale is where the GNSS speeds' mean and the lengths' prior
+    put it — so each batch's speed error is its GNSS errors' mean (sd 2 %/√8 here), not the bogie
+    spacing's. Measured (seeds 0/1/2): speed error −0.09/+0.50/−0.83 % (the GNSS means −0.11/+0.45/−1.00 %),
+    median |error| over the 24 runs mv 2.4 %, Iv 1.8 %, v 0.50 %; 95 % coverage v 1.00, mv 0.75, Iv 0.71."""
+    err, inside = {k: [] for k in ("mv", "Iv", "v")}, {k: [] for k in ("mv", "Iv", "v")}
+    for truth, runs, fit in prior_batches:
+        true = {p["pass_id"]: p for p in truth["passes"]}
+        car = truth["vehicles"]["car-0001"]
+        assert car["Lv"] / 9.5 - 1 == pytest.approx(-0.065)  # the world's premise
+        gnss = np.mean([math.log(p["v_gnss"] / p["v"]) for p in truth["passes"]])
+        v_err = np.array([math.log(r.mean["v"] / true[r.pass_id]["v"]) for r in fit.runs])
+        # The scale is the GNSS mean's (pulled a little towards the class lengths: their prior's
+        # weight is (2 %/√8)² / 5 %² of the mean's), and the runs' ratios the data's.
+        assert abs(v_err.mean() - gnss) < 0.03 * abs(0.065) + 0.001, (v_err.mean(), gnss)
+        assert np.ptp(v_err) < 0.001
+        assert abs(math.log(fit.globals_["Lv"] / car["Lv"]) - v_err.mean()) < 0.001
+        for k in err:
+            err[k] += [abs(r.mean[k] / true[r.pass_id][k] - 1) for r in fit.runs]
+            inside[k] += [r.lo95[k] <= true[r.pass_id][k] <= r.hi95[k] for r in fit.runs]
+    print({k: float(np.median(v)) for k, v in err.items()}, {k: float(np.mean(v)) for k, v in inside.items()})
+    assert np.median(err["mv"]) < 0.03 and np.median(err["Iv"]) < 0.05  # the issue's goals
+    # Coverage over 24 runs of 3 batches (their errors share each batch's common scale: few
+    # independent draws), so a bound that guards a regression, not the nominal 0.95.
+    assert all(np.mean(v) >= 0.6 for v in inside.values()), {k: np.mean(v) for k, v in inside.items()}

@@ -512,6 +512,9 @@ class Cloud:
                 agg.drop_held(slot)
             else:
                 agg.replace_held(slot, seg)
+        for payload in step.baselines:  # durable: a later session reads its runs against it
+            if self.record is not None:
+                self.record("rail_baseline", payload)
         for alarm in step.alarms:
             self.publish(keys.alarm_key(self.net, alarm.bridge_id), alarm.encode())
             log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
@@ -571,6 +574,8 @@ class Cloud:
             tables["bridge_summary"] = bridge_summary_table(self.bridges.summary_rows())
         if self.rail is not None and self.rail.bridge_rows():  # rail batches' D1/D2 in place of a bridge's road row
             tables["bridge_summary"] = bridge_summary_table(self.rail.bridge_rows(self.bridges.summary_rows()))
+        if self.rail is not None and self.rail.element_rows():  # and their span stiffness in place of its elements
+            tables["bridge_elements"] = bridge_elements_table(self.rail.element_rows(self.bridges.element_rows()))
         if "bridge_summary" in tables:
             tables["bridge_summary"] = bridges_with_coordinates(tables["bridge_summary"], self.site)
         written = write_export(out_dir, tables)

@@ -12,6 +12,8 @@ These kinds of record rebuild the whole state, because everything else is a func
   :mod:`cloud.daemon.epochs`),
 * ``alarm`` — a bridge alarm (raised or cleared) the cloud published: a restarted cloud knows which
   alarms stand and does not raise them again.
+* ``rail_baseline`` — a rail bridge's healthy baseline (the runs it was read from,
+  :meth:`cloud.rail.batches.RailBatches.restore_baseline`): a later session compares its runs with it.
 
 Replaying them in order through the same handlers (:meth:`~cloud.daemon.core.Cloud.on_segment`,
 :meth:`~cloud.daemon.core.Cloud.on_done`, the calibrator's ``restore``) gives the same aggregator state and the same exact posteriors (up to
@@ -35,6 +37,7 @@ from cloud.daemon.journal import Journal, Record
 log = logging.getLogger("driveby.cloud.durable")
 
 AP, DONE, CALIB, CALIBRATOR, EPOCH, ALARM = "ap", "done", "calib", "calibrator", "epoch", "alarm"
+RAIL_BASELINE = "rail_baseline"
 #: Compaction policy (the defaults of :class:`Durability`). A snapshot rewrites the whole live state
 #: (every held segment), holding the serve loop for the while, and only pays where records have
 #: become garbage (superseded segments, rejected or duplicate input). So the daemon compacts when the
@@ -71,6 +74,12 @@ def replay(cloud, records: Iterable[Record]) -> int:
                 cloud.restore_alarm(r.payload)
             except (DecodeError, ValueError) as e:
                 log.warning("journal: alarm record %d not restored: %s", r.seq, e)
+        elif r.kind == RAIL_BASELINE:
+            if cloud.rail is not None:
+                try:
+                    cloud.rail.restore_baseline(r.payload)
+                except (ValueError, KeyError, TypeError) as e:
+                    log.warning("journal: rail baseline %d not restored: %s", r.seq, e)
         elif r.kind == EPOCH:
             if cloud.calibrator is not None:
                 try:
@@ -108,6 +117,9 @@ def compacted(cloud) -> Iterator[tuple[str, str, bytes]]:
         yield EPOCH, "", json.dumps(cloud.epoch_state(order=True)).encode()
     for payload in cloud.alarms.values():
         yield ALARM, "", payload
+    if cloud.rail is not None:
+        for payload in cloud.rail.baseline_records():
+            yield RAIL_BASELINE, "", payload
     agg = cloud.aggregator
     # Streamed: spilled segments go out as the wire payloads they are stored as (no decoding), and
     # nothing here holds more than one record at a time.

@@ -17,11 +17,21 @@ place of the edge's version — the cloud re-maps, as it does for chainage align
 belong to that run alone (a ``calib/<vehicle>`` message sets the properties of passes to come), and
 the cloud has everything it needs.
 
-A registry bridge on the route gets, per monitoring batch of runs (``BRIDGE_BATCH_RUNS``), the
-leading bogie's MR-IL per unit wheel load (:func:`cloud.rail.bridge.bogie_influence`, wheel loads
-from the calibrated masses) and D1/D2 (eq. 3.24) of the latest batch against the first (the bridge
-element-posterior of :mod:`cloud.bridge.monitor` models single-contact vehicles on a rigid deck, not a
-carriage on ballasted track, so the rail indicators take its place in the bridge summary and alarm).
+A registry bridge on the route gets, from every fitted batch, the leading bogie's MR-IL per unit
+wheel load (:func:`cloud.rail.bridge.influence_of_aps`, wheel loads from the calibrated masses,
+every run registered on the wheels' difference beside the span) and, from it, the span's stiffness
+against its design drawings: one factor for the whole span (:func:`cloud.rail.bridge.design_scale`;
+the bogie's line on a short span does not resolve elements), with a 95 % interval from resampling
+the runs. The bridge's healthy baseline is the set of runs of the first session (daemon run) that
+crossed it: while that session lasts it grows with every fit; restored from the cloud's state in a
+later session (:meth:`RailBatches.restore_baseline`; the daemon journals
+:attr:`RailStep.baselines`) it is fixed, and the runs that are not in it are the current batch, read
+against it (a daemon restarted mid-session is a later session too: the state does not say whether a
+batch was complete): D1/D2 (eq. 3.24) from the change of the batch means with the healthy line pooled over
+both batches (:func:`cloud.rail.bridge.damage_from_batch_means`, :func:`~cloud.rail.bridge.pooled_healthy`),
+and the alarm. (The bridge element posterior of :mod:`cloud.bridge.monitor` models single-contact
+vehicles on a rigid deck, not a carriage on ballasted track: the rail readings take its place in
+the bridge summary, elements and alarm.)
 
 Transport-free, like :class:`~cloud.bridge.monitor.BridgeMonitor`: :meth:`RailBatches.step` takes the
 aggregator's passes and stored segments and returns a :class:`RailStep` — the re-keyed segments
@@ -36,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import json
 import logging
 import math
 from collections.abc import Callable, Mapping
@@ -53,7 +64,8 @@ from shared.vehicles import vehicle_from_params
 
 from cloud.bridge.mril import MrIl, damage_indicators
 from cloud.bridge.monitor import CLEARED
-from cloud.rail.bridge import bogie_influence
+from cloud.rail.bridge import (BogieInfluence, damage_from_batch_means, design_scale, influence_of_aps, pooled_healthy,
+                               readable_line, registered_runs, resampled_runs, run_aps)
 from cloud.rail.calibration import FIXED, RUN_NAMES, BatchFit, calibrate_batch
 from cloud.rail.records import RailRun
 
@@ -62,9 +74,12 @@ log = logging.getLogger("driveby.cloud.rail")
 CALIBRATED_MODELS = ("carriage",)  # the batch method is the carriage's (4 wheels, bogie spacing)
 MIN_RUNS = 4  # fewer runs do not calibrate a batch (speed, masses and globals from their agreement)
 REFIT_GROWTH = 1.5  # while streaming, a batch is fitted again once it has this many times the runs
-#: Bridges: runs per monitoring batch (the thesis's batches are of 50); the vehicle's first complete
-#: batch over a bridge is its reference (taken as healthy), and the latest complete one is compared.
-BRIDGE_BATCH_RUNS = 25
+#: Bridges: the fewest runs a bridge reading is made from (a load regression over the runs'
+#: masses; the thesis's batches are of 50).
+BRIDGE_MIN_RUNS = MIN_RUNS
+#: Resamples of a batch's runs for its stiffness interval (:meth:`RailBatches._bridge`).
+STIFFNESS_RESAMPLES = 40
+Z95 = 1.959963984540054
 #: D1 (% stiffness loss, eq. 3.24) at which a rail bridge is alarmed: the thesis's blind test finds
 #: damage levels within ~2 points, so 5 % is well clear of its error and below its damaged states'.
 BRIDGE_ALARM_PCT = 5.0
@@ -170,16 +185,24 @@ class BatchState:
 
 @dataclasses.dataclass
 class RailBridgeState:
-    """A registry bridge under a carriage's batches: its reference and latest bogie MR-IL, D1/D2."""
+    """A registry bridge under a carriage's batches: its healthy baseline and latest bogie MR-IL,
+    the span's stiffness against its design, D1/D2."""
 
     bridge_id: str
     vehicle_id: str = ""
-    reference: MrIl | None = None
-    latest: MrIl | None = None
-    n_runs: int = 0  # runs of the latest batch
+    #: The baseline's runs (pass ids); ``sealed``: restored from an earlier session, so fixed (the
+    #: session that sets it extends it with every fit).
+    baseline: frozenset = frozenset()
+    sealed: bool = False
+    reference: MrIl | None = None  # the baseline's line
+    latest: MrIl | None = None  # the current batch's line (the baseline's while there is no other)
+    n_runs: int = 0  # runs of the latest reading
     d1_pct: float = float("nan")
     d2_pct: float = float("nan")
     damaged: bool = False
+    #: The latest reading's span stiffness over its design E·I (mean, 95 % interval): one factor for
+    #: every element.
+    stiffness: tuple[float, float, float] | None = None
     error: str = ""
 
     def summary_row(self) -> dict:
@@ -187,6 +210,11 @@ class RailBridgeState:
         mid = self.latest.midspan() if self.latest is not None else float("nan")
         return dict(bridge_id=self.bridge_id, n_passes=self.n_runs, D1_pct=self.d1_pct, D2_pct=self.d2_pct,
                     midspan_mril=mid, damaged=self.damaged)
+
+    def baseline_record(self) -> bytes:
+        """The baseline as the cloud's state keeps it (:meth:`RailBatches.restore_baseline`)."""
+        return json.dumps({"bridge_id": self.bridge_id, "vehicle_id": self.vehicle_id,
+                           "passes": sorted(self.baseline)}).encode()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,6 +230,9 @@ class RailStep:
     replacements: dict = dataclasses.field(default_factory=dict)
     alarms: tuple[Alarm, ...] = ()
     fitted: tuple[tuple[str, str], ...] = ()
+    #: Rail bridges' baselines that changed (:meth:`RailBridgeState.baseline_record`), for the cloud's
+    #: durable state.
+    baselines: tuple[bytes, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -251,6 +282,29 @@ class RailViewRows:
         return sorted({vid for vid, _, _ in self.runs})
 
 
+def span_stiffness(bridge, influence: BogieInfluence, aps: list, span: tuple[float, float],
+               resamples: int = STIFFNESS_RESAMPLES) -> tuple[float, float, float]:
+    """The span's E·I over its design (one factor): the design's static line of the bogie
+    (:func:`cloud.rail.bridge.design_scale`) over the batch's load-regression line, by area; the 95 %
+    interval from the runs resampled (a fixed seed: the same batch reads the same interval)."""
+    def ratio(inf: BogieInfluence) -> float:
+        # relative to the supports after its low-pass, as the design line is
+        x, J = inf.mril.x_m, inf.mril.J
+        line = readable_line(MrIl(x, J - (J[0] + (J[-1] - J[0]) * x / x[-1]), inf.mril.n_passes), "the batch's line")
+        return float(1.0 - damage_indicators(design_scale(bridge, inf).mril, line).D2_pct / 100.0)
+
+    rng = np.random.default_rng(len(aps))
+    draws = []
+    for _ in range(resamples):
+        try:
+            draws.append(ratio(influence_of_aps(resampled_runs(aps, rng), *span)))
+        except (ValueError, np.linalg.LinAlgError):  # a resample without load spread
+            continue
+    mean = ratio(influence)
+    sd = float(np.std(np.log(draws))) if len(draws) > 2 else float("nan")
+    return mean, mean * math.exp(-Z95 * sd), mean * math.exp(Z95 * sd)
+
+
 def _utc_now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
 
@@ -260,11 +314,11 @@ class RailBatches:
     the registry's bridges on the route get the batches' bogie MR-IL and D1/D2. ``clock`` stamps
     alarms (ISO 8601 UTC)."""
 
-    def __init__(self, site, min_runs: int = MIN_RUNS, bridge_batch_runs: int = BRIDGE_BATCH_RUNS,
+    def __init__(self, site, min_runs: int = MIN_RUNS, bridge_min_runs: int = BRIDGE_MIN_RUNS,
                  alarm_pct: float = BRIDGE_ALARM_PCT, clock: Callable[[], str] = _utc_now):
         self.site = site
         self.min_runs = min_runs
-        self.bridge_batch_runs = bridge_batch_runs
+        self.bridge_min_runs = bridge_min_runs
         self.alarm_pct = alarm_pct
         self.clock = clock
         self.batches: dict[tuple[str, str], BatchState] = {}
@@ -301,11 +355,22 @@ class RailBatches:
         due = self.due(passes, force)
         replacements: dict = {}
         alarms: list[Alarm] = []
+        baselines: list[bytes] = []
         for key in due:
-            self._fit(key, passes, segments, replacements, alarms)
-        return RailStep(replacements, tuple(alarms), tuple(due))
+            self._fit(key, passes, segments, replacements, alarms, baselines)
+        return RailStep(replacements, tuple(alarms), tuple(due), tuple(baselines))
 
-    def _fit(self, key: tuple[str, str], passes, segments, replacements: dict, alarms: list) -> None:
+    def restore_baseline(self, payload: bytes) -> None:
+        """A bridge's baseline from the cloud's state (an earlier session's): fixed from now on."""
+        d = json.loads(payload)
+        self.bridges[d["bridge_id"]] = RailBridgeState(d["bridge_id"], d["vehicle_id"], frozenset(d["passes"]), True)
+
+    def baseline_records(self) -> list[bytes]:
+        """Every rail bridge's baseline, as the cloud's state keeps them."""
+        return [bs.baseline_record() for _, bs in sorted(self.bridges.items()) if bs.baseline]
+
+    def _fit(self, key: tuple[str, str], passes, segments, replacements: dict, alarms: list,
+             baselines: list) -> None:
         vid, route = key
         items = self._groups(passes)[key]  # in the order the passes first arrived
         st = BatchState(vid, route, frozenset((pid, ps.calib_version) for pid, ps in items))
@@ -352,38 +417,46 @@ class RailBatches:
                 # None: nothing of it left on the route under the calibrated chainage
                 replacements[slot] = seg if seg is not None and seg.start_index * seg.spacing_m <= length else None
         for b in bridges:
-            alarm = self._bridge(b, vid, rebuilt, st.fit, cls)
+            alarm = self._bridge(b, vid, rebuilt, st.fit, cls, baselines)
             if alarm is not None:
                 alarms.append(alarm)
 
-    def _bridge(self, bridge, vid: str, rebuilt: list[RebuiltPass], fit: BatchFit, cls) -> Alarm | None:
-        """The bridge's reference (first complete batch of runs) and latest batch MR-IL, D1/D2; the
-        alarm when its state changes."""
+    def _bridge(self, bridge, vid: str, rebuilt: list[RebuiltPass], fit: BatchFit, cls,
+                baselines: list) -> Alarm | None:
+        """The bridge's readings from this fit (module docstring): the baseline's line (extended
+        while its session lasts), the current batch's line (the runs not in a sealed baseline), the
+        latest one's stiffness against the design, D1/D2; the alarm when its state changes."""
         bs = self.bridges.setdefault(bridge.id, RailBridgeState(bridge.id, vid))
         if bs.vehicle_id != vid:
             return None  # one carriage's batches per bridge (another's loads and calibration differ)
-        B = self.bridge_batch_runs
-        blocks = [list(range(i, i + B)) for i in range(0, len(rebuilt) - B + 1, B)]
-        if not blocks:
+        ids = [r.pass_id for r in fit.runs]
+        if not bs.sealed and bs.baseline != frozenset(ids):
+            bs.baseline = frozenset(ids)
+            baselines.append(bs.baseline_record())
+        base = [i for i, p in enumerate(ids) if p in bs.baseline]
+        current = [i for i, p in enumerate(ids) if p not in bs.baseline]
+        if len(base) < self.bridge_min_runs:
+            bs.error = f"{len(base)} baseline runs over the bridge, fewer than {self.bridge_min_runs}"
             return None
-        est = {r.pass_id: r for r in fit.runs}
-
-        def influence(block):
-            runs = [rebuilt[i].run for i in block]
-            sub = dataclasses.replace(fit, runs=[est[r.pass_id] for r in runs])
-            return bogie_influence(runs, sub, cls.mean, bridge.start_chainage_m, bridge.span_m).mril
-
+        span = (bridge.start_chainage_m, bridge.span_m)
         try:
-            if bs.reference is None:
-                bs.reference = influence(blocks[0])
-            if len(blocks) < 2:
+            aps = run_aps([rb.run for rb in rebuilt], fit, cls.mean, "carriage")
+            healthy = influence_of_aps(registered_runs([aps[i] for i in base], *span), *span)
+            bs.reference = healthy.mril
+            if len(current) < self.bridge_min_runs:
+                bs.latest, bs.n_runs = healthy.mril, len(base)
+                bs.stiffness = span_stiffness(bridge, healthy, [aps[i] for i in base], span)
                 return None
-            bs.latest, bs.n_runs = influence(blocks[-1]), B
-        except ValueError as e:
+            reg = registered_runs([aps[i] for i in current], *span, reference=healthy.difference_line)
+            latest = influence_of_aps(reg, *span)
+            ind = damage_from_batch_means(pooled_healthy(healthy, [healthy, latest]), latest)
+            bs.latest, bs.n_runs = latest.mril, len(current)
+            bs.stiffness = span_stiffness(bridge, latest, reg, span)
+        except (ValueError, np.linalg.LinAlgError) as e:
             bs.error = str(e)
             log.warning("rail bridge %s: %s", bridge.id, e)
             return None
-        ind = damage_indicators(bs.reference, bs.latest)
+        bs.error = ""
         bs.d1_pct, bs.d2_pct = ind.D1_pct, ind.D2_pct
         damaged = bool(ind.D1_pct > self.alarm_pct)
         if damaged == bs.damaged:
@@ -392,7 +465,7 @@ class RailBatches:
         return Alarm(bridge_id=bridge.id, time_utc=self.clock(), kind="global" if damaged else CLEARED, element=-1,
                      x_m=0.5 * bridge.span_m, severity=max(ind.D1_pct, 0.0) / 100.0,
                      probability=1.0 if damaged else 0.0,
-                     message=f"rail batch D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} % against the first batch")
+                     message=f"rail batch D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} % against the healthy baseline")
 
     def bridge_rows(self, road_rows: list[dict] = ()) -> list[dict]:
         """``bridge_summary.parquet`` rows: the road estimator's, with the rail batches' in place of
@@ -400,6 +473,23 @@ class RailBatches:
         rail = {bid: bs.summary_row() for bid, bs in self.bridges.items() if bs.reference is not None}
         rows = [rail.pop(r["bridge_id"], r) for r in road_rows]
         return rows + [rail[k] for k in sorted(rail)]
+
+    def element_rows(self, road_rows: list[dict] = ()) -> list[dict]:
+        """``bridge_elements.parquet`` rows: the road estimator's, with a rail bridge's in place of
+        its rows where the batches read its stiffness (one factor for every element)."""
+        out, done = [], set()
+        by_id = {b.id: b for b in self.site.bridges}
+        for bid, bs in sorted(self.bridges.items()):
+            b = by_id.get(bid)
+            if bs.stiffness is None or b is None:
+                continue
+            done.add(bid)
+            mean, lo, hi = bs.stiffness
+            ei = b.E_pa * b.I_m4
+            h = b.span_m / b.n_elements
+            out.extend(dict(bridge_id=bid, element=e, x_start_m=e * h, x_end_m=(e + 1) * h, EI_mean=mean * ei,
+                            EI_lo95=lo * ei, EI_hi95=hi * ei, stiffness_ratio=mean) for e in range(b.n_elements))
+        return [r for r in road_rows if r["bridge_id"] not in done] + out
 
     def rows(self) -> list[dict]:
         """``vehicles.parquet`` rows: each run's mv, Iv, v with 95 % intervals and its ``pass_id``."""

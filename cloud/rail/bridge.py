@@ -163,7 +163,7 @@ def _leading_bogie_ap(run: RailRun, est, globals_: dict[str, float], class_mean:
     and half wheelbase) from the leading bogie's two channels alone — the body's load through the
     secondary suspension is not modelled, as in the thesis's test of a simpler model.
     """
-    car = Carriage(**{k: class_mean[k] for k in FIXED}, **globals_, **est.mean)
+    car = Carriage(**{**{k: class_mean[k] for k in FIXED}, **globals_, **est.mean})
     load = GRAVITY * (car.mv / 4 + car.mb / 2 + car.mw)
     force = None
     if model == "carriage":

@@ -15,10 +15,21 @@ mapped APs (the track profile profiled out, as in :mod:`cloud.road.calibration`)
 class (mean, sd) of ``mv`` and ``Iv`` from the registry and the run's GNSS speed with its relative
 error.
 
-One consensus for all four wheels makes the speed identifiable in absolute terms: the same
-rail bump reaches wheel 3 2·Lv/v after wheel 1, whatever the GNSS says (so the speed is as good as
-the bogie spacing Lv is known; its class sd is added to the speed's interval). Each run's speed is
-started from a grid search of its own wheels' agreement (:func:`_speed_from_wheels`).
+One consensus for all four wheels makes the speed identifiable against the carriage's lengths:
+the same rail bump reaches wheel 3 2·Lv/v after wheel 1, whatever the GNSS says. The lengths
+(:data:`LENGTH_FIT`) are calibrated with the batch under their class prior: a carriage whose bogie
+spacing is off its class mean would otherwise put every run's speed off by as much. The wheels'
+delays fix the ratios of the speeds and lengths; their common scale only stretches the consensus.
+The data do see that scale a little — on a wave longer than the wheelbase a bogie's pitch is the
+rail's slope and its vertical velocity v times that slope, so the accelerometer against the gyro
+reads the speed — but roughly (the misfit along the scale is bumpy at the noise's level, and
+Gauss–Newton's local curvature there claims a precision the misfit does not have), and it rests on
+the two sensors' relative scale factors, which no log calibrates. So the scale is placed by the
+anchors alone (:func:`_anchored_scale`): the GNSS speeds, whose per-run errors average out over
+the batch, and the lengths' class prior; the last stage holds the lengths there, and every speed's
+95 % interval carries that scale's sd (:func:`_anchor_sd`). Each run's speed is started from a
+grid search of its own wheels' agreement relative to the class's lengths
+(:func:`_speed_from_wheels`), the common scale from the batch mean of those against the GNSS.
 
 Beyond the thesis, the carriage's global properties (``mb, Ib, kp, cp, ks, cs``, common to every
 run) are calibrated with the batch, their class sd (~5 %) as the prior: with them fixed at the class
@@ -41,7 +52,7 @@ also carries a chainage shift (prior sd ``position_sd_m``). The shift is tested 
 (against the log's chainage, :data:`SHIFT_CHI2`) and held at zero where consistent: held where the
 middle stage left it instead (centimetres), the last stage's speeds would take up its error.
 
-Gauss–Newton with Levenberg damping on all 8·n_b + 6 unknowns at once (the normal matrix of the
+Gauss–Newton with Levenberg damping on all 8·n_b + 8 unknowns at once (the normal matrix of the
 profiled consensus has a closed form from per-run blocks, :func:`calibrate_batch`), in stages of
 decreasing shortest wavelength; σ² is re-estimated from the residual with its along-track
 correlation; the 95 % intervals are the Gauss–Newton sandwich at the optimum, H⁻¹ (JᵀΣJ/σ⁴ + prior)
@@ -77,7 +88,6 @@ from typing import Sequence
 import numpy as np
 import scipy.fft
 
-from shared.vehicles.carriage import Carriage
 
 from cloud.rail.carriage_inverse import (BODY0_NAMES, INVERSE_NAMES, N_SENS, carriage_aps_runs,
                                          carriage_aps_sensitivities)
@@ -86,9 +96,16 @@ from cloud.rail.mapping import EDGE_M, GRID_M, Mapper, window
 from cloud.rail.records import RailRun
 
 RUN_NAMES = ("mv", "Iv", "v")
-#: Global properties calibrated with the batch (their class sd is the prior); the wheelset mass does
-#: not enter the wheels-on-rail model and the lengths are known from drawings.
+#: Global properties of the inverse calibrated with the batch (their class sd is the prior): the
+#: columns of :data:`~cloud.rail.carriage_inverse.INVERSE_NAMES` after the run's own two.
 GLOBAL_FIT = ("mb", "Ib", "kp", "cp", "ks", "cs")
+#: The carriage's lengths, calibrated with the batch too (their class sd is the prior): the bogie
+#: spacing sets every run's speed scale (a bump reaches wheel 3 2·Lv/v after wheel 1), so a
+#: carriage whose Lv is off its class mean would put every speed off by as much, and the GNSS
+#: speeds' per-run errors, averaged over the batch, are what anchors it.
+LENGTH_FIT = ("Lb", "Lv")
+#: Not passed to the inverse as a calibrated column: the wheelset mass does not enter the
+#: wheels-on-rail model; the lengths are arguments of the inverse, not columns of θ.
 FIXED = ("mw", "Lb", "Lv")
 #: Shortest wavelength compared in each stage, m (continuation: long waves first, where the misfit is
 #: smooth in every property, then sharper). Below 2 m there is mostly noise and sleeper-scale detail.
@@ -107,7 +124,7 @@ ANTIALIAS_FACTOR = 4.0
 MAX_WAVELENGTH_M = 60.0
 SPEED_SEARCH_M = 6.0  # shortest wavelength of the speed's grid search (:func:`_speed_from_wheels`), m
 SPEED_STEP = 0.01  # its step in log speed
-FD_LOG_STEP = 1e-3  # the speed's Jacobian column: a finite difference of the mapping, log speed
+FD_LOG_STEP = 1e-3  # the lengths' Jacobian columns through the inverse: a one-sided difference, log length
 #: The stages before the last stop on steps below this (log): they only bring the last one into its
 #: basin, which it then converges from to ``tol`` (the stage's optimum is not the last stage's).
 STAGE_TOL_LOG = 1e-3
@@ -144,14 +161,14 @@ class RunEstimate:
 @dataclasses.dataclass(frozen=True)
 class BatchFit:
     runs: list[RunEstimate]
-    globals_: dict[str, float]  # the batch's estimate of the carriage's global properties
+    globals_: dict[str, float]  # the batch's estimate of the carriage's global properties (GLOBAL_FIT + LENGTH_FIT)
     grid_m: np.ndarray  # the comparison window, m
     consensus_m: np.ndarray  # the batch's AP on it (cubic removed), m
     sigma_m: float  # residual sd per grid point, m
     correlation: float  # residual correlation factor (information per point ÷ this)
     iterations: int
     seconds: float
-    #: The global properties' posterior covariance of their logs (:data:`GLOBAL_FIT` order), marginal
+    #: The global properties' posterior covariance of their logs (:data:`GLOBAL_FIT` + :data:`LENGTH_FIT` order), marginal
     #: over the runs: what a later batch that holds these globals carries into its intervals
     #: (``calibrate_batch(held_globals_cov=…)``).
     globals_log_cov: np.ndarray | None = None
@@ -187,6 +204,12 @@ REST_SD = 1e-7
 SHIFT_CHI2 = 10.8276
 
 
+def wheel_offsets(Lb: float, Lv: float) -> np.ndarray:
+    """The carriage's wheel positions ahead of the body's centre of gravity (m; wheel 1 leads), as
+    :meth:`shared.vehicles.carriage.Carriage.wheel_offsets_m`."""
+    return np.array([Lv + Lb, Lv - Lb, -Lv + Lb, -Lv - Lb])
+
+
 def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, fixed: dict[str, float],
                        offsets: np.ndarray, mapper: "Mapper", slack: float) -> np.ndarray:
     """log(v / reported v) of each run at which its own four wheels agree best (global grid search).
@@ -211,6 +234,27 @@ def _speed_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, 
                         stage["lengths"], offsets)[:, 0]  # (n, S, 4, K)
     cost = ((A - A.mean(axis=2, keepdims=True)) ** 2).sum(axis=(2, 3))
     return steps[np.argmin(cost, axis=1)]
+
+
+def _wheelbase_from_wheels(runs: Sequence[RailRun], stage: dict, theta: np.ndarray, fixed: dict[str, float],
+                           log_speeds: np.ndarray, mapper: "Mapper", slack: float) -> float:
+    """log(Lb / class Lb) at which every run's four wheels agree best at its speed ``log_speeds``
+    (log of the reported), Lv at the class's (global grid search, as :func:`_speed_from_wheels`):
+    a wheelbase off its class mean by more than a short wave's basin would start Gauss–Newton
+    where the wheels' delays are matched wrongly (the speed search relative to the class's Lv
+    finds v/Lv whatever the wheelbase; this finds Lb/Lv)."""
+    n = len(runs)
+    aps = carriage_aps_runs(np.repeat(theta[None], n, axis=0), np.arange(n), fixed["Lb"], fixed["Lv"],
+                            stage["z"], stage["lengths"], stage["dts"])[:, None]
+    v = np.array([r.speed_mps for r in runs]) * np.exp(log_speeds)
+    x0 = np.array([r.x0_m for r in runs])
+    steps = np.linspace(-slack, slack, int(round(2 * slack / SPEED_STEP)) + 1)
+    cost = []
+    for s in steps:
+        A = mapper.map_runs(aps, stage["dts"], x0, v[:, None], stage["lengths"],
+                            wheel_offsets(fixed["Lb"] * math.exp(s), fixed["Lv"]))[:, 0, 0]  # (n, 4, K)
+        cost.append(float(((A - A.mean(axis=1, keepdims=True)) ** 2).sum()))
+    return float(steps[int(np.argmin(cost))])
 
 
 def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_every=1, final_jacobian=True,
@@ -284,6 +328,34 @@ def _gauss_newton(evaluate, normal_equations, x, mu, P, max_iter, tol, jacobian_
         if done:
             break
     return x, e, D, A, sigma2, kappa, it
+
+
+def _anchor_sd(n: int, speed_rel_sd: float, length_log_sd: np.ndarray) -> float:
+    """The log sd of the common scale of speeds and lengths that the anchors place: ``n`` GNSS
+    speeds (relative sd ``speed_rel_sd`` each) and the lengths' class prior (log sds)."""
+    return float((n / speed_rel_sd**2 + np.sum(1.0 / length_log_sd**2)) ** -0.5)
+
+
+def _anchored_scale(log_v: np.ndarray, log_lengths: np.ndarray, log_v_reported: np.ndarray,
+                    log_lengths_prior: np.ndarray, speed_rel_sd: float,
+                    length_log_sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``log_v`` (the runs' speeds) and ``log_lengths`` (Lb, Lv) moved together by the common log
+    scale λ that the anchors alone place: the weighted mean of the reported speeds' and the class
+    lengths' offsets from them (GNSS errors independent per run, sd ``speed_rel_sd``; the lengths'
+    prior log sds ``length_log_sd``). Their ratios — what the wheels' delays measure — are kept."""
+    w_v, w_l = 1.0 / speed_rel_sd**2, 1.0 / np.asarray(length_log_sd) ** 2
+    lam = (w_v * np.sum(log_v_reported - log_v) + np.sum(w_l * (log_lengths_prior - log_lengths))) \
+        / (w_v * len(log_v) + np.sum(w_l))
+    return log_v + lam, log_lengths + lam
+
+
+def _rate(aps: np.ndarray, lengths: np.ndarray, dts: np.ndarray) -> np.ndarray:
+    """(R, N, 4) each run's AP rate in time (m/s), central differences within its first
+    ``lengths[r]`` samples (one-sided at their ends; zero past them)."""
+    out = np.zeros_like(aps)
+    for r, (m, dt) in enumerate(zip(lengths, dts)):
+        out[r, :m] = np.gradient(aps[r, :m], dt, axis=0)
+    return out
 
 
 def _correlation_factor(e: np.ndarray) -> float:
@@ -425,16 +497,25 @@ def calibrate_batch(
         if not (prior_mean.get(k, 0) > 0 and prior_sd.get(k, -1) >= 0):
             raise ValueError(f"calibrate_batch: the class needs a positive mean and an sd of {k}")
     fixed = {k: float(prior_mean[k]) for k in FIXED}
-    offsets = Carriage(**fixed, **{k: prior_mean[k] for k in GLOBAL_FIT}, mv=1.0, Iv=1.0, v=1.0).wheel_offsets_m()
-    slack = 4 * speed_rel_sd
-    grid = window(runs, offsets, window_m, speed_slack=slack)
+    offsets = wheel_offsets(fixed["Lb"], fixed["Lv"])
+    # The speeds' search range: the GNSS error and the bogie spacing's (which moves every speed alike)
+    length_sd = prior_sd["Lv"] / prior_mean["Lv"]
+    # The lengths are calibrated where the class leaves them looser than the batch's GNSS speeds
+    # can place the common scale; declared tighter (design drawings), they are held at the class
+    # means, and the scale is theirs.
+    fit_lengths = max(length_sd, prior_sd["Lb"] / prior_mean["Lb"]) * math.sqrt(n) >= speed_rel_sd
+    slack = max(4 * speed_rel_sd, 3 * math.hypot(speed_rel_sd, length_sd))
+    # Trial lengths move the wheels: the window keeps clear of where the longest could put them.
+    reach = offsets * (1 + 3 * length_sd) if fit_lengths else offsets
+    grid = window(runs, reach, window_m, speed_slack=slack)
     # Samples past the last the window can need (trailing wheel, slowest trial speed) are not
     # inverted: the inverse is causal, and a decimated stage's anti-alias filter is applied to the
     # whole record first.
-    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - offsets.min())
+    keep = [min(len(r.channels), int(math.ceil((grid[-1] + EDGE_M - r.x0_m - reach.min())
                                               / (r.speed_mps * (1 - slack)) / r.dt)) + 2) for r in runs]
     mapper = stage = None
-    n_g = len(GLOBAL_FIT)
+    n_i = len(GLOBAL_FIT)  # the globals of the inverse's θ; the lengths follow them in x
+    n_g = n_i + len(LENGTH_FIT)
     L = N_LOCAL
     # per run (N_LOCAL): log mv, log Iv, log v, the record's chainage shift and the body's initial
     # state (nuisances: the first sample's chainage is the log's, the state a weak prior's)
@@ -442,10 +523,13 @@ def calibrate_batch(
     mu_loc[:, :3] = [[math.log(prior_mean["mv"]), math.log(prior_mean["Iv"]), math.log(r.speed_mps)] for r in runs]
     s_loc = np.concatenate([[prior_sd["mv"] / prior_mean["mv"], prior_sd["Iv"] / prior_mean["Iv"], speed_rel_sd,
                              position_sd_m], BODY0_PRIOR_SD / BODY0_UNIT])
-    mu_g = np.log([prior_mean[k] for k in GLOBAL_FIT])
-    s_g = np.array([max(prior_sd[k] / prior_mean[k], 1e-4) for k in GLOBAL_FIT])
+    mu_g = np.log([prior_mean[k] for k in GLOBAL_FIT + LENGTH_FIT])
+    s_g = np.array([max(prior_sd[k] / prior_mean[k], 1e-4) for k in GLOBAL_FIT + LENGTH_FIT])
     mu = np.concatenate([mu_loc.ravel(), mu_g])
     P = np.concatenate([np.tile(1.0 / s_loc**2, n), 1.0 / s_g**2])
+    lengths_at = slice(L * n + n_i, None)
+    if not fit_lengths:
+        P[lengths_at] = 1.0 / REST_SD**2
     # a step's cap: the log coordinates' (the misfit is far from quadratic beyond); the initial
     # state enters linearly
     max_step = np.concatenate([np.tile(np.r_[np.full(3, 0.2), 1.0, np.full(len(BODY0_NAMES), np.inf)], n),
@@ -471,10 +555,12 @@ def calibrate_batch(
         p = np.exp(loc[:, :3])  # (n, 3): mv, Iv, v
         body0 = loc[:, _I_BODY:] * BODY0_UNIT
         x0 = x0s + loc[:, _I_SHIFT]
-        theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob), (n, n_g))])  # INVERSE_NAMES order
+        theta = np.column_stack([p[:, :2], np.broadcast_to(np.exp(glob[:n_i]), (n, n_i))])  # INVERSE_NAMES order
+        Lb, Lv = np.exp(glob[n_i:])
+        offsets = wheel_offsets(Lb, Lv)
         z, lengths, dts, N_t = stage["z"], stage["lengths"], stage["dts"], stage["z"].shape[1]
         if not with_jac:
-            aps = carriage_aps_runs(theta, np.arange(n), fixed["Lb"], fixed["Lv"], z, lengths, dts,
+            aps = carriage_aps_runs(theta, np.arange(n), Lb, Lv, z, lengths, dts,
                                     stage["work"][: n * N_t * 4].reshape(n, N_t, 4), body0=body0)
             A = mapper.map_runs(aps[:, None], dts, x0, p[:, 2:3], lengths, offsets)[:, 0, 0]
             return A - A.mean(axis=(0, 1)), None, A
@@ -490,16 +576,22 @@ def calibrate_batch(
         for r0 in range(0, n, JACOBIAN_CHUNK_RUNS):
             rs = slice(r0, min(n, r0 + JACOBIAN_CHUNK_RUNS))
             c = rs.stop - r0
-            sens = carriage_aps_sensitivities(theta[rs], fixed["Lb"], fixed["Lv"], z[rs], lengths[rs], dts[rs],
+            sens = carriage_aps_sensitivities(theta[rs], Lb, Lv, z[rs], lengths[rs], dts[rs],
                                               stage["work"][: c * N_t * 4 * N_SENS].reshape(c, N_t, N_SENS, 4),
                                               body0=body0[rs], body_derivatives=with_body)[:, :rows]
             args = (dts[rs], x0[rs])
             mapped = mapper.map_runs(sens, *args, p[rs, 2:3], lengths[rs], offsets)[:, :, 0]  # (c, rows, 4, K)
             A[rs] = mapped[:, 0]
-            faster = mapper.map_runs(sens[:, :1], *args, p[rs, 2:3] * h, lengths[rs], offsets)[:, 0, 0]
             D[rs, :2] = mapped[:, 1:3]
-            np.subtract(faster, A[rs], out=D[rs, 2])
-            D[rs, 2] /= FD_LOG_STEP
+            # The speed's and lengths' columns move where each sample lands on the grid: the AP's
+            # slope there (its rate in time over the speed) times the move, analytic. (Finite
+            # differences of the mapping would not cancel along the common scale of speeds and
+            # lengths — which only stretches the consensus — and their error there read as
+            # information the data do not have.)
+            slope = mapper.interpolate(_rate(sens[:, 0], lengths[rs], dts[rs])[:, None], *args, p[rs, 2:3],
+                                       lengths[rs], offsets)[:, 0, 0] / p[rs, 2, None, None]  # (c, 4, K)
+            travel = mapper.grid[None, None] - x0[rs, None, None] - offsets[None, :, None]  # v·t, m
+            D[rs, 2] = mapper.finish(-travel * slope)
             if _I_SHIFT in active:
                 ahead, behind = (mapper.map_runs(sens[:, :1], dts[rs], x0[rs] + d, p[rs, 2:3], lengths[rs],
                                                  offsets)[:, 0, 0] for d in (SHIFT_FD_M, -SHIFT_FD_M))
@@ -507,7 +599,17 @@ def calibrate_batch(
                 D[rs, _I_SHIFT] /= 2 * SHIFT_FD_M
             if with_body:
                 np.multiply(mapped[:, 9:9 + nb], BODY0_UNIT[:, None, None], out=D[rs, _I_BODY:_I_BODY + nb])
-            D[rs, L:] = mapped[:, 3:9]
+            D[rs, L:L + n_i] = mapped[:, 3:9]
+            # The lengths' columns: the wheels' offsets move (analytic, as the speed's) and the
+            # inverse's pitch terms change (a one-sided difference: one inverse per run and length).
+            D[rs, L + n_i:] = 0.0
+            for j, moved in enumerate((np.array([Lb, -Lb, Lb, -Lb]), np.array([Lv, Lv, -Lv, -Lv])) if fit_lengths else ()):
+                trial = np.array([Lb, Lv])
+                trial[j] *= h
+                aps = carriage_aps_runs(theta[rs], np.arange(c), *trial, z[rs], lengths[rs], dts[rs],
+                                        body0=body0[rs])
+                inverse = mapper.map_runs(aps[:, None], *args, p[rs, 2:3], lengths[rs], offsets)[:, 0, 0]
+                D[rs, L + n_i + j] = (inverse - A[rs]) / FD_LOG_STEP + mapper.finish(-moved[None, :, None] * slope)
         return A - A.mean(axis=(0, 1)), D, A
 
     def normal_equations(e, D, JtJ=None):
@@ -574,13 +676,30 @@ def calibrate_batch(
     shift_idx = np.arange(n) * L + _I_SHIFT
     body = np.arange(n)[:, None] * L + _I_BODY + np.arange(len(BODY0_NAMES))[None]  # the runs' initial states
     theta0 = np.array([prior_mean[k] for k in INVERSE_NAMES])
-    x[2: L * n: L] += _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
-                                         mapper_for(SPEED_SEARCH_M), slack)
+    found = _speed_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, offsets,
+                               mapper_for(SPEED_SEARCH_M), slack)
+    # The wheels give each speed relative to the class's bogie spacing: v/Lv. The batch's mean of
+    # log(found / reported) is minus the spacing's log error plus the GNSS errors' mean (sd
+    # speed_rel_sd/√n): the lengths start at that scale's posterior mean under their class prior,
+    # the speeds with them.
+    scale = -float(np.mean(found)) * length_sd**2 / (length_sd**2 + speed_rel_sd**2 / n) if fit_lengths else 0.0
+    x[2: L * n: L] += found + scale
+    x[L * n + n_i:] += scale
+    if fit_lengths:
+        x[L * n + n_i] += _wheelbase_from_wheels(runs, stage_channels(SPEED_SEARCH_M), theta0, fixed, found,
+                                                 mapper_for(SPEED_SEARCH_M), 3 * s_g[n_i])
     it = 0
     for i_stage, min_wavelength in enumerate(stages_m):
         last = i_stage == len(stages_m) - 1
         mapper = mapper_for(min_wavelength)
         stage = stage_channels(min_wavelength, final_decimation if last else None)
+        if last and fit_lengths:
+            # The common scale of speeds and lengths as the anchors alone place it (module
+            # docstring), the ratios the data found kept; the last stage holds the lengths there.
+            x[2: L * n: L], x[lengths_at] = _anchored_scale(x[2: L * n: L], x[lengths_at], mu[2: L * n: L],
+                                                            mu_g[n_i:], speed_rel_sd, s_g[n_i:])
+            mu[lengths_at] = x[lengths_at]
+            P[lengths_at] = 1.0 / REST_SD**2
         # The records' chainage shifts are fitted in the middle stages only. The first holds them
         # where the logs put them: with the run properties still at the class means its shifts take
         # up misfit (decimetre steps on exact chainages) and cost iterations, and its waves are long
@@ -632,6 +751,18 @@ def calibrate_batch(
     meat = noise_information(e, D, L, active) / sigma2**2 + np.diag(P) + Q
     H_inv = np.linalg.inv(H)
     cov = H_inv @ meat @ H_inv
+    # The lengths were held at the anchored scale: their uncertainty is that scale's (the ratio of
+    # the two the data fix far better), and it moves every speed alike. Held at the class means,
+    # it is the class's: the bogie spacing's sd (the speeds are measured against it).
+    if fit_lengths:
+        anchor_sd = _anchor_sd(n, speed_rel_sd, s_g[n_i:])
+        cov[lengths_at, lengths_at] = anchor_sd**2
+    elif held_globals_cov is None:
+        anchor_sd = float(s_g[-1])
+        cov[lengths_at, lengths_at] = np.diag(s_g[n_i:] ** 2)
+    else:  # held at another batch's estimate: its uncertainty
+        anchor_sd = float(math.sqrt(np.asarray(held_globals_cov)[-1, -1]))
+        cov[lengths_at, lengths_at] = np.asarray(held_globals_cov)[n_i:, n_i:]
     if held_globals_cov is not None:
         # The runs' estimates given the held globals, plus the held values' error propagated through
         # their sensitivity to them: Σ_loc = H_ll⁻¹ M_ll H_ll⁻¹ + S Σ_g Sᵀ with S = −H_ll⁻¹ H_lg.
@@ -642,9 +773,7 @@ def calibrate_batch(
     sd = np.sqrt(np.diag(cov))
     loc, glob = unpack(x)
     sd_loc = sd[: L * n].reshape(n, L)[:, :3].copy()
-    # The speed is measured against the bogie spacing 2·Lv (module docstring): its relative error
-    # moves every run's speed alike, outside the data's reach.
-    sd_loc[:, 2] = np.hypot(sd_loc[:, 2], prior_sd["Lv"] / prior_mean["Lv"])
+    sd_loc[:, 2] = np.hypot(sd_loc[:, 2], anchor_sd)
     estimates = []
     for r, run in enumerate(runs):
         mean = {k: float(math.exp(loc[r, j])) for j, k in enumerate(RUN_NAMES)}
@@ -652,6 +781,6 @@ def calibrate_batch(
         hi = {k: float(math.exp(loc[r, j] + Z95 * sd_loc[r, j])) for j, k in enumerate(RUN_NAMES)}
         estimates.append(RunEstimate(run.pass_id, mean, lo, hi, bool(at_rest[r]), float(wald[r]),
                                      float(loc[r, _I_SHIFT])))
-    globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT)}
+    globals_fit = {k: float(math.exp(glob[j])) for j, k in enumerate(GLOBAL_FIT + LENGTH_FIT)}
     return BatchFit(estimates, globals_fit, mapper.grid, A.mean(axis=(0, 1)), math.sqrt(sigma2 / kappa), kappa, it,
                     time.perf_counter() - t_start, cov[L * n:, L * n:].copy())

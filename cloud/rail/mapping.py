@@ -65,11 +65,21 @@ class Mapper:
         """(R, T, N, 4) APs of R runs (the first ``lengths[r]`` samples at step ``dts[r]``, from
         ``x0[r]``), each mapped at each of its run's speeds ``speeds`` (R, S): (R, T, S, 4, K), by
         linear interpolation, each query clipped to its record (:func:`_map_kernel`)."""
+        return self.finish(self.interpolate(aps, dts, x0, speeds, lengths, offsets))
+
+    def interpolate(self, aps: np.ndarray, dts: np.ndarray, x0: np.ndarray, speeds: np.ndarray,
+                    lengths: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """:meth:`map_runs` before its low-pass and detrend: the records read at the grid."""
         R, T, N, nw = aps.shape
         out = np.empty((R, T, speeds.shape[1], nw, len(self.grid)))
         _map_kernel(aps, np.asarray(dts, dtype=float), np.asarray(x0, dtype=float), np.asarray(speeds, dtype=float),
                     np.asarray(lengths, dtype=np.int64), np.asarray(offsets, dtype=float), self.grid, out)
-        return self.detrend(self.lowpass(out))
+        return out
+
+    def finish(self, a: np.ndarray) -> np.ndarray:
+        """The low-pass and detrend of :meth:`map_runs` on values read at the grid (both linear:
+        the derivative of a mapped AP is the finished derivative of its reading)."""
+        return self.detrend(self.lowpass(a))
 
 
 @kernel
