@@ -69,7 +69,7 @@ class BridgeScore:
     mean_error_pts: float  # 100 × (mean_ratio − true_mean_ratio)
     element_coverage: float  # share of elements whose exported 95 % band holds the true ratio
     weakest_element: int  # 1-based, exported
-    true_weakest_element: int
+    true_weakest_element: int | None  # None: the true stiffness is uniform (no weakest element)
     alarm: bool
     n_passes: int
 
@@ -95,7 +95,8 @@ def score_bridge(export_dir: Path, truth: dict) -> BridgeScore | None:
         mean_ratio=float(est.mean()), true_mean_ratio=float(true.mean()),
         mean_error_pts=float(100 * (est.mean() - true.mean())),
         element_coverage=float(np.mean((lo <= true) & (true <= hi))),
-        weakest_element=int(np.argmin(est)) + 1, true_weakest_element=int(np.argmin(true)) + 1,
+        weakest_element=int(np.argmin(est)) + 1,
+        true_weakest_element=int(np.argmin(true)) + 1 if np.ptp(true) > 1e-9 else None,
         alarm=bool(s["damaged"][0]) if s["damaged"] else False,
         n_passes=int(s["n_passes"][0]) if s["n_passes"] else 0)
 
@@ -249,7 +250,7 @@ def report(results: dict[tuple[str, str], list[dict]], seeds: list[int], quick: 
             f"| {scenario} | {world} | {b[0]['n_passes']} | "
             f"{np.mean([x['mean_ratio'] for x in b]):.3f} / {np.mean([x['true_mean_ratio'] for x in b]):.3f} | "
             f"{np.mean([x['mean_error_pts'] for x in b]):+.2f} | {np.mean([x['element_coverage'] for x in b]):.2f} | "
-            f"{', '.join(str(x['weakest_element']) for x in b)} / {b[0]['true_weakest_element']} | "
+            f"{', '.join(str(x['weakest_element']) for x in b)} / {b[0]['true_weakest_element'] or 'uniform'} | "
             f"{sum(x['alarm'] for x in b)}/{len(b)} |")
     return lines
 
