@@ -18,8 +18,11 @@ from simfleet.reproduce_robustness import run_and_score
 from simfleet.scenarios import SCENARIOS
 from simfleet.worlds import ivp
 
-SEED = 1
-PASSES = 12
+SEED = 0
+# 30 passes as the figures: with 12, the fleet calibration's common mode (how far all
+# ratios move together) varies from seed to seed by ±2 % in either world, and the profile error
+# with it (12 passes, seeds 0–3: simfleet 1.09/0.90/2.95/1.37 %, ivp 2.33/0.96/2.26/1.35 %).
+PASSES = 30
 # A 120 m road: one 100 m IRI segment and the 0.5–50 m profile band after the 10 m trims.
 ROAD = dataclasses.replace(SCENARIOS["road-qc"], name="road-qc", route_length_m=120.0)
 # The odometer's per-run scale error stretches each pass's chainage (1 % is 1.2 m over the road):
@@ -40,16 +43,16 @@ def road(tmp_path_factory):
 def test_road_profile_error_is_within_1_2x_of_simfleets_world(road):
     a, b = road["simfleet"]["profile"]["rel_error"], road["ivp"]["profile"]["rel_error"]
     print(f"profile error: simfleet {a:.4f}, ivp {b:.4f}")
-    assert b <= 1.2 * max(a, 0.005)  # below 0.5 % both are at the noise floor of 12 passes
+    assert b <= 1.2 * max(a, 0.005)  # below 0.5 % both are at the noise floor of 30 passes
 
 
 def test_vehicle_ratios_are_as_accurate_as_on_simfleets_world(road):
     a, b = road["simfleet"]["vehicles"]["median_error"], road["ivp"]["vehicles"]["median_error"]
     print(f"ratio median |error|: simfleet {a}, ivp {b}")
     for param in ("K/M", "k/M", "c/M", "m/M"):
-        # The independent worlds read every ratio within 1.2 % (30 passes); 12 passes of
-        # as many vehicles calibrate each from one pass, so 2 % holds the same goal at this size.
-        assert b[param] <= 0.02, param
+        # The independent worlds read every ratio within 1.2 % with 30 passes of 200 m; on
+        # 120 m each vehicle sees 0.6 × the road, so ~√(200/120) ≈ 1.3 × the error: 1.5 %.
+        assert b[param] <= 0.015, param
 
 
 def test_iri_is_as_accurate_as_on_simfleets_world(road):
@@ -57,7 +60,7 @@ def test_iri_is_as_accurate_as_on_simfleets_world(road):
     print(f"IRI (10 m): simfleet {a}, ivp {b}")
     assert b["n_segments"] >= 10
     # simfleet's world and the independent ones read the 100 m IRI within 0.5 %; a 10 m
-    # segment averages a tenth of the road, so its error is ~√10 × larger (≈ 1.6 %): held to 2 %.
+    # segment averages a tenth of the road, so its error is up to ~√10 × larger (≈ 1.6 %): 2 %.
     assert b["median_rel_error"] <= 0.02
 
 
