@@ -14,6 +14,7 @@ from shared.fe.beam import Beam, crack_ei_factor, natural_frequencies
 from shared.registry import load_site
 from shared.vehicles import vehicle_from_params
 from shared.vbi import simulate_vbi
+from simfleet.cli import main
 from simfleet.scenarios import SCENARIOS, TABLE_4_1, fleet_class
 from simfleet.sim import bridge_beam
 from simfleet.worlds.ivp import WorldSettings, bridge_model, generate
@@ -195,3 +196,13 @@ def test_both_worlds_agree_on_the_continuum(scenario):
     on = (ref.x_cg[:n] > sc.bridge.start_m - 5) & (ref.x_cg[:n] < sc.bridge.start_m + sc.bridge.span_m + 10)
     a, b = ref.channels[:n, 0][on], tr.qddot[:n, 0][on]
     assert np.sqrt(np.mean((a - b) ** 2)) < 2e-3 * np.sqrt(np.mean(a**2))
+
+
+def test_driveby_sim_world_ivp(tmp_path, capsys):
+    assert main(["sim", "road-hc", "--world", "ivp", "--passes", "1", "--out", str(tmp_path / "hc")]) == 0
+    truth = json.loads((tmp_path / "hc" / "truth.json").read_text())
+    assert truth["world"]["name"] == "ivp" and len(list_drive_logs(tmp_path / "hc" / "logs")) == 1
+    # Rail runs are simfleet.rail's world: a one-line refusal, not a traceback.
+    assert main(["sim", "rail-track", "--world", "ivp", "--passes", "1", "--out", str(tmp_path / "rail")]) == 2
+    err = capsys.readouterr().err
+    assert "rail" in err and "Traceback" not in err
