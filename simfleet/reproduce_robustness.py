@@ -250,7 +250,8 @@ def report(results: dict[tuple[str, str], list[dict]], seeds: list[int], quick: 
             f"| {scenario} | {world} | {b[0]['n_passes']} | "
             f"{np.mean([x['mean_ratio'] for x in b]):.3f} / {np.mean([x['true_mean_ratio'] for x in b]):.3f} | "
             f"{np.mean([x['mean_error_pts'] for x in b]):+.2f} | {np.mean([x['element_coverage'] for x in b]):.2f} | "
-            f"{', '.join(str(x['weakest_element']) for x in b)} / {b[0]['true_weakest_element'] or 'uniform'} | "
+            f"{', '.join(str(x['weakest_element']) for x in b)} / "
+            f"{b[0]['true_weakest_element'] if SCENARIOS[scenario].bridge.crack_x_m is not None else 'uniform'} | "
             f"{sum(x['alarm'] for x in b)}/{len(b)} |")
     return lines
 
