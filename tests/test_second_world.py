@@ -19,11 +19,10 @@ from simfleet.scenarios import SCENARIOS
 from simfleet.worlds import ivp
 
 SEED = 0
-# 30 passes as the figures: with 12, the fleet calibration's common mode (how far all
-# ratios move together) varies from seed to seed by ±2 % in either world, and the profile error
-# with it (12 passes, seeds 0–3: simfleet 1.09/0.90/2.95/1.37 %, ivp 2.33/0.96/2.26/1.35 %).
+# 30 passes as the figures: with fewer, the fleet calibration's common mode (how far all
+# ratios move together) scatters from seed to seed in either world, and the profile error with it.
 PASSES = 30
-# A 120 m road: one 100 m IRI segment and the 0.5–50 m profile band after the 10 m trims.
+# A 120 m road: the 0.5–50 m profile band after the 10 m trims, and ten 10 m IRI segments.
 ROAD = dataclasses.replace(SCENARIOS["road-qc"], name="road-qc", route_length_m=120.0)
 # The odometer's per-run scale error stretches each pass's chainage (1 % is 1.2 m over the road):
 # the default run does not align passes yet, so the road goals are checked with an exact odometer.
