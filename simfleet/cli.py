@@ -211,10 +211,11 @@ def _cmd_demo(args) -> int:
 
 
 def _reproduce_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=("road", "bridge", "rail"),
+    p.add_argument("what", choices=("road", "bridge", "rail", "robustness"),
                    help="which results: road (Tables 2.3, 2.6, Fig. 2.12, §4.3 MCMC), bridge (Table 3.3, "
                         "Table 4.2, Fig. 4.12, Cramér–Rao bound) or rail (Table 3.6 blind test, batch "
-                        "calibration, Fig. 3.10)")
+                        "calibration, Fig. 3.10) or robustness (headline numbers on simfleet's and the ivp "
+                        "world, with coverage)")
     p.add_argument("--out", default="driveby-reproduce", help="output directory (default ./driveby-reproduce)")
     p.add_argument("--quick", action="store_true", help="smaller fleets, fewer noise levels and iterations")
     p.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
@@ -229,6 +230,10 @@ def _cmd_reproduce(args) -> int:
         from .reproduce_bridge import reproduce_bridge
 
         report = reproduce_bridge(args.out, quick=args.quick, seed=args.seed, large=args.large)
+    elif args.what == "robustness":
+        from .reproduce_robustness import reproduce_robustness
+
+        report = reproduce_robustness(args.out, quick=args.quick, seed=args.seed)
     elif args.what == "rail":
         from .reproduce_rail import reproduce_rail
 
