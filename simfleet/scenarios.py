@@ -97,6 +97,20 @@ def _bridge_scenarios() -> list[Scenario]:
     return out
 
 
+#: ``driveby demo``'s world: a crack deep enough for its 30-pass fleet to find on a rough deck
+#: (simfleet/demo.py says why), and the same span healthy for its false-alarm check.
+DEMO_SCENARIO = "demo-crack20-10m-rough"
+DEMO_HEALTHY = "demo-healthy-rough"
+
+
+def _demo_scenarios() -> list[Scenario]:
+    deck = "road profile continues over the deck"
+    return [Scenario(DEMO_SCENARIO, f"crack phi = 20 % at 10 m (elements 10–11 lose 33 %), {deck}",
+                     bridge=BridgeSpec(crack_x_m=10.0, crack_phi=0.20), rough_deck=True, route_length_m=140.0),
+            Scenario(DEMO_HEALTHY, f"healthy span, {deck}", bridge=BridgeSpec(), rough_deck=True,
+                     route_length_m=140.0)]
+
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in [
@@ -107,6 +121,7 @@ SCENARIOS: dict[str, Scenario] = {
                  gnss_bias_sd_m=2.0, gnss_jitter_sd_m=0.05, speed_error_sd=0.02),
         Scenario("carpet", "road-qc on a 3-D carpet of 11 correlated lanes, lane drawn per pass", carpet=True),
         *_bridge_scenarios(),
+        *_demo_scenarios(),
         Scenario("fleet-large", "300 quarter-cars on bridge-crack5-10m (smooth deck)", n_vehicles=300,
                  route_length_m=140.0, bridge=BridgeSpec(crack_x_m=10.0, crack_phi=0.05)),
     ]
