@@ -138,7 +138,10 @@ def demo(out: str | Path = "driveby-demo", seed: int = 0, passes: int | None = N
         print(f"driveby demo: cannot write to {out}: {e.strerror or e}", file=sys.stderr)
         return 1
     try:
-        res = run(out / "sim" / "logs", out / "sim" / "site.toml", out / "export", rrd=out / "demo.rrd")
+        # A batch of known size: the fleet calibrates once on all of it (one epoch), not first on its
+        # first 8 and 16 passes as a daemon does whose passes keep coming.
+        res = run(out / "sim" / "logs", out / "sim" / "site.toml", out / "export", rrd=out / "demo.rrd",
+                  cloud_args=("--epoch-first", str(passes)))
     except RunError as e:
         print(f"driveby demo: {e}", file=sys.stderr)
         return 1
