@@ -25,11 +25,12 @@ from .scenarios import DEMO_SCENARIO, SCENARIOS
 from .sim import generate
 
 #: Why the demo's crack is deeper than the thesis's, in the words the demo prints.
-SIZING = ("sized for 30 passes: on a rough deck a crack of phi = 10 % (18 % loss) is not told from a healthy "
-          "span at this fleet size; one of phi = 20 % (33 % loss) is")
+SIZING = ("sized for its fleet: on a rough deck, 30 passes raise no alarm on a crack of phi = 10 % (18 % loss), "
+          "the thesis's; they do on one of phi = 20 % (33 % loss)")
 
 #: The alarm's message (cloud.bridge.monitor): the damage, where, and its largest element loss with 95 % band.
-ALARM = re.compile(r"^(?P<kind>\w+) damage at (?:element (?P<element>\d+) \(x = (?P<x>[-\d.]+) m\)|whole bridge): "
+ALARM = re.compile(r"^(?P<kind>\w+) damage at (?:element (?P<element>\d+) \(x = (?P<x>[-\d.]+) m\)|whole bridge|"
+                   r"an unresolved place \(x 95 %: (?P<x_lo>[-\d.]+)–(?P<x_hi>[-\d.]+) m\)): "
                    r"largest element loss (?P<loss>[\d.]+) % \(95 %: (?P<lo>[\d.]+)–(?P<hi>[\d.]+) %\)")
 
 
@@ -41,6 +42,7 @@ class BridgeFinding:
     n_passes: int
     alarm: str | None  # the standing alarm's message as the recording shows it (None: no alarm standing)
     kind: str | None  # the alarm's damage kind (crack, global, bearings)
+    where: str | None  # where an unlocated crack may be, as the alarm says (m from the first support)
     element: int | None  # the alarm's element (1-based; None: the whole bridge or no alarm)
     loss: float | None  # its largest element loss, fraction, and the 95 % band
     loss_lo95: float | None
@@ -85,6 +87,7 @@ def bridge_findings(export: Path, rrd: Path, truth: dict) -> list[BridgeFinding]
         pct = lambda k: float(m[k]) / 100 if m else None  # noqa: E731
         out.append(BridgeFinding(
             s["bridge_id"], int(s["n_passes"]), standing, m["kind"] if m else None,
+            f"{m['x_lo']}–{m['x_hi']} m" if m and m["x_lo"] else None,
             int(m["element"]) if m and m["element"] else None, pct("loss"), pct("lo"), pct("hi"),
             int(weak["element"]) if weak else 0, float(weak["stiffness_ratio"]) if weak else float("nan"),
             true_elements, 1.0 - lowest))
@@ -114,6 +117,8 @@ def finding_lines(f: BridgeFinding, truth: dict) -> list[str]:
     if f.element is not None:
         out.append(f"{pad}damage found at element {f.element}; within one element of the truth: "
                    f"{_yes(f.element_found)}")
+    elif f.kind == "crack":
+        out.append(f"{pad}damage found but not located (a crack anywhere in x = {f.where})")
     else:
         out.append(f"{pad}damage found over the whole bridge ({f.kind})")
     if f.loss is not None:

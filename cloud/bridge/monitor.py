@@ -63,7 +63,12 @@ def raised_alarm(bridge_id: str, est: BridgeEstimate, time_utc: str) -> Alarm:
     """The alarm an estimate whose assessment alarms raises: the damage, where, its largest element
     loss with the 95 % band, the probability behind the decision."""
     a = est.assessment
-    where = "whole bridge" if a.element < 0 else f"element {a.element} (x = {a.location_m:.1f} m)"
+    if a.element > 0:
+        where = f"element {a.element} (x = {a.location_m:.1f} m)"
+    elif a.kind == "crack":  # the passes say the span is damaged, not where
+        where = f"an unresolved place (x 95 %: {a.location_lo95:.1f}–{a.location_hi95:.1f} m)"
+    else:
+        where = "whole bridge"
     return Alarm(bridge_id=bridge_id, time_utc=time_utc, kind=a.kind, element=a.element, x_m=a.location_m,
                  severity=a.severity, probability=min(max(a.loss_probability, 0.0), 1.0),
                  message=f"{a.kind} damage at {where}: largest element loss {100 * a.severity:.1f} % "
