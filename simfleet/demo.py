@@ -1,10 +1,11 @@
 """``driveby demo``: the embedded default — simulate, run through edge and cloud, summarise.
 
-The demo's world (:data:`simfleet.scenarios.DEMO_SCENARIO`) is sized for what its fleet can tell:
-a 30-pass fleet over a rough deck finds a crack that takes a third of two elements' stiffness, not
-the thesis's φ = 10 % crack (18 %), which takes hundreds of passes (:data:`SIZING`). The summary
-puts what the cloud reported beside the simulation's truth: the simulator's side may read truth,
-the edge and cloud never do.
+The demo's world (:data:`simfleet.scenarios.DEMO_SCENARIO`) is sized for what its fleet can tell
+(:data:`SIZING`): 30 passes over a smooth deck find and locate a crack that takes a third of two
+elements' stiffness. They raise no alarm on the thesis's φ = 10 % crack (18 %), and over a rough
+deck, whose own profile the cloud must estimate with the deflection, they tell that the span lost
+stiffness but not where. The summary puts what the cloud reported beside the simulation's truth:
+the simulator's side may read truth, the edge and cloud never do.
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from .scenarios import DEMO_SCENARIO, SCENARIOS
 from .sim import generate
 
 #: Why the demo's crack is deeper than the thesis's, in the words the demo prints.
-SIZING = ("sized for its fleet: on a rough deck, 30 passes raise no alarm on a crack of phi = 10 % (18 % loss), "
-          "the thesis's; they do on one of phi = 20 % (33 % loss)")
+SIZING = ("sized for its fleet: 30 passes raise no alarm on the thesis's crack of phi = 10 % (18 % loss); over a "
+          "rough deck they tell that the span lost stiffness, not where")
 
 #: The alarm's message (cloud.bridge.monitor): the damage, where, and its largest element loss with 95 % band.
 ALARM = re.compile(r"^(?P<kind>\w+) damage at (?:element (?P<element>\d+) \(x = (?P<x>[-\d.]+) m\)|whole bridge|"
@@ -159,7 +160,8 @@ def demo(out: str | Path = "driveby-demo", seed: int = 0, passes: int | None = N
     print(f"road profile error   {100 * score.rel_error:.1f} % of the true profile's std "
           f"(0.5–50 m band), {100 * score.coverage:.0f} % of points inside the 95 % band")
     deck = load_site(out / "sim" / "site.toml").bridges[0].deck  # the registry's word (rough: estimated)
-    print(f"bridge deck          {deck}" + (" (its profile estimated with the deflection)" if deck == "rough" else ""))
+    print(f"bridge deck          {deck}" + (" (its profile estimated with the deflection)" if deck == "rough" else
+                                            " (declared in the registry: no profile of its own)"))
     for f in bridge_findings(out / "export", out / "demo.rrd", truth):
         for line in finding_lines(f, truth):
             print(line)
