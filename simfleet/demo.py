@@ -153,9 +153,10 @@ def demo(out: str | Path = "driveby-demo", seed: int = 0, passes: int | None = N
         return 1
     truth = load_truth(out / "sim" / "truth.json")
     score = score_profile(out / "export", truth)
-    rejected = sum(res.stats.get("rejected", {}).values())
+    # By reason: a duplicate (a pass published again while the cloud was busy) changes nothing.
+    rejected = ", ".join(f"{n} {reason}" for reason, n in sorted(res.stats.get("rejected", {}).items()) if n) or "none"
     print(f"passes processed     {res.acked}/{res.passes} in {res.seconds:.1f} s "
-          f"({res.stats.get('accepted', 0)} segments accepted, {rejected} rejected; "
+          f"({res.stats.get('accepted', 0)} segments accepted; rejected: {rejected}; "
           f"{res.calibration_rounds} fleet-calibration rounds)")
     print(f"road profile error   {100 * score.rel_error:.1f} % of the true profile's std "
           f"(0.5–50 m band), {100 * score.coverage:.0f} % of points inside the 95 % band")
