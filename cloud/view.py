@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+from rerun.chunk import RrdReader
 
 log = logging.getLogger(__name__)
 
@@ -711,3 +712,18 @@ def _element_colour(k: int, n: int) -> tuple[int, int, int]:
     """Blue (first support) to orange (second) along the span."""
     t = k / max(n - 1, 1)
     return (int(60 + 195 * t), int(140 + 20 * t), int(255 - 195 * t))
+
+
+def recorded_alarms(rrd_path: Path | str, bridge_id: str) -> list[tuple[str, str]]:
+    """The alarms a recording shows for a bridge, in the order logged: (level, message) each."""
+    path = f"{bridge_path(bridge_id)}/alarms".strip("/")
+    out = []
+    for chunk in RrdReader(str(rrd_path)).stream():
+        if chunk.entity_path.strip("/") != path or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        texts = batch.column("TextLog:text").to_pylist() if "TextLog:text" in names else []
+        levels = batch.column("TextLog:level").to_pylist() if "TextLog:level" in names else [None] * len(texts)
+        out += [(str((level or [""])[0]), str(text[0])) for text, level in zip(texts, levels) if text]
+    return out

@@ -72,8 +72,9 @@ class Bridge:
     damping_ratio: float
     supports: str
     krot_nm_per_rad: float | None = None
-    # Optional: "smooth" declares a deck without its own profile (the damage hypotheses and the alarm
-    # rely on it); "rough" (default, the safe assumption) makes the cloud estimate the deck profile.
+    # Optional: "smooth" declares a deck without its own profile (the passes then say more about the
+    # stiffness along the span); "rough" (default, the safe assumption) makes the cloud estimate the
+    # deck profile.
     deck: str = "rough"
 
     @property

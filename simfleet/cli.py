@@ -257,7 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="simulate a small fleet over a road and a cracked bridge, run it, summarise")
     demo.add_argument("--out", default="driveby-demo", help="working directory (default ./driveby-demo)")
     demo.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
-    demo.add_argument("--passes", type=int, default=20, help="passes to simulate (default 20)")
+    demo.add_argument("--passes", type=int, default=None, help="passes to simulate (default: the demo's, 30)")
     add_sim_arguments(sub.add_parser("sim", help="simulate a scenario into drive logs, site.toml and truth.json"))
     _run_args(sub.add_parser("run", help="replay drive logs through edge and cloud over Zenoh, export"))
     _reproduce_args(sub.add_parser("reproduce", help="reproduce the thesis's results beside ours (report in Markdown)"))

@@ -545,7 +545,8 @@ def _large_report(large: dict) -> list[str]:
          "and its model's peak element loss: 'reported'), with the per-element GMRF view beside it (its "
          "smoothness prior spreads a crack over its neighbours). Rough decks: the registry says "
          "`deck = \"rough\"`; the damage "
-         "hypotheses (and so the alarm) are not run on rough decks by default (`BridgeSettings.assess_rough`).", "",
+         "hypotheses (and so the alarm) run there too (`BridgeSettings.assess_rough`), a crack placed on an element only "
+         "when the passes locate it (`cloud.bridge.hypotheses.LOCATED_ELEMENTS`).", "",
          "| scenario | passes | effective loss % (±1σ) | truth | mean element error (pts) | max element error (pts) | "
          "weakest element: # (elements from the crack) | its loss % (truth there / crack max) | "
          "reported crack element # (from the crack) | its loss % (truth there) | best hypothesis | crack x m, "

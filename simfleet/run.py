@@ -201,7 +201,7 @@ def _tls_args(sec: SecurityDir | None, name: str) -> list[str]:
 def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = None, calibration: str = "fleet",
         connect: str | None = None, net: str = "net", viewer: bool = False, progress: bool | None = None,
         rate: float | None = None, align: bool = False, shards: int = 1,
-        secure: bool | str | Path = False) -> RunResult:
+        secure: bool | str | Path = False, cloud_args: tuple[str, ...] = ()) -> RunResult:
     """Replay ``logs_dir`` through edge and cloud daemons; ``shards`` > 1 splits the routes among that
     many cloud daemons behind two routers (as on separate machines) and merges their exports.
 
@@ -209,6 +209,7 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
     access control (``shared.security``); every daemon and the run's own session connect with
     their own identity. ``True`` makes the certificates (see :func:`_security_dir`); a path names a
     security directory to use (required with ``connect``: the router's CA must sign them).
+    ``cloud_args``: further options of every cloud daemon (``driveby cloud --help``).
     """
     t0 = time.monotonic()
     site, logs = load_inputs(Path(logs_dir), Path(site_path))
@@ -246,6 +247,7 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
             args = ["--connect", endpoints[i % len(endpoints)], *site_arg, "--id", cid, "--calibration", calibration,
                     "--state", str(work / f"{cid}-state"), *_tls_args(sec, cid)]
             args += ["--align"] if align else []
+            args += list(cloud_args)
             if shards > 1:
                 args += ["--routes", ",".join(routes[i::shards])]
             if rrd is not None:

@@ -97,6 +97,18 @@ def _bridge_scenarios() -> list[Scenario]:
     return out
 
 
+#: ``driveby demo``'s world: a crack its 30-pass fleet finds and locates (simfleet/demo.py says why
+#: this one), and the same span healthy for its false-alarm check (same seed: same fleet and road).
+DEMO_SCENARIO = "demo-crack20-14m"
+DEMO_HEALTHY = "demo-healthy"
+
+
+def _demo_scenarios() -> list[Scenario]:
+    return [Scenario(DEMO_SCENARIO, "crack phi = 20 % at 14 m (elements 14–15 lose 33 %), smooth deck",
+                     bridge=BridgeSpec(crack_x_m=14.0, crack_phi=0.20), route_length_m=140.0),
+            Scenario(DEMO_HEALTHY, "healthy span, smooth deck", bridge=BridgeSpec(), route_length_m=140.0)]
+
+
 SCENARIOS: dict[str, Scenario] = {
     s.name: s
     for s in [
@@ -107,6 +119,7 @@ SCENARIOS: dict[str, Scenario] = {
                  gnss_bias_sd_m=2.0, gnss_jitter_sd_m=0.05, speed_error_sd=0.02),
         Scenario("carpet", "road-qc on a 3-D carpet of 11 correlated lanes, lane drawn per pass", carpet=True),
         *_bridge_scenarios(),
+        *_demo_scenarios(),
         Scenario("fleet-large", "300 quarter-cars on bridge-crack5-10m (smooth deck)", n_vehicles=300,
                  route_length_m=140.0, bridge=BridgeSpec(crack_x_m=10.0, crack_phi=0.05)),
     ]

@@ -57,8 +57,11 @@ class BridgeSettings:
     ``dynamic``: moving-force dynamics on (:func:`~cloud.bridge.dynamic.fit_elements_dynamic`,
     warm-started at the last level; each pass's correction is cached per level);
     ``baseline_passes``: learn the MR-IL baseline from the first passes (None: the design MR-IL).
-    ``assess``: run the damage hypotheses and the alarm — by default not on a rough deck, where they
-    are not validated (a healthy rough deck raises a false crack alarm within 30 passes).
+    ``assess``: run the damage hypotheses and the alarm; ``assess_rough``: on a rough deck too (a
+    registry's bridge is rough unless it declares otherwise, so off would leave most bridges without
+    an alarm). On a rough deck the common deck profile takes most of what a smooth deck's passes
+    say about the stiffness along the span: the hypotheses still tell a healthy span from a damaged
+    one, but locate a crack only to a few metres and need a deeper one for the same passes.
     """
 
     deck: str = "smooth"
@@ -74,7 +77,7 @@ class BridgeSettings:
     min_passes: int = 3
     baseline_passes: int | None = None
     assess: bool = True
-    assess_rough: bool = False
+    assess_rough: bool = True
     #: log-sd of every calibration quantity of a pass added without its own
     #: (:meth:`BridgeEstimator.add_segments`): the calibration error integrated out of the likelihood
     #: (:mod:`cloud.bridge.vehicle_error`). The default is the error fleet self-calibration leaves

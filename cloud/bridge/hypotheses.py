@@ -47,6 +47,11 @@ from cloud.bridge.likelihood import Stacked, VehicleStats, WeightPrior, marginal
 from cloud.bridge.setup import Setup
 
 HYPOTHESES = ("healthy", "global", "crack", "bearings")
+#: A crack is reported on an element when its location's 95 % interval spans at most this many
+#: elements: wider, the passes say that the span lost stiffness but not where (on a rough deck the
+#: deck profile takes most of what they say along the span), and the posterior mean location of a
+#: broad posterior sits near mid-span whatever the truth.
+LOCATED_ELEMENTS = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +109,10 @@ class Assessment:
 
     ``loss_probability``: model-averaged P(some element lost > ``alarm_loss``). ``element``
     (1-based; −1 for the whole bridge) and ``location_m`` locate the damage, ``severity`` is the
-    posterior mean of the largest element loss under the most probable damage hypothesis.
+    posterior mean of the largest element loss under the most probable damage hypothesis, and
+    ``severity_lo95``, ``severity_hi95`` its central 95 % interval under that hypothesis. A crack
+    is placed on an element only when the data locate it (:data:`LOCATED_ELEMENTS`); otherwise
+    ``element`` is −1 and ``location_lo95``, ``location_hi95`` say how far it could be.
     """
 
     results: dict[str, HypothesisResult]
@@ -115,6 +123,10 @@ class Assessment:
     location_m: float
     severity: float
     kind: str
+    severity_lo95: float = float("nan")
+    severity_hi95: float = float("nan")
+    location_lo95: float = float("nan")
+    location_hi95: float = float("nan")
 
     @property
     def probabilities(self) -> dict[str, float]:
@@ -456,14 +468,16 @@ def assess(stats: Sequence[VehicleStats], setup: Setup, weight_prior: WeightPrio
     grid, p = post_w[damage]
     span = setup.bridge.span_m
     n_e = setup.bridge.n_elements
+    # The largest element loss under the damage hypothesis: its mean and central 95 % interval.
+    severity, lo, hi = _summary(1.0 - grid.ratio.min(axis=1), p)
     if damage == "crack":
-        x_mean = results["crack"].parameters["x_m"][0]
-        element = int(min(n_e, max(1, math.floor(x_mean / span * n_e) + 1)))
+        x_mean, x_lo, x_hi = results["crack"].parameters["x_m"]
+        located = x_hi - x_lo <= LOCATED_ELEMENTS * span / n_e
+        element = int(min(n_e, max(1, math.floor(x_mean / span * n_e) + 1))) if located else -1
         location, kind = x_mean, "crack"
-        severity = results["crack"].parameters["peak_element_loss"][0]
     else:
         element, location, kind = -1, 0.5 * span, damage
-        severity = float(p @ (1.0 - grid.ratio.min(axis=1)))
+        x_lo, x_hi = 0.0, span
     alarm = loss_p > settings.alarm_probability
     return Assessment(results, best, bool(alarm), float(loss_p), element, float(location), float(max(severity, 0.0)),
-                      kind)
+                      kind, float(max(lo, 0.0)), float(max(hi, 0.0)), float(x_lo), float(x_hi))

@@ -59,6 +59,23 @@ class BridgeState:
     version: int = 0  # estimates made so far
 
 
+def raised_alarm(bridge_id: str, est: BridgeEstimate, time_utc: str) -> Alarm:
+    """The alarm an estimate whose assessment alarms raises: the damage, where, its largest element
+    loss with the 95 % band, the probability behind the decision."""
+    a = est.assessment
+    if a.element > 0:
+        where = f"element {a.element} (x = {a.location_m:.1f} m)"
+    elif a.kind == "crack":  # the passes say the span is damaged, not where
+        where = f"an unresolved place (x 95 %: {a.location_lo95:.1f}–{a.location_hi95:.1f} m)"
+    else:
+        where = "whole bridge"
+    return Alarm(bridge_id=bridge_id, time_utc=time_utc, kind=a.kind, element=a.element, x_m=a.location_m,
+                 severity=a.severity, probability=min(max(a.loss_probability, 0.0), 1.0),
+                 message=f"{a.kind} damage at {where}: largest element loss {100 * a.severity:.1f} % "
+                         f"(95 %: {100 * a.severity_lo95:.1f}–{100 * a.severity_hi95:.1f} %), "
+                         f"P(loss > alarm threshold) = {a.loss_probability:.3f} after {est.n_passes} passes")
+
+
 class BridgeMonitor:
     """The bridges of a site. ``settings``: how every bridge is estimated (deck, dynamics, alarm)."""
 
@@ -164,11 +181,7 @@ class BridgeMonitor:
             return None
         st.alarmed = raised
         if raised:
-            where = "whole bridge" if a.element < 0 else f"element {a.element} (x = {a.location_m:.1f} m)"
-            return Alarm(bridge_id=st.bridge.id, time_utc=self.clock(), kind=a.kind, element=a.element,
-                         x_m=a.location_m, severity=a.severity, probability=min(max(a.loss_probability, 0.0), 1.0),
-                         message=f"{a.kind} damage at {where}: largest element loss {100 * a.severity:.1f} %, "
-                                 f"P(loss > alarm threshold) = {a.loss_probability:.3f} after {est.n_passes} passes")
+            return raised_alarm(st.bridge.id, est, self.clock())
         p = 0.0 if a is None else min(max(a.loss_probability, 0.0), 1.0)
         return Alarm(bridge_id=st.bridge.id, time_utc=self.clock(), kind=CLEARED, element=-1, x_m=0.0, severity=0.0,
                      probability=p, message=f"alarm cleared after {est.n_passes} passes")

@@ -459,6 +459,10 @@ class Cloud:
         True if any bridge was estimated."""
         if not self.bridges.bridges or not (self.bridge_sync_due or force):
             return False
+        if not force and not self.epochs.finished():
+            # A calibration epoch is moving its vehicles: every estimate now is redone once its passes
+            # come back recomputed, and one costs more than a round. Estimated when the epoch ends.
+            return False
         t0 = self.clock()
         self.bridge_sync_due = False
         self.bridges.sync(self.aggregator.passes, self.aggregator.held, self._bridge_params, self._bridge_uncertainty)

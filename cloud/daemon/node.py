@@ -284,6 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-resident-passes", type=int, default=DEFAULT_MAX_RESIDENT_PASSES, metavar="N",
                    help="keep the bookkeeping of at most N passes (the most recent) in memory, the rest on disk "
                         f"like spilled segments (default {DEFAULT_MAX_RESIDENT_PASSES}, a few kB each)")
+    p.add_argument("--epoch-first", type=int, default=CloudSettings.epoch_first, metavar="N",
+                   help="completed passes of the first calibration epoch (default "
+                        f"{CloudSettings.epoch_first}; a batch of known size calibrates once on all of it)")
     p.add_argument("--rrd", type=Path, help="save the Rerun recording to this file")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
     p.add_argument("--log-level", default="WARNING", type=str.upper, choices=LOG_LEVELS,
@@ -320,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--routes: {', '.join(unknown) or 'empty'}: not a route of {args.site}")
         settings = CloudSettings(calibration=args.calibration, align=args.align, shard=shard,
                                  max_resident=args.max_resident_segments,
-                                 max_resident_passes=args.max_resident_passes, spill_dir=args.state)
+                                 max_resident_passes=args.max_resident_passes, spill_dir=args.state,
+                                 epoch_first=args.epoch_first)
         journal = Journal(args.state) if args.state else None
     except (RegistryError, ValueError, JournalError, OSError) as e:  # what the arguments name is unusable
         print(f"driveby cloud: {e}", file=sys.stderr)
