@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloud.road.alignment import Alignment, estimate_alignment, realign
+from cloud.road.alignment import Alignment, centred, estimate_alignment, realign
 from shared.profiles import iso8608_profile, tyre_filter
 from shared.schema import ApSegment
 
@@ -122,3 +122,28 @@ def test_realigned_segments_keep_the_edges_error_model():
     assert out.start_index != seg.start_index  # really re-gridded
     np.testing.assert_array_equal(out.error_model, seg.error_model)
     assert out.n_segments_in_pass == 1
+
+
+def test_centred_maps_average_to_the_identity_at_every_chainage():
+    """The consensus frame is the passes' mean frame: after centring, a feature's reported position
+    averages to where the consensus puts it, everywhere along the route — also when the passes start
+    at different places with stretches that correlate with where they start (centring each pass's
+    shift at its own start would leave cov(ε, x_ref) in the frame)."""
+    rng = np.random.default_rng(2)
+    x_ref = np.linspace(0.0, 80.0, 9)
+    als = [Alignment(float(b), float(e), float(x0), 1.0)
+           for b, e, x0 in zip(rng.normal(0, 2.0, 9), 0.02 + 0.001 * x_ref, x_ref)]  # ε grows with x_ref
+    out = centred(als)
+    x = np.linspace(0.0, 300.0, 7)
+    mean_map = np.mean([a.true_to_reported(x) for a in out], axis=0)
+    np.testing.assert_allclose(mean_map, x, atol=1e-9)
+    # Each pass keeps its place relative to the others: only the common frame moved.
+    before = np.array([a.true_to_reported(x) for a in als])
+    frame = np.mean(before, axis=0)  # F(x): the old frame's mean map
+    for b, a in zip(before, out):
+        np.testing.assert_allclose(a.true_to_reported(frame), b, atol=1e-9)  # T_p = (T_p ∘ F⁻¹) ∘ F
+    assert [a.x_ref_m for a in out] == [a.x_ref_m for a in als]
+    # Maps already centred stay as they are.
+    again = centred(out)
+    for a, b in zip(again, out):
+        assert a.shift_m == pytest.approx(b.shift_m, abs=1e-12) and a.stretch == pytest.approx(b.stretch, abs=1e-15)

@@ -34,8 +34,9 @@ from cloud.daemon.epochs import Epochs
 from cloud.daemon.queries import TILE_M, bridge_state, tile_points, tile_state
 from cloud.daemon.settings import CloudSettings
 from cloud.daemon.sharding import Ownership, shard_site
-from cloud.export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
-                          profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
+from cloud.export import (FLEET_FRAME, REGISTRY_FRAME, bridge_bearings_table, bridge_elements_table,
+                          bridge_summary_table, profile_draws, profile_table, roughness_table, track_quality_table,
+                          vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
 from cloud.ingest.segment_store import SegmentStore
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
@@ -150,7 +151,7 @@ class Cloud:
         for ack in acks:
             key = (ack.vehicle_id, ack.pass_id)
             if self.settings.align:
-                self.aligner.reapply(self.aggregator, key)
+                self.aligner.recomputed(key)  # re-gridded when idle (maybe_align), not on the ingest path
             if self.settings.continuous_aps:
                 self._unfused[key] = None
             ps = self.aggregator.passes.get(key)
@@ -233,6 +234,7 @@ class Cloud:
         if not aligner.due:
             return False
         aligner.due = False
+        self._reapply_alignments()  # recomputed passes first: the sweep compares against them
         new_passes = aligner.has_new_passes(self.aggregator)
         swept = False
         for _ in range(self.settings.align_iterations if new_passes else 2):  # against the others' improving consensus
@@ -251,6 +253,18 @@ class Cloud:
             self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
         self.publish_status()
         return True
+
+    def _reapply_alignments(self) -> None:
+        """Idle work: recomputed passes re-gridded with the alignment found for them, their
+        continuous-time APs then due afresh."""
+        reapplied = self.aligner.reapply_pending(self.aggregator)
+        if self.settings.continuous_aps:
+            self._unfused.update(dict.fromkeys(reapplied))
+
+    def _placed(self, key: tuple[str, str]) -> bool:
+        """Whether a pass is placed in chainage (:meth:`ChainageAligner.placed`)."""
+        ps = self.aggregator.passes.get(key)
+        return self.aligner.placed(key, ps.model if ps is not None else "")
 
     @property
     def alignments(self) -> dict:
@@ -377,7 +391,8 @@ class Cloud:
             return False
         if self.settings.align:  # a pass not (yet) placed in chainage would teach the vehicles a shifted road
             # (Too few placed passes: the round fits nothing and waits for new data, never spins.)
-            segs = {sl: s for sl, s in segs.items() if (s.vehicle_id, s.pass_id) in self.alignments}
+            self._reapply_alignments()  # (maybe_align, which runs first when idle, has normally done it)
+            segs = {sl: s for sl, s in segs.items() if self._placed((s.vehicle_id, s.pass_id))}
         # The vehicle step sees what the posterior fuses: continuous-time APs (FleetCalibrator.continuous_aps).
         self.fuse_pending()
         segs = dict(zip(segs, self.aggregator.as_fused(segs.values())))
@@ -543,12 +558,15 @@ class Cloud:
     def export(self, out_dir: Path) -> list[Path]:
         """Every estimate as Parquet tables in ``out_dir`` (interfaces.md §3), a function of the held
         segments: pending idle work (fusion, rail batches, bridge estimates) is done first."""
+        self._reapply_alignments()
         self.fuse_pending()
         self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
         snaps = self.snapshot()
-        tables = {"profile": profile_table(snaps)}
+        frames = {rid: FLEET_FRAME if self.aligner.frames.get(rid) else REGISTRY_FRAME for rid in snaps}
+        tables = {"profile": profile_table(snaps, frames)}
         segs = self.fused_segments()
-        rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0), self.profile.spacing_m)
+        rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0),
+                                 self.profile.spacing_m, frame=frames[rid])
                  for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
         if rough:
             tables["roughness"] = pa.concat_tables(rough)

@@ -16,9 +16,10 @@ compared with the consensus of the *other* passes, band-passed:
    bias and of the vehicle's phase error.
 
 The cost is a few dozen small FFTs per pass (~10 ms of one core)
-instead of a correlation per trial stretch. The fleet's biases
-average to zero, so the daemon centres the estimated shifts across passes: the consensus frame is
-the fleet's mean frame, not the first pass's.
+instead of a correlation per trial stretch. The fleet's biases and stretches are independent across
+passes with zero mean, so the daemon centres the estimated maps across a route's passes
+(:func:`centred`): the consensus frame is the fleet's mean frame, which converges to the true one
+as passes accumulate, not the first pass's.
 """
 
 from __future__ import annotations
@@ -63,6 +64,31 @@ class Alignment:
 
     def reported_to_true(self, x_rep: np.ndarray) -> np.ndarray:
         return self.x_ref_m + (x_rep - self.x_ref_m - self.shift_m) / (1.0 + self.stretch)
+
+
+def centred(alignments: list[Alignment]) -> list[Alignment]:
+    """The maps re-expressed so that their mean is the identity: the consensus frame becomes the
+    passes' mean frame.
+
+    Each alignment maps consensus → reported chainage, ``T_p(y) = α_p + (1 + ε_p)·y`` with
+    ``α_p = b_p − ε_p·x_ref,p``. The fleet's mean frame ``F = mean_p T_p`` (a feature's mean reported
+    position) is the frame whose error is the average of the passes' independent errors; composing
+    every map with ``F⁻¹`` removes ``mean α`` and ``mean ε`` from the intercepts and slopes *at a
+    common origin*. Subtracting the mean shift at each pass's own ``x_ref`` instead would leave
+    ``cov(ε_p, x_ref,p)`` in the frame when the passes start at different places.
+    """
+    if not alignments:
+        return []
+    alpha = np.array([a.shift_m - a.stretch * a.x_ref_m for a in alignments])
+    beta = np.array([1.0 + a.stretch for a in alignments])
+    a0, b0 = float(np.mean(alpha)), float(np.mean(beta))
+    out = []
+    for a, al, be in zip(alignments, alpha, beta):
+        # T_p ∘ F⁻¹ with F(y) = a0 + b0·y: y ↦ α_p + β_p·(y − a0)/b0.
+        al_c, be_c = al - be * a0 / b0, be / b0
+        eps = be_c - 1.0
+        out.append(Alignment(float(al_c + eps * a.x_ref_m), float(eps), a.x_ref_m, a.score))
+    return out
 
 
 @functools.lru_cache(maxsize=16)
