@@ -133,7 +133,7 @@ def test_carpet_fleet_mean_profile_under_lane_scatter(tmp_path):
     truth = load_truth(carpet / "truth.json")
     lanes = {p["lane"] for p in truth["passes"]}
     assert len(lanes) >= 4  # the passes really scatter across the carpet
-    _run(carpet, "nominal", align=False)
+    _run(carpet, "nominal")
     score = score_profile(carpet / "export", truth).rel_error
     print(f"carpet fleet-mean profile error {score:.4f}")
     assert score <= 0.10

@@ -248,7 +248,30 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
                             max_move_m=refine[0] / 4.0)
     if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
         return None
-    return Alignment(shift_m=float(b), stretch=float(eps), x_ref_m=x_ref, score=score)
+    # A move must earn its place: a pass already in the consensus frame that differs from the others
+    # (another lane of the surface, a patch) can still find a false optimum, decimetres away, whose
+    # short waves match worse than where the pass says it is. Keep the reported chainage then.
+    found = Alignment(shift_m=float(b), stretch=float(eps), x_ref_m=x_ref, score=score)
+    if fine_band_m != band_m:
+        c_band, a_band = _band(c, h, fine_band_m), _band(ap, h, fine_band_m)
+    stay = Alignment(0.0, 0.0, x_ref, score)
+    if _correlation(x_rep, a_band, xc, c_band, stay) >= _correlation(x_rep, a_band, xc, c_band, found):
+        return stay
+    return found
+
+
+def _correlation(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment) -> float:
+    """Normalised correlation of the pass ``a`` (on its reported grid) placed by ``al`` with the
+    consensus ``c`` (on the regular grid ``xc``), over the consensus points the placed pass covers."""
+    h = float(xc[1] - xc[0])
+    lo = max(np.ceil(al.reported_to_true(x_rep[0]) / h), np.ceil(xc[0] / h))
+    hi = min(np.floor(al.reported_to_true(x_rep[-1]) / h), np.floor(xc[-1] / h))
+    xg = np.arange(lo, hi + 1) * h
+    if xg.size < MIN_POINTS:
+        return -np.inf
+    av = np.interp(al.true_to_reported(xg), x_rep, a)
+    cv = c[np.clip(np.rint((xg - xc[0]) / h).astype(np.int64), 0, c.size - 1)]
+    return float(np.dot(av, cv) / (np.sqrt(np.dot(av, av) * np.dot(cv, cv)) + 1e-300))
 
 
 def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment,
