@@ -35,7 +35,10 @@ class ChainageAligner:
     def __init__(self, settings: CloudSettings):
         self.settings = settings
         self.alignments: dict[PassKey, Alignment] = {}
-        self.due = False  # passes completed since the last sweeps
+        self.due = False  # passes completed since the last series of sweeps, or the series goes on
+        self.sweeps = 0  # sweeps run in the current series
+        self.sweep_limit = 0  # the current series' most sweeps
+        self.swept = False  # some sweep of the current series placed passes
         self.pending: dict[PassKey, None] = {}  # recomputed passes whose alignment is still to re-apply
         #: route → whether its held passes are re-gridded into the fleet's consensus frame (export)
         self.frames: dict[str, bool] = {}

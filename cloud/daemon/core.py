@@ -145,7 +145,7 @@ class Cloud:
 
     def _acks(self, acks) -> None:
         if acks and self.settings.align:
-            self.aligner.due = True
+            self.aligner.due, self.aligner.sweeps = True, 0  # a new series of sweeps, sized for new passes
         if acks:
             self.bridge_sync_due = True
         for ack in acks:
@@ -227,25 +227,27 @@ class Cloud:
                 store.flush(budget_s / 2)
 
     def maybe_align(self) -> bool:
-        """Align every complete pass in chainage against the consensus of the others and centre the
-        fleet's shifts (:class:`~cloud.daemon.chainage.ChainageAligner`). Runs when passes completed
-        since the last time; True if the passes moved."""
-        aligner = self.aligner
+        """One chainage alignment sweep, if passes completed since the last series: every complete road
+        pass against the consensus of the others, each route's maps centred on its fleet's mean
+        (:class:`~cloud.daemon.chainage.ChainageAligner`). A series of sweeps against the others'
+        improving consensus runs one sweep per call (idle work: the serve loop takes input between
+        them) until no pass moves more than ``align_tol_m``, up to ``align_iterations`` when new
+        passes came in (2 otherwise). True if this sweep placed passes (a calibration round waits
+        until the series ends)."""
+        aligner, s = self.aligner, self.settings
         if not aligner.due:
             return False
-        aligner.due = False
         self._reapply_alignments()  # recomputed passes first: the sweep compares against them
-        new_passes = aligner.has_new_passes(self.aggregator)
-        swept = False
-        for _ in range(self.settings.align_iterations if new_passes else 2):  # against the others' improving consensus
-            moved = aligner.sweep(self.aggregator, self.consensus)
-            if moved is None:
-                break
-            swept = True
-            if moved < self.settings.align_tol_m:
-                break
-        if swept and self.settings.continuous_aps:  # re-gridded (or restored) passes: their continuous-time APs afresh
-            self._unfused.update(dict.fromkeys(self.aggregator.passes))
+        if aligner.sweeps == 0:
+            aligner.sweep_limit = s.align_iterations if aligner.has_new_passes(self.aggregator) else 2
+        moved = aligner.sweep(self.aggregator, self.consensus)
+        aligner.sweeps += 1
+        aligner.swept = aligner.swept or moved is not None
+        if moved is None or moved < s.align_tol_m or aligner.sweeps >= aligner.sweep_limit:
+            aligner.due, aligner.sweeps = False, 0
+            if aligner.swept and s.continuous_aps:  # re-gridded (or restored) passes: their continuous-time APs afresh
+                self._unfused.update(dict.fromkeys(self.aggregator.passes))
+            aligner.swept = False
         if moved is None:
             self.publish_status()
             return False
