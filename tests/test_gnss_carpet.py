@@ -160,8 +160,8 @@ def test_default_run_with_gnss_error_is_as_good_as_without(tmp_path):
     fleet's frame, and the vehicles calibrated as well (k/M, c/M medians within 3 %). The frame is
     the fleet's mean frame — where the passes' reported chainage puts the road on average — and the
     export says so; the true frame is off by that mean (metres of GNSS bias and % of stretch over 12
-    passes average to decimetres), which only a surveyed reference removes.
-    Without alignment the calibration diverges (measured 60 % profile error)."""
+    passes average to decimetres), which only a surveyed reference removes. Without alignment the
+    calibration learns a smeared road and diverges."""
     gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0, nominal="class")
     plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0, nominal="class")
     _run(gnss, "fleet")

@@ -88,8 +88,9 @@ class ChainageAligner:
                 aggregator.replace_held(sl, aligned[sl])
 
     def has_new_passes(self, aggregator) -> bool:
-        """Some acknowledged pass has no alignment yet."""
-        return any(key not in self.alignments for key, ps in aggregator.passes.items() if ps.acked)
+        """Some acknowledged road pass has no alignment yet."""
+        return any(key not in self.alignments for key, ps in aggregator.passes.items()
+                   if ps.acked and self.aligned_model(ps.model))
 
     def sweep(self, aggregator, consensus) -> float | None:
         """One sweep, the estimators given the re-gridded segments (a pass alignment moves too little
