@@ -26,6 +26,8 @@ def add_sim_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nominal", choices=("class", "true"), default="class",
                    help="nominal_params written to the logs: the class mean (default) or each vehicle's truth")
     p.add_argument("--list", action="store_true", help="list the scenarios and exit")
+    p.add_argument("--world", choices=("simfleet", "ivp"), default="simfleet",
+                   help="simfleet's own simulator (default) or the independent ivp world (simfleet.worlds)")
 
 
 def run_sim(args: argparse.Namespace) -> int:
@@ -58,13 +60,19 @@ def run_sim(args: argparse.Namespace) -> int:
         print(f"driveby sim: --seed must be >= 0, got {args.seed}", file=sys.stderr)
         return 2
     from .sim import generate  # the simulator: loaded only once the arguments are checked
+    from .worlds.ivp import generate as generate_ivp
 
+    if getattr(args, "world", "simfleet") == "ivp":
+        generate = generate_ivp
     try:
         truth = generate(SCENARIOS[args.scenario], args.out, seed=args.seed, passes=args.passes,
                          vehicles=args.vehicles, noise_pct=args.noise, nominal=args.nominal)
     except OSError as e:  # e.g. --out names an existing file, or a read-only place
         print(f"driveby sim: cannot write to {args.out}: {e.strerror or e}", file=sys.stderr)
         return 1
+    except ValueError as e:  # e.g. a rail scenario in the ivp world
+        print(f"driveby sim: {e}", file=sys.stderr)
+        return 2
     print(f"wrote {len(truth['passes'])} drive logs, site.toml and truth.json to {args.out}")
     return 0
 
@@ -113,10 +121,11 @@ def _cmd_demo(args) -> int:
 
 
 def _reproduce_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("what", choices=("road", "bridge", "rail"),
+    p.add_argument("what", choices=("road", "bridge", "rail", "robustness"),
                    help="which results: road (Tables 2.3, 2.6, Fig. 2.12, §4.3 MCMC), bridge (Table 3.3, "
                         "Table 4.2, Fig. 4.12, Cramér–Rao bound) or rail (Table 3.6 blind test, batch "
-                        "calibration, Fig. 3.10)")
+                        "calibration, Fig. 3.10) or robustness (headline numbers on simfleet's and the ivp "
+                        "world, with coverage)")
     p.add_argument("--out", default="driveby-reproduce", help="output directory (default ./driveby-reproduce)")
     p.add_argument("--quick", action="store_true", help="smaller fleets, fewer noise levels and iterations")
     p.add_argument("--seed", type=int, default=0, help="random seed of the simulation (default 0)")
@@ -131,6 +140,10 @@ def _cmd_reproduce(args) -> int:
         from .reproduce_bridge import reproduce_bridge
 
         report = reproduce_bridge(args.out, quick=args.quick, seed=args.seed, large=args.large)
+    elif args.what == "robustness":
+        from .reproduce_robustness import reproduce_robustness
+
+        report = reproduce_robustness(args.out, quick=args.quick, seed=args.seed)
     elif args.what == "rail":
         from .reproduce_rail import reproduce_rail
 
