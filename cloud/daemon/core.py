@@ -209,6 +209,8 @@ class Cloud:
         while self._unfused and (budget_s is None or self.clock() - t0 < budget_s):
             key = next(iter(self._unfused))
             del self._unfused[key]
+            if key in self.aligner.pending:  # re-gridded first (idle): its correction is due again then
+                continue
             for slot, seg in (self._continuous_pass(key) or {}).items():
                 self.aggregator.fuse(slot, seg)
         return len(self._unfused)
