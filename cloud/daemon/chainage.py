@@ -42,15 +42,20 @@ class ChainageAligner:
         self.pending: dict[PassKey, None] = {}  # recomputed passes whose alignment is still to re-apply
         #: route → whether its held passes are re-gridded into the fleet's consensus frame (export)
         self.frames: dict[str, bool] = {}
+        self.framed: set[str] = set()  # routes where the last sweep aligned enough passes for a frame
+        self.looked_at: set[PassKey] = set()  # passes a sweep has tried to align
 
     @staticmethod
     def aligned_model(model: str) -> bool:
         """Whether passes of this vehicle model are aligned (road vehicles; rail runs are re-keyed)."""
         return model not in RAIL_MODELS
 
-    def placed(self, key: PassKey, model: str) -> bool:
-        """Whether a pass may teach the calibration: aligned, or of a model that is never aligned."""
-        return key in self.alignments or not self.aligned_model(model)
+    def placed(self, key: PassKey, model: str, route_id: str) -> bool:
+        """Whether a pass may teach the calibration: aligned, of a model that is never aligned, or
+        looked at by a sweep on a route where too few passes align to define a fleet frame (there the
+        reported chainage is all there is: too short, too smooth or too few passes yet)."""
+        return key in self.alignments or not self.aligned_model(model) or (
+            key in self.looked_at and route_id not in self.framed)
 
     def recomputed(self, key: PassKey) -> None:
         """Ingest path: a pass came back (recomputed); its alignment is re-applied when idle."""
@@ -101,6 +106,7 @@ class ChainageAligner:
         for key, ps in agg.passes.items():
             if not ps.acked or not ps.slots or not self.aligned_model(ps.model):
                 continue
+            self.looked_at.add(key)
             slots = sorted(ps.slots)
             with agg.left_out(consensus, slots):
                 snap = consensus.snapshot(ps.route_id).get(ps.route_id)
@@ -118,6 +124,7 @@ class ChainageAligner:
                 found.setdefault(ps.route_id, {})[key] = (al, slots)
         # Each route has its own frame: the mean of its own passes' errors.
         found = {rid: f for rid, f in found.items() if len(f) >= s.align_min_passes}
+        self.framed = set(found)
         if not found:
             return None
         moved = 0.0

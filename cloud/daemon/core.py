@@ -268,7 +268,7 @@ class Cloud:
     def _placed(self, key: tuple[str, str]) -> bool:
         """Whether a pass is placed in chainage (:meth:`ChainageAligner.placed`)."""
         ps = self.aggregator.passes.get(key)
-        return self.aligner.placed(key, ps.model if ps is not None else "")
+        return ps is not None and self.aligner.placed(key, ps.model, ps.route_id)
 
     @property
     def alignments(self) -> dict:
