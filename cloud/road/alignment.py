@@ -250,14 +250,16 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
         return None
     # A move must earn its place: a pass already in the consensus frame that differs from the others
     # (another lane of the surface, a patch) can still find a false optimum, decimetres away, whose
-    # short waves match worse than where the pass says it is. Keep the reported chainage then.
+    # waves match worse than where the pass says it is, long and short. Keep the reported chainage
+    # then. (Either band alone is not enough: the short waves carry the vehicle's phase error, which
+    # can favour a reported chainage a decimetre off against a consensus still being placed.)
     found = Alignment(shift_m=float(b), stretch=float(eps), x_ref_m=x_ref, score=score)
-    if fine_band_m != band_m:
-        c_band, a_band = _band(c, h, fine_band_m), _band(ap, h, fine_band_m)
     stay = Alignment(0.0, 0.0, x_ref, score)
-    if _correlation(x_rep, a_band, xc, c_band, stay) >= _correlation(x_rep, a_band, xc, c_band, found):
-        return stay
-    return found
+    for band in (band_m, fine_band_m):
+        c_b, a_b = _band(c, h, band), _band(ap, h, band)
+        if _correlation(x_rep, a_b, xc, c_b, stay) < _correlation(x_rep, a_b, xc, c_b, found):
+            return found
+    return stay
 
 
 def _correlation(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment) -> float:
