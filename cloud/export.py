@@ -16,13 +16,31 @@ from cloud.road.mean_profile import ProfileSnapshot
 ROUGHNESS_SEGMENTS_M = (10.0, 100.0)
 """Segment lengths of ``roughness.parquet`` (m)."""
 
+REGISTRY_FRAME = "registry"
+"""``chainage_frame``: chainage as the vehicles reported it against the registry's route (GNSS and
+odometry; no pass re-gridded). Absolute up to the vehicles' own positioning error."""
+FLEET_FRAME = "fleet-consensus"
+"""``chainage_frame``: passes re-gridded into the route's fleet-consensus frame, the mean of the
+passes' reported frames (their shifts and stretches about it average to zero): absolute up to the
+fleet's mean GNSS bias and odometry stretch, which shrink as 1/√passes."""
+CHAINAGE_FRAMES = (REGISTRY_FRAME, FLEET_FRAME)
 
-def profile_table(snapshots: dict[str, ProfileSnapshot]) -> pa.Table:
-    """``profile.parquet``: route_id, chainage_m, elevation_m, lo95_m, hi95_m, n_passes.
 
-    Points no pass has covered are left out rather than written as NaN.
+def _frame(frames: dict[str, str] | None, route_id: str) -> str:
+    frame = (frames or {}).get(route_id, REGISTRY_FRAME)
+    if frame not in CHAINAGE_FRAMES:
+        raise ValueError(f"chainage_frame of {route_id!r}: expected one of {CHAINAGE_FRAMES}, got {frame!r}")
+    return frame
+
+
+def profile_table(snapshots: dict[str, ProfileSnapshot], frames: dict[str, str] | None = None) -> pa.Table:
+    """``profile.parquet``: route_id, chainage_m, elevation_m, lo95_m, hi95_m, n_passes, chainage_frame.
+
+    Points no pass has covered are left out rather than written as NaN. ``frames``: route → the frame
+    its chainage is in (:data:`CHAINAGE_FRAMES`; default :data:`REGISTRY_FRAME`).
     """
-    cols = {k: [] for k in ("route_id", "chainage_m", "elevation_m", "lo95_m", "hi95_m", "n_passes")}
+    cols = {k: [] for k in ("route_id", "chainage_m", "elevation_m", "lo95_m", "hi95_m", "n_passes",
+                            "chainage_frame")}
     for rid, s in snapshots.items():
         has = np.isfinite(s.elevation_m)
         cols["route_id"].append(np.full(int(has.sum()), rid, dtype=object))
@@ -31,8 +49,10 @@ def profile_table(snapshots: dict[str, ProfileSnapshot]) -> pa.Table:
         cols["lo95_m"].append(s.lo95_m[has])
         cols["hi95_m"].append(s.hi95_m[has])
         cols["n_passes"].append(s.n_passes[has].astype(np.int64))
+        cols["chainage_frame"].append(np.full(int(has.sum()), _frame(frames, rid), dtype=object))
     schema = pa.schema([("route_id", pa.string()), ("chainage_m", pa.float64()), ("elevation_m", pa.float64()),
-                        ("lo95_m", pa.float64()), ("hi95_m", pa.float64()), ("n_passes", pa.int64())])
+                        ("lo95_m", pa.float64()), ("hi95_m", pa.float64()), ("n_passes", pa.int64()),
+                        ("chainage_frame", pa.string())])
     arrays = [pa.array(np.concatenate(v) if v else [], type=f.type) for v, f in zip(cols.values(), schema)]
     return pa.Table.from_arrays(arrays, schema=schema)
 
@@ -51,8 +71,9 @@ def profile_draws(profile, route_id: str, snap: ProfileSnapshot, segments: list,
 
 
 def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, spacing_m: float,
-                    lengths_m: tuple[float, ...] = ROUGHNESS_SEGMENTS_M) -> pa.Table:
-    """``roughness.parquet``: route_id, start_m, end_m, length_m, iri_m_per_km, iri_lo95, iri_hi95.
+                    lengths_m: tuple[float, ...] = ROUGHNESS_SEGMENTS_M, frame: str = REGISTRY_FRAME) -> pa.Table:
+    """``roughness.parquet``: route_id, start_m, end_m, length_m, iri_m_per_km, iri_lo95, iri_hi95,
+    chainage_frame (``frame``: the frame of start_m/end_m, as the profile's).
 
     ``samples`` (n_samples, P) are posterior draws of the route's profile (m) on ``chainage_m``
     (:func:`profile_draws`: with every error term of the profile's band), NaN where the profile is
@@ -90,9 +111,12 @@ def roughness_table(route_id: str, chainage_m: np.ndarray, samples: np.ndarray, 
         cols["iri_lo95"].append(np.quantile(v, 0.025, axis=0))
         cols["iri_hi95"].append(np.quantile(v, 0.975, axis=0))
     n = int(sum(c.size for c in cols["start_m"]))
-    schema = pa.schema([("route_id", pa.string())] + [(k, pa.float64()) for k in names])
+    frame = _frame({route_id: frame}, route_id)
+    schema = pa.schema([("route_id", pa.string())] + [(k, pa.float64()) for k in names]
+                       + [("chainage_frame", pa.string())])
     arrays = [pa.array(np.full(n, route_id, dtype=object), type=pa.string())]
     arrays += [pa.array(np.concatenate(cols[k]), type=pa.float64()) for k in names]
+    arrays += [pa.array(np.full(n, frame, dtype=object), type=pa.string())]
     return pa.Table.from_arrays(arrays, schema=schema)
 
 

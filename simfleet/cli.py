@@ -97,8 +97,9 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--net", default="net", help="network name in the key space")
     p.add_argument("--viewer", action="store_true", help="spawn a Rerun viewer")
     p.add_argument("--rate", type=float, help="replay at X× real time (default: as fast as possible)")
-    p.add_argument("--align", action="store_true",
-                   help="align passes in chainage against the consensus (GNSS bias, odometry stretch)")
+    p.add_argument("--align", action=argparse.BooleanOptionalAction, default=True,
+                   help="align passes in chainage against the consensus (GNSS bias, odometry stretch; default on, "
+                        "--no-align trusts the reported chainage)")
     p.add_argument("--shards", type=int, default=1, metavar="N",
                    help="split the routes among N cloud daemons behind two routers (scale-out, exercised locally)")
     p.add_argument("--secure", nargs="?", const=True, default=False, metavar="DIR",

@@ -200,7 +200,7 @@ def _tls_args(sec: SecurityDir | None, name: str) -> list[str]:
 
 def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = None, calibration: str = "fleet",
         connect: str | None = None, net: str = "net", viewer: bool = False, progress: bool | None = None,
-        rate: float | None = None, align: bool = False, shards: int = 1,
+        rate: float | None = None, align: bool = True, shards: int = 1,
         secure: bool | str | Path = False, cloud_args: tuple[str, ...] = ()) -> RunResult:
     """Replay ``logs_dir`` through edge and cloud daemons; ``shards`` > 1 splits the routes among that
     many cloud daemons behind two routers (as on separate machines) and merges their exports.
@@ -246,7 +246,7 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
         for i, cid in enumerate(cloud_ids):
             args = ["--connect", endpoints[i % len(endpoints)], *site_arg, "--id", cid, "--calibration", calibration,
                     "--state", str(work / f"{cid}-state"), *_tls_args(sec, cid)]
-            args += ["--align"] if align else []
+            args += ["--align"] if align else ["--no-align"]
             args += list(cloud_args)
             if shards > 1:
                 args += ["--routes", ",".join(routes[i::shards])]

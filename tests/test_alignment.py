@@ -5,9 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cloud.road.alignment import Alignment, estimate_alignment, realign
+from cloud.daemon.core import Cloud
+from cloud.daemon.settings import CloudSettings
+from cloud.road.alignment import Alignment, centred, estimate_alignment, realign
+from shared import keys
 from shared.profiles import iso8608_profile, tyre_filter
-from shared.schema import ApSegment
+from shared.registry import Route, Site, VehicleClass
+from shared.schema import ApSegment, PassDone
 
 
 @pytest.mark.parametrize("bias, stretch", [(0.0, 0.0), (2.3, 0.0), (-4.1, 0.021), (1.2, -0.035)])
@@ -122,3 +126,83 @@ def test_realigned_segments_keep_the_edges_error_model():
     assert out.start_index != seg.start_index  # really re-gridded
     np.testing.assert_array_equal(out.error_model, seg.error_model)
     assert out.n_segments_in_pass == 1
+
+
+def test_centred_maps_average_to_the_identity_at_every_chainage():
+    """The consensus frame is the passes' mean frame: after centring, a feature's reported position
+    averages to where the consensus puts it, everywhere along the route — also when the passes start
+    at different places with stretches that correlate with where they start (centring each pass's
+    shift at its own start would leave cov(ε, x_ref) in the frame)."""
+    rng = np.random.default_rng(2)
+    x_ref = np.linspace(0.0, 80.0, 9)
+    als = [Alignment(float(b), float(e), float(x0), 1.0)
+           for b, e, x0 in zip(rng.normal(0, 2.0, 9), 0.02 + 0.001 * x_ref, x_ref)]  # ε grows with x_ref
+    out = centred(als)
+    x = np.linspace(0.0, 300.0, 7)
+    mean_map = np.mean([a.true_to_reported(x) for a in out], axis=0)
+    np.testing.assert_allclose(mean_map, x, atol=1e-9)
+    # Each pass keeps its place relative to the others: only the common frame moved.
+    before = np.array([a.true_to_reported(x) for a in als])
+    frame = np.mean(before, axis=0)  # F(x): the old frame's mean map
+    for b, a in zip(before, out):
+        np.testing.assert_allclose(a.true_to_reported(frame), b, atol=1e-9)  # T_p = (T_p ∘ F⁻¹) ∘ F
+    assert [a.x_ref_m for a in out] == [a.x_ref_m for a in als]
+    # Maps already centred stay as they are.
+    again = centred(out)
+    for a, b in zip(again, out):
+        assert a.shift_m == pytest.approx(b.shift_m, abs=1e-12) and a.stretch == pytest.approx(b.stretch, abs=1e-15)
+
+
+def _send_pass(cloud: Cloud, i: int, al: Alignment, version: int, profile, rng) -> None:
+    """Pass ``i`` of a GNSS-biased fleet into the core: its AP on the grid of its reported chainage
+    (``al``: true → reported), cut into tiles, then its pass-done."""
+    h = 0.05
+    x_true = np.arange(10.0, 190.0, h)
+    x_rep = al.true_to_reported(x_true)
+    i0, i1 = int(np.ceil(x_rep[0] / h)), int(np.floor(x_rep[-1] / h))
+    ap = np.interp(np.arange(i0, i1) * h, x_rep, profile.at(x_true)) + rng.normal(0, 2e-5, i1 - i0)
+    starts = list(range(i0, i1, 1000))
+    for k, a in enumerate(starts):
+        z = min(a + 1000, i1)
+        seg = ApSegment.make(ap[a - i0 : z - i0], np.full(z - a, 1e-4), vehicle_id=f"v{i}", pass_id=f"p{i}",
+                             route_id="R1", tile=k, axle=1, start_index=a, spacing_m=h, calib_version=version,
+                             speed_mps=20.0, t_first=a * h / 20, t_last=(z - 1) * h / 20, seq=k)
+        cloud.on_segment(keys.ap_key("t", "R1", k, f"v{i}"), seg.encode())
+    done = PassDone(f"v{i}", f"p{i}", "R1", version, len(starts), "quarter_car")
+    cloud.on_done(keys.done_key("t", f"v{i}"), done.encode())
+
+
+def test_alignment_is_idle_work_and_places_passes_in_the_fleets_mean_frame():
+    """Default settings align, but never on the ingest path: segments and pass-dones only note what
+    is due; the sweep (idle) places every pass in the fleet's mean frame — each estimated map is the
+    true one composed with the inverse of the mean of the true maps — and a pass recomputed later
+    is re-gridded with its alignment when idle again, not when it arrives."""
+    site = Site(routes=(Route(id="R1", length_m=200.0),),
+                vehicle_classes=(VehicleClass(model="quarter_car", mean={"M": 1.0}, std={"M": 0.1}),))
+    profile = tyre_filter(iso8608_profile(220.0, 0.01, "A", seed=5))
+    rng = np.random.default_rng(3)
+    cloud = Cloud("t", site, lambda k, p: None, CloudSettings(calibration="nominal", continuous_aps=False))
+    assert cloud.settings.align  # on by default
+    truth = [Alignment(float(rng.normal(0, 2.0)), float(rng.normal(0, 0.01)), 10.0, 1.0) for _ in range(6)]
+    for i, al in enumerate(truth):
+        _send_pass(cloud, i, al, 0, profile, rng)
+    agg = cloud.aggregator
+    assert len(agg.passes) == 6 and all(ps.acked for ps in agg.passes.values())
+    assert not cloud.alignments and all(agg.held[sl] is agg.segments[sl] for sl in agg.held)  # ingest only
+    assert cloud.maybe_align()
+    while cloud.maybe_align():  # one sweep per idle call, until the series ends
+        pass
+    x = np.linspace(10.0, 190.0, 5)
+    for i, want in enumerate(centred(truth)):  # the true maps about their own mean frame
+        got = cloud.alignments[(f"v{i}", f"p{i}")]
+        # 2 cm: the windows' fit on a noise-free AP places passes to mm; the consensus each is fitted
+        # against is still a mean of passes a few mm apart.
+        assert np.max(np.abs(got.true_to_reported(x) - want.true_to_reported(x))) < 0.02, i
+    assert all(agg.held[sl] is not agg.segments[sl] for sl in agg.held)  # every pass moved metres: re-gridded
+    # The pass comes back recomputed (a new calibration version): held as it arrived until idle.
+    _send_pass(cloud, 0, truth[0], 1, profile, rng)
+    slots = sorted(agg.passes[("v0", "p0")].slots)
+    assert all(agg.held[sl] is agg.segments[sl] for sl in slots)
+    while cloud.maybe_align():
+        pass
+    assert all(agg.held[sl] is not agg.segments[sl] for sl in slots)

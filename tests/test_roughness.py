@@ -180,7 +180,8 @@ def test_roughness_table():
     draws = base + rng.normal(0, 2e-4, (50, x.size)).cumsum(axis=1) * 0.05
     draws[:, 3000:] = np.nan  # the last 50 m unknown
     t = roughness_table("R1", x, draws, DX)
-    assert t.column_names == ["route_id", "start_m", "end_m", "length_m", "iri_m_per_km", "iri_lo95", "iri_hi95"]
+    assert t.column_names == ["route_id", "start_m", "end_m", "length_m", "iri_m_per_km", "iri_lo95", "iri_hi95",
+                              "chainage_frame"]
     d = {k: np.asarray(v) for k, v in t.to_pydict().items()}
     assert set(d["route_id"]) == {"R1"}
     ten = d["length_m"] == 10.0

@@ -176,7 +176,7 @@ def test_each_vehicle_is_calibrated_by_one_shard_and_the_others_apply_it(shared_
     while True:
         for c in clouds.values():
             c.fuse_pending()  # the daemons' idle work when the bus is quiet
-        if not any([c.maybe_calibrate() for c in clouds.values()]):
+        if not any([c.maybe_align() or c.maybe_calibrate() for c in clouds.values()]):
             break
         pump()
     r1, r2 = clouds["R1"], clouds["R2"]

@@ -52,7 +52,8 @@ def test_run_end_to_end_writes_export_and_recording(road, tmp_path):
     assert res.returncode == 0, res.stderr
     assert "3/3 passes processed" in res.stdout
     table = pq.read_table(tmp_path / "export" / "profile.parquet")
-    assert table.column_names == ["route_id", "chainage_m", "elevation_m", "lo95_m", "hi95_m", "n_passes"]
+    assert table.column_names == ["route_id", "chainage_m", "elevation_m", "lo95_m", "hi95_m", "n_passes",
+                                  "chainage_frame"]
     assert max(table.column("n_passes").to_pylist()) == 3
     truth = json.loads((road / "truth.json").read_text())
     from simfleet.evaluate import score_profile

@@ -1,10 +1,15 @@
 """Chainage alignment of complete passes against the consensus of the others (GNSS bias, odometry stretch).
 
-Each sweep estimates every pass's alignment against a leave-one-out consensus, centres the fleet's
-shifts and stretches (the fleet's GNSS errors average out: the consensus frame is the mean of the
-passes' frames) and gives the estimators the re-gridded segments through the aggregator
-(:meth:`~cloud.ingest.aggregator.Aggregator.replace_held`), so the next sweep sees the improved
-consensus.
+Each sweep estimates every road pass's alignment against a leave-one-out consensus, centres each
+route's maps (the fleet's GNSS errors average out: the consensus frame is the mean of the passes'
+frames, :func:`~cloud.road.alignment.centred`) and gives the estimators the re-gridded segments
+through the aggregator (:meth:`~cloud.ingest.aggregator.Aggregator.replace_held`), so the next sweep
+sees the improved consensus. Rail runs are not aligned: their batches re-key them
+(:mod:`cloud.rail.batches`), and the aggregator has one writer per held slot.
+
+Everything here is idle work: a pass recomputed under a new calibration is only noted on ingest
+(:meth:`ChainageAligner.recomputed`) and re-gridded with its alignment when the bus is quiet
+(:meth:`ChainageAligner.reapply_pending`).
 """
 
 from __future__ import annotations
@@ -12,9 +17,10 @@ from __future__ import annotations
 import numpy as np
 
 from shared.schema import ApSegment
+from shared.vehicles import RAIL_MODELS
 
 from cloud.daemon.settings import CloudSettings
-from cloud.road.alignment import Alignment, estimate_alignment, realign
+from cloud.road.alignment import Alignment, centred, estimate_alignment, realign
 
 PassKey = tuple[str, str]  # (vehicle, pass)
 
@@ -29,7 +35,40 @@ class ChainageAligner:
     def __init__(self, settings: CloudSettings):
         self.settings = settings
         self.alignments: dict[PassKey, Alignment] = {}
-        self.due = False  # passes completed since the last sweeps
+        self.due = False  # passes completed since the last series of sweeps, or the series goes on
+        self.sweeps = 0  # sweeps run in the current series
+        self.sweep_limit = 0  # the current series' most sweeps
+        self.swept = False  # some sweep of the current series placed passes
+        self.pending: dict[PassKey, None] = {}  # recomputed passes whose alignment is still to re-apply
+        #: route → whether its held passes are re-gridded into the fleet's consensus frame (export)
+        self.frames: dict[str, bool] = {}
+        self.framed: set[str] = set()  # routes where the last sweep aligned enough passes for a frame
+        self.looked_at: set[PassKey] = set()  # passes a sweep has tried to align
+
+    @staticmethod
+    def aligned_model(model: str) -> bool:
+        """Whether passes of this vehicle model are aligned (road vehicles; rail runs are re-keyed)."""
+        return model not in RAIL_MODELS
+
+    def placed(self, key: PassKey, model: str, route_id: str) -> bool:
+        """Whether a pass may teach the calibration: aligned, of a model that is never aligned, or
+        looked at by a sweep on a route where too few passes align to define a fleet frame (there the
+        reported chainage is all there is: too short, too smooth or too few passes yet)."""
+        return key in self.alignments or not self.aligned_model(model) or (
+            key in self.looked_at and route_id not in self.framed)
+
+    def recomputed(self, key: PassKey) -> None:
+        """Ingest path: a pass came back (recomputed); its alignment is re-applied when idle."""
+        if key in self.alignments:
+            self.pending[key] = None
+
+    def reapply_pending(self, aggregator) -> list[PassKey]:
+        """Idle work: every recomputed pass re-gridded with the alignment found for it; returns them."""
+        done = list(self.pending)
+        self.pending.clear()
+        for key in done:
+            self.reapply(aggregator, key)
+        return done
 
     def _within(self, al: Alignment, raw: list[ApSegment]) -> bool:
         """Whether ``al`` moves the pass by less than ``align_apply_m`` everywhere: within what
@@ -54,18 +93,20 @@ class ChainageAligner:
                 aggregator.replace_held(sl, aligned[sl])
 
     def has_new_passes(self, aggregator) -> bool:
-        """Some acknowledged pass has no alignment yet."""
-        return any(key not in self.alignments for key, ps in aggregator.passes.items() if ps.acked)
+        """Some acknowledged road pass has no alignment yet."""
+        return any(key not in self.alignments for key, ps in aggregator.passes.items()
+                   if ps.acked and self.aligned_model(ps.model))
 
     def sweep(self, aggregator, consensus) -> float | None:
         """One sweep, the estimators given the re-gridded segments (a pass alignment moves too little
         gets its stored segments back); the largest change of any pass's implied position (m), or
         None when too few passes align (nothing changed then)."""
         s, agg = self.settings, aggregator
-        found: dict[PassKey, tuple[Alignment, list]] = {}
+        found: dict[str, dict[PassKey, tuple[Alignment, list]]] = {}
         for key, ps in agg.passes.items():
-            if not ps.acked or not ps.slots:
+            if not ps.acked or not ps.slots or not self.aligned_model(ps.model):
                 continue
+            self.looked_at.add(key)
             slots = sorted(ps.slots)
             with agg.left_out(consensus, slots):
                 snap = consensus.snapshot(ps.route_id).get(ps.route_id)
@@ -80,28 +121,38 @@ class ChainageAligner:
             al = estimate_alignment(np.arange(lo, hi) * lead[0].spacing_m, ap, snap.chainage_m, snap.elevation_m,
                                     max_stretch=s.align_max_stretch)
             if al is not None and al.score >= s.align_min_score:
-                found[key] = (al, slots)
-        if len(found) < s.align_min_passes:
+                found.setdefault(ps.route_id, {})[key] = (al, slots)
+        # Each route has its own frame: the mean of its own passes' errors.
+        found = {rid: f for rid, f in found.items() if len(f) >= s.align_min_passes}
+        self.framed = set(found)
+        if not found:
             return None
-        mean_shift = float(np.mean([a.shift_m for a, _ in found.values()]))
-        mean_stretch = float(np.mean([a.stretch for a, _ in found.values()]))
         moved = 0.0
-        for key, (al, slots) in found.items():
-            al = Alignment(al.shift_m - mean_shift, al.stretch - mean_stretch, al.x_ref_m, al.score)
-            old = self.alignments.get(key)
-            x_probe = np.array([al.x_ref_m, al.x_ref_m + 100.0])
-            moved = max(moved, float(np.max(np.abs(al.true_to_reported(x_probe) - (
-                old.true_to_reported(x_probe) if old is not None else x_probe)))))
-            self.alignments[key] = al
-            raw = [agg.segments[sl] for sl in slots]
-            if self._within(al, raw):
-                for sl, r in zip(slots, raw):
-                    if agg.held.get(sl) is not r:
-                        agg.replace_held(sl, r)
-                continue
-            aligned = {_slot(r): r for r in realign(raw, al)}
-            for sl in slots:
-                new = aligned.get(sl)
-                if new is not None:
-                    agg.replace_held(sl, new)
+        for rid, f in found.items():
+            regridded = False
+            for (key, (_, slots)), al in zip(f.items(), centred([al for al, _ in f.values()])):
+                step, moves = self._apply(agg, key, al, slots)
+                moved, regridded = max(moved, step), regridded or moves
+            self.frames[rid] = regridded
         return moved
+
+    def _apply(self, agg, key: PassKey, al: Alignment, slots: list) -> tuple[float, bool]:
+        """Hold the pass re-gridded by ``al`` (or as stored, if ``al`` moves it too little); returns
+        how far its implied position moved since the last sweep (m) and whether it is re-gridded."""
+        old = self.alignments.get(key)
+        x_probe = np.array([al.x_ref_m, al.x_ref_m + 100.0])
+        moved = float(np.max(np.abs(al.true_to_reported(x_probe) - (
+            old.true_to_reported(x_probe) if old is not None else x_probe))))
+        self.alignments[key] = al
+        raw = [agg.segments[sl] for sl in slots]
+        if self._within(al, raw):
+            for sl, r in zip(slots, raw):
+                if agg.held.get(sl) is not r:
+                    agg.replace_held(sl, r)
+            return moved, False
+        aligned = {_slot(r): r for r in realign(raw, al)}
+        for sl in slots:
+            new = aligned.get(sl)
+            if new is not None:
+                agg.replace_held(sl, new)
+        return moved, True

@@ -35,8 +35,9 @@ from cloud.daemon.queries import TILE_M, bridge_state, tile_points, tile_state
 from cloud.daemon.settings import CloudSettings
 from cloud.daemon.sharding import Ownership, shard_site
 from cloud.coordinates import bridges_with_coordinates, roughness_geojson, roughness_with_coordinates, write_geojson
-from cloud.export import (bridge_bearings_table, bridge_elements_table, bridge_summary_table, profile_draws,
-                          profile_table, roughness_table, track_quality_table, vehicles_table, write_export)
+from cloud.export import (FLEET_FRAME, REGISTRY_FRAME, bridge_bearings_table, bridge_elements_table,
+                          bridge_summary_table, profile_draws, profile_table, roughness_table, track_quality_table,
+                          vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
 from cloud.ingest.segment_store import SegmentStore
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
@@ -145,13 +146,13 @@ class Cloud:
 
     def _acks(self, acks) -> None:
         if acks and self.settings.align:
-            self.aligner.due = True
+            self.aligner.due, self.aligner.sweeps = True, 0  # a new series of sweeps, sized for new passes
         if acks:
             self.bridge_sync_due = True
         for ack in acks:
             key = (ack.vehicle_id, ack.pass_id)
             if self.settings.align:
-                self.aligner.reapply(self.aggregator, key)
+                self.aligner.recomputed(key)  # re-gridded when idle (maybe_align), not on the ingest path
             if self.settings.continuous_aps:
                 self._unfused[key] = None
             ps = self.aggregator.passes.get(key)
@@ -209,6 +210,8 @@ class Cloud:
         while self._unfused and (budget_s is None or self.clock() - t0 < budget_s):
             key = next(iter(self._unfused))
             del self._unfused[key]
+            if key in self.aligner.pending:  # re-gridded first (idle): its correction is due again then
+                continue
             for slot, seg in (self._continuous_pass(key) or {}).items():
                 self.aggregator.fuse(slot, seg)
         return len(self._unfused)
@@ -227,24 +230,27 @@ class Cloud:
                 store.flush(budget_s / 2)
 
     def maybe_align(self) -> bool:
-        """Align every complete pass in chainage against the consensus of the others and centre the
-        fleet's shifts (:class:`~cloud.daemon.chainage.ChainageAligner`). Runs when passes completed
-        since the last time; True if the passes moved."""
-        aligner = self.aligner
+        """One chainage alignment sweep, if passes completed since the last series: every complete road
+        pass against the consensus of the others, each route's maps centred on its fleet's mean
+        (:class:`~cloud.daemon.chainage.ChainageAligner`). A series of sweeps against the others'
+        improving consensus runs one sweep per call (idle work: the serve loop takes input between
+        them) until no pass moves more than ``align_tol_m``, up to ``align_iterations`` when new
+        passes came in (2 otherwise). True if this sweep placed passes (a calibration round waits
+        until the series ends)."""
+        aligner, s = self.aligner, self.settings
         if not aligner.due:
             return False
-        aligner.due = False
-        new_passes = aligner.has_new_passes(self.aggregator)
-        swept = False
-        for _ in range(self.settings.align_iterations if new_passes else 2):  # against the others' improving consensus
-            moved = aligner.sweep(self.aggregator, self.consensus)
-            if moved is None:
-                break
-            swept = True
-            if moved < self.settings.align_tol_m:
-                break
-        if swept and self.settings.continuous_aps:  # re-gridded (or restored) passes: their continuous-time APs afresh
-            self._unfused.update(dict.fromkeys(self.aggregator.passes))
+        self._reapply_alignments()  # recomputed passes first: the sweep compares against them
+        if aligner.sweeps == 0:
+            aligner.sweep_limit = s.align_iterations if aligner.has_new_passes(self.aggregator) else 2
+        moved = aligner.sweep(self.aggregator, self.consensus)
+        aligner.sweeps += 1
+        aligner.swept = aligner.swept or moved is not None
+        if moved is None or moved < s.align_tol_m or aligner.sweeps >= aligner.sweep_limit:
+            aligner.due, aligner.sweeps = False, 0
+            if aligner.swept and s.continuous_aps:  # re-gridded (or restored) passes: their continuous-time APs afresh
+                self._unfused.update(dict.fromkeys(self.aggregator.passes))
+            aligner.swept = False
         if moved is None:
             self.publish_status()
             return False
@@ -252,6 +258,18 @@ class Cloud:
             self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
         self.publish_status()
         return True
+
+    def _reapply_alignments(self) -> None:
+        """Idle work: recomputed passes re-gridded with the alignment found for them, their
+        continuous-time APs then due afresh."""
+        reapplied = self.aligner.reapply_pending(self.aggregator)
+        if self.settings.continuous_aps:
+            self._unfused.update(dict.fromkeys(reapplied))
+
+    def _placed(self, key: tuple[str, str]) -> bool:
+        """Whether a pass is placed in chainage (:meth:`ChainageAligner.placed`)."""
+        ps = self.aggregator.passes.get(key)
+        return ps is not None and self.aligner.placed(key, ps.model, ps.route_id)
 
     @property
     def alignments(self) -> dict:
@@ -379,7 +397,8 @@ class Cloud:
             return False
         if self.settings.align:  # a pass not (yet) placed in chainage would teach the vehicles a shifted road
             # (Too few placed passes: the round fits nothing and waits for new data, never spins.)
-            segs = {sl: s for sl, s in segs.items() if (s.vehicle_id, s.pass_id) in self.alignments}
+            self._reapply_alignments()  # (maybe_align, which runs first when idle, has normally done it)
+            segs = {sl: s for sl, s in segs.items() if self._placed((s.vehicle_id, s.pass_id))}
         # The vehicle step sees what the posterior fuses: continuous-time APs (FleetCalibrator.continuous_aps).
         self.fuse_pending()
         segs = dict(zip(segs, self.aggregator.as_fused(segs.values())))
@@ -553,12 +572,15 @@ class Cloud:
     def export(self, out_dir: Path) -> list[Path]:
         """Every estimate as Parquet tables in ``out_dir`` (interfaces.md §3), a function of the held
         segments: pending idle work (fusion, rail batches, bridge estimates) is done first."""
+        self._reapply_alignments()
         self.fuse_pending()
         self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
         snaps = self.snapshot()
-        tables = {"profile": profile_table(snaps)}
+        frames = {rid: FLEET_FRAME if self.aligner.frames.get(rid) else REGISTRY_FRAME for rid in snaps}
+        tables = {"profile": profile_table(snaps, frames)}
         segs = self.fused_segments()
-        rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0), self.profile.spacing_m)
+        rough = [roughness_table(rid, s.chainage_m, profile_draws(self.profile, rid, s, segs, 100, 0),
+                                 self.profile.spacing_m, frame=frames[rid])
                  for rid, s in snaps.items() if np.isfinite(s.elevation_m).any()]
         if rough:
             tables["roughness"] = roughness_with_coordinates(pa.concat_tables(rough), self.site)

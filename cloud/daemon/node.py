@@ -272,8 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="own only these routes (a shard: segments, state queries, bridges; default: every route)")
     p.add_argument("--calibration", choices=("fleet", "nominal"), default="fleet",
                    help="fleet: calibrate every vehicle from the fleet's consensus; nominal: trust the edges")
-    p.add_argument("--align", action="store_true",
-                   help="align passes in chainage against the consensus (logs with GNSS bias / odometry error)")
+    p.add_argument("--align", action=argparse.BooleanOptionalAction, default=True,
+                   help="align road passes in chainage against the consensus (GNSS bias, odometry stretch; "
+                        "default on, --no-align trusts the reported chainage)")
     p.add_argument("--export", type=Path, help="default export directory")
     p.add_argument("--state", type=Path, metavar="DIR",
                    help="durable state (journal + snapshots): a restarted cloud resumes from it")

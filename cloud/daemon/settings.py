@@ -37,7 +37,11 @@ class CloudSettings:
 
     Chainage alignment (GNSS bias, odometry stretch)
     ------------------------------------------------
-    align : align passes in chainage against the consensus of the others.
+    align : align road passes in chainage against the consensus of the others (on by default: a
+        fleet's GNSS biases of metres smear the fused profile and teach the calibration a shifted
+        road). On passes already in one frame it estimates shifts below ``align_apply_m`` and
+        re-grids nothing. Rail runs are placed by their batches, never aligned. The sweeps are
+        idle work (:meth:`Cloud.maybe_align`), never on the ingest path.
     align_min_score : correlation below this: the pass and the consensus overlap too little.
     align_min_passes : fewer aligned passes do not define a frame worth centring on.
     align_iterations : sweeps against the others' improving consensus when new passes came in.
@@ -91,7 +95,7 @@ class CloudSettings:
     continuous_aps: bool = True
     bridge: BridgeSettings = BridgeSettings()
 
-    align: bool = False
+    align: bool = True
     align_min_score: float = 0.5
     align_min_passes: int = 3
     align_iterations: int = 6

@@ -16,9 +16,10 @@ compared with the consensus of the *other* passes, band-passed:
    bias and of the vehicle's phase error.
 
 The cost is a few dozen small FFTs per pass (~10 ms of one core)
-instead of a correlation per trial stretch. The fleet's biases
-average to zero, so the daemon centres the estimated shifts across passes: the consensus frame is
-the fleet's mean frame, not the first pass's.
+instead of a correlation per trial stretch. The fleet's biases and stretches are independent across
+passes with zero mean, so the daemon centres the estimated maps across a route's passes
+(:func:`centred`): the consensus frame is the fleet's mean frame, which converges to the true one
+as passes accumulate, not the first pass's.
 """
 
 from __future__ import annotations
@@ -63,6 +64,31 @@ class Alignment:
 
     def reported_to_true(self, x_rep: np.ndarray) -> np.ndarray:
         return self.x_ref_m + (x_rep - self.x_ref_m - self.shift_m) / (1.0 + self.stretch)
+
+
+def centred(alignments: list[Alignment]) -> list[Alignment]:
+    """The maps re-expressed so that their mean is the identity: the consensus frame becomes the
+    passes' mean frame.
+
+    Each alignment maps consensus → reported chainage, ``T_p(y) = α_p + (1 + ε_p)·y`` with
+    ``α_p = b_p − ε_p·x_ref,p``. The fleet's mean frame ``F = mean_p T_p`` (a feature's mean reported
+    position) is the frame whose error is the average of the passes' independent errors; composing
+    every map with ``F⁻¹`` removes ``mean α`` and ``mean ε`` from the intercepts and slopes *at a
+    common origin*. Subtracting the mean shift at each pass's own ``x_ref`` instead would leave
+    ``cov(ε_p, x_ref,p)`` in the frame when the passes start at different places.
+    """
+    if not alignments:
+        return []
+    alpha = np.array([a.shift_m - a.stretch * a.x_ref_m for a in alignments])
+    beta = np.array([1.0 + a.stretch for a in alignments])
+    a0, b0 = float(np.mean(alpha)), float(np.mean(beta))
+    out = []
+    for a, al, be in zip(alignments, alpha, beta):
+        # T_p ∘ F⁻¹ with F(y) = a0 + b0·y: y ↦ α_p + β_p·(y − a0)/b0.
+        al_c, be_c = al - be * a0 / b0, be / b0
+        eps = be_c - 1.0
+        out.append(Alignment(float(al_c + eps * a.x_ref_m), float(eps), a.x_ref_m, a.score))
+    return out
 
 
 @functools.lru_cache(maxsize=16)
@@ -222,7 +248,32 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
                             max_move_m=refine[0] / 4.0)
     if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
         return None
-    return Alignment(shift_m=float(b), stretch=float(eps), x_ref_m=x_ref, score=score)
+    # A move must earn its place: a pass already in the consensus frame that differs from the others
+    # (another lane of the surface, a patch) can still find a false optimum, decimetres away, whose
+    # waves match worse than where the pass says it is, long and short. Keep the reported chainage
+    # then. (Either band alone is not enough: the short waves carry the vehicle's phase error, which
+    # can favour a reported chainage a decimetre off against a consensus still being placed.)
+    found = Alignment(shift_m=float(b), stretch=float(eps), x_ref_m=x_ref, score=score)
+    stay = Alignment(0.0, 0.0, x_ref, score)
+    for band in (band_m, fine_band_m):
+        c_b, a_b = _band(c, h, band), _band(ap, h, band)
+        if _correlation(x_rep, a_b, xc, c_b, stay) < _correlation(x_rep, a_b, xc, c_b, found):
+            return found
+    return stay
+
+
+def _correlation(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment) -> float:
+    """Normalised correlation of the pass ``a`` (on its reported grid) placed by ``al`` with the
+    consensus ``c`` (on the regular grid ``xc``), over the consensus points the placed pass covers."""
+    h = float(xc[1] - xc[0])
+    lo = max(np.ceil(al.reported_to_true(x_rep[0]) / h), np.ceil(xc[0] / h))
+    hi = min(np.floor(al.reported_to_true(x_rep[-1]) / h), np.floor(xc[-1] / h))
+    xg = np.arange(lo, hi + 1) * h
+    if xg.size < MIN_POINTS:
+        return -np.inf
+    av = np.interp(al.true_to_reported(xg), x_rep, a)
+    cv = c[np.clip(np.rint((xg - xc[0]) / h).astype(np.int64), 0, c.size - 1)]
+    return float(np.dot(av, cv) / (np.sqrt(np.dot(av, av) * np.dot(cv, cv)) + 1e-300))
 
 
 def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment,
