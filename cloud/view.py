@@ -60,10 +60,10 @@ DEFAULT_VIEWER_PORT = 9876
 
 # Screen boxes (screen units) of the 2D charts: their aspect is that of the panel they are drawn in,
 # so the chart fills it; the margins hold the tick labels and titles.
-PROFILE_BOX = (1000.0, 240.0)
+PROFILE_BOX = (1000.0, 150.0)
 SPAN_BOX = (600.0, 300.0)
 MRIL_BOX = (600.0, 300.0)
-TRACK_BOX = (1000.0, 240.0)
+TRACK_BOX = (1000.0, 200.0)
 LABEL_GAP = 0.035  # of the box's height: tick labels sit this far outside it
 
 MEAN_COLOUR = (70, 160, 255)
@@ -178,7 +178,9 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     """
     rows: list = []
     shares: list[float] = []
-    road = [_road_view(rid) for rid in routes]
+    bridges = list(bridges)
+    bridge_routes = {getattr(b, "route", None) for b in bridges}
+    road = [_road_view(rid, rid in bridge_routes) for rid in routes]
     if road:
         rows.append(rrb.Tabs(*road, name="road") if len(road) > 1 else road[0])
         shares.append(5.0)
@@ -211,20 +213,22 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
         auto_views=False)
 
 
-def _road_view(rid: str) -> rrb.Container:
+def _road_view(rid: str, has_bridges: bool) -> rrb.Container:
     root = profile_path(rid)
-    classes = " · ".join(f"{n} {'<' if hi < float('inf') else '>'} {hi if hi < float('inf') else lo:g}"
-                         for n, lo, hi, _ in IRI_CLASSES)
+    (good, _, g_hi, _), (fair, _, f_hi, _), (poor, _, _, _) = IRI_CLASSES
+    classes = f"green {good} < {g_hi:g}, amber {fair} {g_hi:g}–{f_hi:g}, red {poor} > {f_hi:g}"
+    no_legend = rrb.PlotLegend(visible=False)
     return rrb.Vertical(
-        rrb.Spatial2DView(origin=root, contents=["$origin/axes/**", "$origin/bridges", "$origin/band_fill",
-                                                 "$origin/band", "$origin/mean"],
+        rrb.Spatial2DView(origin=root, contents=["$origin/axes/**", "$origin/band_fill", "$origin/band", "$origin/mean"]
+                          + ["$origin/bridges"] * has_bridges,
                           name=f"{rid}: profile (mm) and its 95 % band against chainage (m)",
                           visual_bounds=_chart_bounds(PROFILE_BOX)),
         rrb.Horizontal(
-            rrb.BarChartView(origin=f"{root}/iri_100m", name=f"IRI per 100 m (m/km; FHWA {classes})"),
-            rrb.BarChartView(origin=f"{root}/iri_10m", name="IRI per 10 m (m/km)"),
-            rrb.BarChartView(origin=f"{root}/passes_per_tile", name="passes per 50 m tile",
-                             plot_legend=rrb.PlotLegend(visible=False)),
+            rrb.BarChartView(origin=f"{root}/iri_100m", name=f"IRI per 100 m (m/km): FHWA {classes}",
+                             plot_legend=no_legend),
+            rrb.BarChartView(origin=f"{root}/iri_10m", name="IRI per 10 m (m/km), classes as per 100 m",
+                             plot_legend=no_legend),
+            rrb.BarChartView(origin=f"{root}/passes_per_tile", name="passes per 50 m tile", plot_legend=no_legend),
             column_shares=[2, 2, 1]),
         row_shares=[3, 2], name=str(rid))
 
@@ -245,7 +249,8 @@ def _bridge_view(b: Any) -> rrb.Container:
             rrb.Spatial2DView(origin=f"{root}/mril", contents=["$origin/**"], visual_bounds=_chart_bounds(MRIL_BOX),
                               name="MR-IL (mm/MN, down) along the span (m)"),
             name=f"{bid}"),
-        rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: decisions and alarms"),
+        rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: decisions and alarms",
+                        columns=rrb.archetypes.TextLogColumns(text_log_columns=["loglevel", "body"])),
         column_shares=[4, 3, 3, 3], name=bid)
 
 
@@ -506,11 +511,18 @@ class View:
         if start.shape != iri.shape or start.ndim != 1 or end.shape != start.shape:
             raise ValueError("log_roughness: start_m, end_m and iri must be 1-D of one length")
         centres, widths = 0.5 * (start + end), (0.9 * (end - start)).astype(np.float32)
+        route_m = self._routes.get(route_id)
+        ends = [] if route_m is None else [0.0, float(route_m)]
+        # Zero-height bars at the route's ends: the bar chart's x range is fitted to the bars' centres
+        # and would cut the outer bars in half.
+        centres = np.concatenate([centres, ends])
+        widths = np.concatenate([widths, np.full(len(ends), 1e-3, dtype=np.float32)])
         root = f"{profile_path(route_id)}/iri_{int(round(length_m))}m"
         charts = {}
         for name, lo, hi, colour in IRI_CLASSES:
             mine = np.isfinite(iri) & (iri >= lo) & (iri < hi)
-            charts[name] = rr.BarChart(np.where(mine, iri, 0.0), abscissa=centres, widths=widths, color=colour)
+            values = np.concatenate([np.where(mine, iri, 0.0), np.zeros(len(ends))])
+            charts[name] = rr.BarChart(values, abscissa=centres, widths=widths, color=colour)
         with self._lock:
             if self._closed:
                 return

@@ -20,20 +20,26 @@ import json
 import os
 import select
 import shutil
+import signal
 import socket
 import subprocess
+import struct
 import sys
 import tempfile
 import time
 import urllib.error
 import urllib.parse
 import urllib.request
+import zlib
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
-SETTLE_INTERVAL_S = 2.0  # between the two frames compared: long enough for the viewer to stream and lay out
+SETTLE_INTERVAL_S = 3.0  # between the two frames compared: long enough for the viewer to stream and lay out
+# Share of pixel bytes two frames of a settled view may differ by: the viewer's top bar redraws
+# its own counters from frame to frame, while a panel still filling in changes several per cent.
+SETTLE_CHANGE = 0.002
 DEFAULT_TIMEOUT_S = 600.0  # SwiftShader renders on the CPU: on a busy machine a frame can take a minute
 
 
@@ -91,17 +97,21 @@ def wait_http(url: str, timeout_s: float, proc: subprocess.Popen, what: str) -> 
 def started(args: Sequence[str], log_path: Path, **kw) -> Iterator[subprocess.Popen]:
     """A child process, its output to ``log_path``; terminated (then killed) on the way out."""
     with open(log_path, "wb") as log:
-        proc = subprocess.Popen(list(args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, **kw)
+        # Its own process group: the venv's `rerun` is a wrapper that starts the real binary as a
+        # child, and Chromium starts helpers; stopping the group stops them all.
+        proc = subprocess.Popen(list(args), stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                start_new_session=True, **kw)
     try:
         yield proc
     finally:
-        if proc.poll() is None:
-            proc.terminate()
+        for sig, wait_s in ((signal.SIGTERM, 10.0), (signal.SIGKILL, 5.0)):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, sig)
             try:
-                proc.wait(timeout=10)
+                proc.wait(timeout=wait_s)
+                break
             except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+                continue
 
 
 class DevTools:
@@ -175,27 +185,54 @@ def _chromium_args(exe: str, profile: Path, width: int, height: int) -> list[str
     return args + ["about:blank"]
 
 
-def settled_screenshot(dev: DevTools, deadline: float, proc: subprocess.Popen) -> bytes:
-    """A frame equal to the one taken ``SETTLE_INTERVAL_S`` before it, once the viewer has started."""
+def png_bytes(png: bytes) -> bytes:
+    """A PNG's (filtered) pixel rows: its IDAT chunks inflated (stdlib only; enough to compare two frames)."""
+    pos, data = 8, []
+    while pos + 8 <= len(png):
+        (length,) = struct.unpack(">I", png[pos:pos + 4])
+        kind = png[pos + 4:pos + 8]
+        if kind == b"IDAT":
+            data.append(png[pos + 8:pos + 8 + length])
+        pos += 12 + length
+    return zlib.decompress(b"".join(data))
+
+
+def frame_change(a: bytes, b: bytes) -> float:
+    """The share of pixel-row bytes that differ between two PNGs of one size (1.0: sizes differ)."""
+    pa, pb = png_bytes(a), png_bytes(b)
+    if len(pa) != len(pb):
+        return 1.0
+    diff = sum(x != y for x, y in zip(pa[::7], pb[::7]))  # a sample of the bytes is enough for a share
+    return diff / max(len(pa[::7]), 1)
+
+
+def settled_screenshot(dev: DevTools, deadline: float, proc: subprocess.Popen, say) -> bytes:
+    """A frame nearly equal to the one taken ``SETTLE_INTERVAL_S`` before it, once the viewer has started."""
     last = None
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise ScreenshotError(f"the rerun server exited with code {proc.returncode}")
-        started_ = dev.evaluate("typeof window._handle !== 'undefined' && !window._handle.has_panicked()")
-        if dev.evaluate("typeof window._handle !== 'undefined' && window._handle.has_panicked()"):
-            raise ScreenshotError(f"the web viewer crashed: {dev.evaluate('window._handle.panic_message()')}")
-        if started_:
+        state = dev.evaluate("typeof window._handle === 'undefined' ? 'loading' : "
+                             "window._handle.has_panicked() ? window._handle.panic_message() : 'started'")
+        if state not in ("loading", "started"):
+            raise ScreenshotError(f"the web viewer crashed: {state}")
+        if state == "started":
             png = dev.screenshot()
-            if png == last:
+            change = 1.0 if last is None else frame_change(last, png)
+            say(f"frame: {100 * change:.2f} % changed")
+            if change <= SETTLE_CHANGE:
                 return png
             last = png
+        else:
+            say("loading the web viewer")
         time.sleep(SETTLE_INTERVAL_S)
     raise ScreenshotError("the web viewer did not settle on a picture in time")
 
 
 def capture(rrd: Path, out_dir: Path, shots: Sequence[Shot], width: int = 1920, height: int = 1200,
-            timeout_s: float = DEFAULT_TIMEOUT_S) -> list[Path]:
-    """Serve ``rrd``, open it in headless Chromium and save each of ``shots`` as ``out_dir/<name>.png``."""
+            timeout_s: float = DEFAULT_TIMEOUT_S, say=lambda text: None) -> list[Path]:
+    """Serve ``rrd``, open it in headless Chromium and save each of ``shots`` as ``out_dir/<name>.png``
+    (``say`` gets a line of progress now and then)."""
     rrd = Path(rrd).resolve()
     if not rrd.is_file():
         raise ScreenshotError(f"{rrd}: no such recording")
@@ -234,7 +271,7 @@ def capture(rrd: Path, out_dir: Path, shots: Sequence[Shot], width: int = 1920, 
                     for shot in shots:
                         for x, y in shot.clicks:
                             dev.click(x, y)
-                        png = settled_screenshot(dev, deadline, server)
+                        png = settled_screenshot(dev, deadline, server, say)
                         path = out_dir / f"{shot.name}.png"
                         path.write_bytes(png)
                         written.append(path)
@@ -271,6 +308,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--click", action="append", nargs="+", default=[], metavar="X,Y",
                    help="clicks (CSS px) before the corresponding --shot (one --click per --shot)")
     p.add_argument("--size", default="1920x1200", help="viewport WIDTHxHEIGHT in CSS pixels (default 1920x1200)")
+    p.add_argument("--verbose", action="store_true", help="say what is happening on stderr")
     p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, help="seconds for everything (default 600)")
     args = p.parse_args(argv)
     try:
@@ -282,7 +320,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             shots = [Shot("demo-view")] if not args.click else _parse_shots(["demo-view"], args.click)
         else:
             shots = _parse_shots(args.shot, args.click)
-        for path in capture(Path(args.rrd), Path(args.out), shots, width, height, args.timeout):
+        say = (lambda text: print(f"screenshots: {text}", file=sys.stderr, flush=True)) if args.verbose else \
+            (lambda text: None)
+        for path in capture(Path(args.rrd), Path(args.out), shots, width, height, args.timeout, say):
             print(path)
     except ScreenshotError as e:
         print(f"screenshots: {e}", file=sys.stderr)
