@@ -9,7 +9,7 @@ paths are keys::
     profile/<route>/axes/...                gridlines, tick labels and titles of that chart
     profile/<route>/iri_<L>m/<class>        BarChart: IRI (m/km) per L = 10, 100 m, one entity per condition class
     profile/<route>/passes_per_tile         BarChart: passes per tile against tile-centre chainage (m)
-    fleet/calibration/<param>               Scalars: each vehicle's calibrated value and its 95 % interval
+    fleet/calibration/<param>/...           each vehicle's calibrated value and 95 % interval per round
     fleet/status                            TextDocument: per-vehicle status
     stats/<key>, stats/rejected/<reason>    Scalars: aggregator counters, grouped by scale in the blueprint
     bridge/<bridge>/span/...                stiffness ratio per element along the span with 95 % whiskers
@@ -60,9 +60,10 @@ DEFAULT_VIEWER_PORT = 9876
 
 # Screen boxes (screen units) of the 2D charts: their aspect is that of the panel they are drawn in,
 # so the chart fills it; the margins hold the tick labels and titles.
-PROFILE_BOX = (1000.0, 150.0)
+PROFILE_BOX = (1000.0, 115.0)
 SPAN_BOX = (600.0, 300.0)
 MRIL_BOX = (600.0, 300.0)
+CAL_BOX = (500.0, 250.0)
 TRACK_BOX = (1000.0, 200.0)
 LABEL_GAP = 0.035  # of the box's height: tick labels sit this far outside it
 
@@ -93,7 +94,7 @@ IRI_CLASSES = (("good", 0.0, 1.5, (80, 190, 110)),
                ("poor", 2.7, float("inf"), (230, 80, 70)))
 IRI_LENGTHS_M = (100.0, 10.0)
 
-DAMAGE_SERIES = (("P(damage) %", (235, 80, 70), 2.0), ("alarm threshold %", (150, 150, 150), 1.0),
+DAMAGE_SERIES = (("P(damage) %", (235, 80, 70), 2.0), ("alarm threshold %", (80, 80, 80), 1.5),
                  ("alarm (100 = raised)", (250, 200, 60), 3.0))
 INDICATOR_SERIES = (("D1 %", (70, 160, 255)), ("D2 %", (160, 120, 255)))
 STATS_COLOURS = {
@@ -190,8 +191,9 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
         shares.append(4.0)
     fleet = []
     if calibration_params:
-        fleet.append(rrb.Grid(*[rrb.TimeSeriesView(origin=calibration_path(p), plot_legend=rrb.PlotLegend(visible=False),
-                                                   name=f"{p}: each vehicle's calibration, 95 % interval")
+        fleet.append(rrb.Grid(*[rrb.Spatial2DView(origin=calibration_path(p), contents=["$origin/**"],
+                                                  visual_bounds=_chart_bounds(CAL_BOX),
+                                                  name=f"{p}: each vehicle per calibration round, 95 % interval")
                                 for p in calibration_params], grid_columns=len(calibration_params),
                               name="calibration"))
     fleet.append(rrb.Horizontal(
@@ -382,6 +384,8 @@ class View:
         self._routes = dict(routes or {})
         self._bridges = list(bridges)
         self._calibration_params = tuple(calibration_params)
+        self._calibration_rounds = 0
+        self._calibration_history: dict[str, dict[str, list]] = {}  # param → vehicle → (round, mean, lo, hi)
         self._rail_layout: tuple = ((), (), ())  # (rail routes, carriages, run quantities) in the blueprint
         self._first_estimate_logged: set[str] = set()
         self.recording_id = recording_id or str(uuid.uuid4())
@@ -480,7 +484,7 @@ class View:
             show_labels=True, draw_order=-5.0))
 
     def log_tile_counts(self, route_id: str, tile_m: float, counts: np.ndarray) -> None:
-        """Log passes per tile of ``tile_m`` (m) as a bar chart against tile-centre chainage (m).
+        """Log passes per tile of ``tile_m`` (m) as a bar chart against chainage (m), a bar across each tile.
 
         The whole array is one row (a BarChart tensor) at the current pass: a ``tile`` timeline
         would hide the other panels whenever it is the selected one.
@@ -490,8 +494,8 @@ class View:
             raise ValueError("log_tile_counts: counts must be 1-D and tile_m positive")
         if counts.size and counts.min() < 0:
             raise ValueError("log_tile_counts: counts must be non-negative")
-        centres = (np.arange(counts.size) + 0.5) * float(tile_m)
-        chart = rr.BarChart(counts.astype(np.int64), abscissa=centres,
+        lefts = (np.arange(counts.size) + 0.05) * float(tile_m)  # Rerun draws a bar from its abscissa
+        chart = rr.BarChart(counts.astype(np.int64), abscissa=lefts,
                             widths=np.full(counts.size, 0.9 * float(tile_m), dtype=np.float32), color=TILE_COLOUR)
         with self._lock:
             if self._closed:
@@ -510,19 +514,19 @@ class View:
         end = start + float(length_m) if end_m is None else np.asarray(end_m, dtype=float)
         if start.shape != iri.shape or start.ndim != 1 or end.shape != start.shape:
             raise ValueError("log_roughness: start_m, end_m and iri must be 1-D of one length")
-        centres, widths = 0.5 * (start + end), (0.9 * (end - start)).astype(np.float32)
+        # Rerun draws a bar from its abscissa to abscissa + width: a gap of 5 % each side.
+        lefts, widths = start + 0.05 * (end - start), (0.9 * (end - start)).astype(np.float32)
         route_m = self._routes.get(route_id)
         ends = [] if route_m is None else [0.0, float(route_m)]
-        # Zero-height bars at the route's ends: the bar chart's x range is fitted to the bars' centres
-        # and would cut the outer bars in half.
-        centres = np.concatenate([centres, ends])
+        # Zero-height bars at the route's ends: the chart's x range is the route.
+        lefts = np.concatenate([lefts, ends])
         widths = np.concatenate([widths, np.full(len(ends), 1e-3, dtype=np.float32)])
         root = f"{profile_path(route_id)}/iri_{int(round(length_m))}m"
         charts = {}
         for name, lo, hi, colour in IRI_CLASSES:
             mine = np.isfinite(iri) & (iri >= lo) & (iri < hi)
             values = np.concatenate([np.where(mine, iri, 0.0), np.zeros(len(ends))])
-            charts[name] = rr.BarChart(values, abscissa=centres, widths=widths, color=colour)
+            charts[name] = rr.BarChart(values, abscissa=lefts, widths=widths, color=colour)
         with self._lock:
             if self._closed:
                 return
@@ -531,15 +535,19 @@ class View:
                 self._rec.log(f"{root}/{name}", chart)
 
     def log_calibration(self, rows: Sequence[Mapping[str, Any]]) -> None:
-        """Log every vehicle's calibrated quantities with 95 % intervals at the current pass.
+        """Log one calibration round: every vehicle's calibrated quantities with 95 % intervals.
 
-        ``rows`` as in ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95. One entity per
-        quantity, three series (mean, lo95, hi95) per vehicle; a quantity seen for the first time
+        ``rows`` as in ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95. Per quantity a
+        chart of each vehicle's value (line) and interval (thin lines) against the round number,
+        every round so far: rounds run when the bus is quiet, often many at one pass count, so
+        the ``pass`` timeline could not show them converge. A quantity seen for the first time
         joins the blueprint.
         """
         by_param: dict[str, list[Mapping[str, Any]]] = {}
         for r in rows:
             by_param.setdefault(str(r["param"]), []).append(r)
+        if not by_param:
+            return
         with self._lock:
             if self._closed:
                 return
@@ -547,25 +555,30 @@ class View:
             if new:
                 self._calibration_params += new
                 self._rec.send_blueprint(self._blueprint())
+            self._calibration_rounds += 1
+            k = self._calibration_rounds
+            self._stamp()
             for param, rs in by_param.items():
-                rs = sorted(rs, key=lambda r: str(r["vehicle_id"]))
-                path = calibration_path(param)
-                ids = tuple(str(r["vehicle_id"]) for r in rs)
+                history = self._calibration_history.setdefault(param, {})
+                for r in rs:
+                    history.setdefault(str(r["vehicle_id"]), []).append(
+                        (k, float(r["mean"]), float(r["lo95"]), float(r["hi95"])))
+                self._log_calibration_chart(param, history, k)
 
-                def style(ids=ids):
-                    names, colours, widths = [], [], []
-                    for k, vid in enumerate(ids):
-                        hue = _element_colour(k, len(ids))
-                        for label, w in (("", 1.5), (" lo95", 0.5), (" hi95", 0.5)):
-                            names.append(f"{vid}{label}")
-                            colours.append(hue)
-                            widths.append(w)
-                    return rr.SeriesLines(names=names, colors=colours, widths=widths)
-
-                self._style_once(path, ids, style)
-                self._stamp()
-                values = np.array([[float(r["mean"]), float(r["lo95"]), float(r["hi95"])] for r in rs]).ravel()
-                self._rec.log(path, rr.Scalars(values))
+    def _log_calibration_chart(self, param: str, history: Mapping[str, list], rounds: int) -> None:
+        ids = sorted(history)
+        arr = {vid: np.asarray(history[vid], dtype=float) for vid in ids}
+        frame = Frame.fit((1.0, float(max(rounds, 2))), _finite_range(*[a[:, 2:] for a in arr.values()]), *CAL_BOX,
+                          x_ticks=6)
+        root = calibration_path(param)
+        colours = [_element_colour(i, len(ids)) for i in range(len(ids))]
+        self._log_axes(root, frame, "calibration round", f"{param} (1/s², 1/s or –)")
+        means = [frame.points(arr[v][:, 0], arr[v][:, 1]) for v in ids]
+        bands = [frame.points(arr[v][:, 0], arr[v][:, c]) for c in (2, 3) for v in ids]
+        self._rec.log(f"{root}/band", rr.LineStrips2D(bands, radii=GRID_RADIUS,
+                                                      colors=[(*c, 110) for c in colours] * 2))
+        self._rec.log(f"{root}/mean", rr.LineStrips2D(means, radii=BAND_RADIUS, colors=colours,
+                                                      labels=ids if len(ids) <= 8 else None))
 
     # -- fleet and aggregator --------------------------------------------------------------------------
     def log_vehicle_status(self, status: Mapping[str, Mapping[str, Any]]) -> None:
@@ -645,8 +658,8 @@ class View:
         if x.ndim != 1 or any(a.shape != x.shape for a in arrays) or x.size == 0:
             raise ValueError("log_bridge_stiffness: element_x_m, ratio_mean, lo and hi must be 1-D of one length")
         if element_bounds_m is None:
-            edges = np.concatenate([[x[0] - 0.5 * (x[1] - x[0]) if x.size > 1 else x[0] - 0.5],
-                                    0.5 * (x[1:] + x[:-1]), [x[-1] + 0.5 * (x[-1] - x[-2]) if x.size > 1 else x[0] + 0.5]])
+            half = 0.5 * (x[1] - x[0]) if x.size > 1 else 0.5, 0.5 * (x[-1] - x[-2]) if x.size > 1 else 0.5
+            edges = np.concatenate([[x[0] - half[0]], 0.5 * (x[1:] + x[:-1]), [x[-1] + half[1]]])
             bounds = np.column_stack([edges[:-1], edges[1:]])
         else:
             bounds = np.asarray(element_bounds_m, dtype=float)
@@ -668,13 +681,13 @@ class View:
             if self._closed:
                 return
             self._stamp()
-            self._log_axes(root, frame, "x along the span (m)", "EI / design EI")
+            self._log_axes(root, frame, "x along the span (m)",
+                           "EI / design EI (green: design, red: alarm loss)" if alarm_loss is not None else "EI / design EI")
             self._rec.log(f"{root}/design", rr.LineStrips2D([frame.points(span_x, [1.0, 1.0])], radii=BAND_RADIUS,
-                                                            colors=DESIGN_COLOUR, labels=["design"], show_labels=True))
+                                                            colors=DESIGN_COLOUR))
             if alarm_loss is not None:
                 self._rec.log(f"{root}/threshold", rr.LineStrips2D(
-                    [frame.points(span_x, [refs[1], refs[1]])], radii=BAND_RADIUS, colors=THRESHOLD_COLOUR,
-                    labels=[f"loss {100 * alarm_loss:g} %"], show_labels=True))
+                    [frame.points(span_x, [refs[1], refs[1]])], radii=BAND_RADIUS, colors=THRESHOLD_COLOUR))
             self._rec.log(f"{root}/whiskers", rr.LineStrips2D(whiskers, radii=BAND_RADIUS, colors=BAND_COLOUR))
             self._rec.log(f"{root}/mean", rr.LineStrips2D(bars, radii=rr.Radius.ui_points(2.5), colors=MEAN_COLOUR))
 
@@ -772,13 +785,11 @@ class View:
             self._first_estimate_logged.add(bid)
         if first:
             if a is None:
-                text = (f"first estimate after {estimate.n_passes} passes; damage hypotheses off for this bridge "
-                        "(rough deck): stiffness is estimated, no alarm is decided")
+                text = f"{estimate.n_passes} passes: first estimate; damage hypotheses off (rough deck): no alarm decided"
             else:
-                rule = "" if alarm_p is None or alarm_loss is None else \
-                    f"; alarm when P(element loss > {100 * alarm_loss:g} %) > {alarm_p:g}"
-                text = (f"first estimate after {estimate.n_passes} passes: "
-                        f"{'ALARM' if a.alarm else 'no alarm'}, P = {a.loss_probability:.3f}{rule}")
+                rule = "" if alarm_p is None else f", alarm above {alarm_p:g}"
+                text = (f"{estimate.n_passes} passes: first estimate, {'ALARM' if a.alarm else 'no alarm'} "
+                        f"(P(damage) {a.loss_probability:.2f}{rule})")
             self.log_alarm(bid, text, "ERROR" if a is not None and a.alarm else "INFO")
 
     def log_alarm(self, bridge_id: str, message: str, severity: str = "WARN") -> None:
@@ -851,12 +862,12 @@ class View:
             [frame.points(ends, [v, v]) for v in (lim, -lim)], radii=BAND_RADIUS, colors=THRESHOLD_COLOUR,
             labels=[f"alert ±{lim:g} mm", ""], show_labels=True))
         segs = [s for s in t.segments if np.isfinite(s.sd_d1_mm)]
-        centres = np.array([0.5 * (s.start_m + s.end_m) for s in segs], dtype=float)
+        lefts = np.array([s.start_m + 0.05 * (s.end_m - s.start_m) for s in segs], dtype=float)
         widths = np.array([0.9 * (s.end_m - s.start_m) for s in segs], dtype=np.float32)
         sd = np.array([s.sd_d1_mm for s in segs], dtype=float)
         above = sd > t.alert_sd_mm
         for name, mask, colour in (("within", ~above, IRI_CLASSES[0][3]), ("above_alert", above, IRI_CLASSES[2][3])):
-            self._rec.log(f"{root}/sd_200m/{name}", rr.BarChart(np.where(mask, sd, 0.0), abscissa=centres,
+            self._rec.log(f"{root}/sd_200m/{name}", rr.BarChart(np.where(mask, sd, 0.0), abscissa=lefts,
                                                                 widths=widths, color=colour))
         lines = [f"### {t.route_id}: EN 13848 D1 (3–25 m)", "",
                  "| start m | end m | sd mm | max abs mm | alert |", "|---|---|---|---|---|"]

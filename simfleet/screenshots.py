@@ -1,4 +1,4 @@
-"""``python -m simfleet.screenshots RRD --out DIR``: a recording in Rerun's web viewer under headless Chromium, saved as PNGs.
+"""``python -m simfleet.screenshots RRD --out DIR``: a recording in Rerun's web viewer, headless, saved as PNGs.
 
 The recording is served by the ``rerun`` CLI of the installed wheel (``--serve-web``: the web
 viewer over HTTP and the recording over gRPC, on free ports) and opened in headless Chromium

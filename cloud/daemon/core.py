@@ -403,6 +403,10 @@ class Cloud:
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
             epochs.issued(cal.vehicle_id)
         if self.view is not None:
+            try:
+                self.view.log_calibration(self.vehicle_rows())  # this round's vehicles, with their intervals
+            except Exception:  # the view is a side subscriber: never let it take the daemon down
+                log.exception("rerun calibration view update failed")
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
@@ -592,8 +596,6 @@ class Cloud:
                         rows = [i for i, v in enumerate(rough["length_m"]) if v == length]
                         self.view.log_roughness(snap.route_id, length, np.take(rough["start_m"], rows),
                                                 np.take(rough["iri_m_per_km"], rows), np.take(rough["end_m"], rows))
-            if self.calibrator is not None:
-                self.view.log_calibration(self.vehicle_rows())
             self.view.log_vehicle_status(dict(self.vehicles))
             self.view.log_stats(self.aggregator.stats())
         except Exception:  # the view is a side subscriber: never let it take the daemon down
