@@ -93,6 +93,7 @@ IRI_CLASSES = (("good", 0.0, 1.5, (80, 190, 110)),
                ("acceptable", 1.5, 2.7, (235, 185, 60)),
                ("poor", 2.7, float("inf"), (230, 80, 70)))
 IRI_LENGTHS_M = (100.0, 10.0)
+CALIBRATION_UNITS = {"K/M": "1/s²", "k/M": "1/s²", "C/M": "1/s", "c/M": "1/s", "m/M": "–"}  # quarter-car ratios
 
 DAMAGE_SERIES = (("P(damage) %", (235, 80, 70), 2.0), ("alarm threshold %", (80, 80, 80), 1.5),
                  ("alarm (100 = raised)", (250, 200, 60), 3.0))
@@ -193,7 +194,7 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     if calibration_params:
         fleet.append(rrb.Grid(*[rrb.Spatial2DView(origin=calibration_path(p), contents=["$origin/**"],
                                                   visual_bounds=_chart_bounds(CAL_BOX),
-                                                  name=f"{p}: each vehicle per calibration round, 95 % interval")
+                                                  name=f"{p} of each vehicle against calibration round, 95 %")
                                 for p in calibration_params], grid_columns=len(calibration_params),
                               name="calibration"))
     fleet.append(rrb.Horizontal(
@@ -240,7 +241,8 @@ def _bridge_view(b: Any) -> rrb.Container:
     root = bridge_path(bid)
     return rrb.Horizontal(
         rrb.Spatial2DView(origin=f"{root}/span", contents=["$origin/**"], visual_bounds=_chart_bounds(SPAN_BOX),
-                          name=f"{bid}: stiffness / design per element along the span (95 %)"),
+                          name=f"{bid}: EI / design per element along the span (m), 95 %; "
+                               "green design, red alarm loss"),
         rrb.Vertical(
             rrb.TimeSeriesView(origin=f"{root}/damage", name=f"{bid}: P(damage) and the alarm over passes (%)",
                                axis_y=rrb.ScalarAxis(range=[0.0, 105.0])),
@@ -423,8 +425,8 @@ class View:
             self._rec.log(path, make(), static=True)
             self._styled[path] = key
 
-    def _log_axes(self, root: str, frame: Frame, x_title: str, y_title: str) -> None:
-        """A chart's gridlines, outline, labelled ticks and titles under ``<root>/axes``."""
+    def _log_axes(self, root: str, frame: Frame, y_title: str) -> None:
+        """A chart's gridlines, outline, labelled ticks and y title under ``<root>/axes``."""
         gap = LABEL_GAP * frame.height
         self._rec.log(f"{root}/axes/grid", rr.LineStrips2D(frame.gridlines(), radii=GRID_RADIUS, colors=GRID_COLOUR,
                                                            draw_order=-10.0))
@@ -433,8 +435,10 @@ class View:
         for name, (pos, text) in (("x_ticks", frame.x_labels(gap)), ("y_ticks", frame.y_labels(3 * gap))):
             self._rec.log(f"{root}/axes/{name}", rr.Points2D(pos, labels=text, radii=LABEL_RADIUS, colors=LABEL_COLOUR,
                                                              show_labels=True))
-        titles = np.array([[frame.width, frame.height + 3.5 * gap], [0.0, -3.0 * gap]])
-        self._rec.log(f"{root}/axes/titles", rr.Points2D(titles, labels=[x_title, y_title], radii=LABEL_RADIUS,
+        # The y axis's title above its ticks (a label is centred on its point: a long one starts
+        # further in); the x axis's unit is in the view's name, where it is never clipped.
+        title = np.array([[min(0.008 * frame.width * len(y_title), 0.4 * frame.width), -3.0 * gap]])
+        self._rec.log(f"{root}/axes/titles", rr.Points2D(title, labels=[y_title], radii=LABEL_RADIUS,
                                                          colors=LABEL_COLOUR, show_labels=True))
 
     # -- profile ---------------------------------------------------------------------------------------
@@ -464,7 +468,7 @@ class View:
             if self._closed:
                 return
             self._stamp()
-            self._log_axes(root, frame, "chainage (m)", "elevation (mm)")
+            self._log_axes(root, frame, "elevation (mm)")
             self._log_route_bridges(root, rid, frame)
             self._rec.log(f"{root}/band_fill", rr.LineStrips2D(list(fill), radii=FILL_RADIUS, colors=FILL_COLOUR))
             self._rec.log(f"{root}/band", rr.LineStrips2D(band_strips, radii=BAND_RADIUS, colors=BAND_COLOUR))
@@ -572,7 +576,8 @@ class View:
                           x_ticks=6)
         root = calibration_path(param)
         colours = [_element_colour(i, len(ids)) for i in range(len(ids))]
-        self._log_axes(root, frame, "calibration round", f"{param} (1/s², 1/s or –)")
+        unit = CALIBRATION_UNITS.get(param)
+        self._log_axes(root, frame, f"{param} ({unit})" if unit else param)
         means = [frame.points(arr[v][:, 0], arr[v][:, 1]) for v in ids]
         bands = [frame.points(arr[v][:, 0], arr[v][:, c]) for c in (2, 3) for v in ids]
         self._rec.log(f"{root}/band", rr.LineStrips2D(bands, radii=GRID_RADIUS,
@@ -681,8 +686,7 @@ class View:
             if self._closed:
                 return
             self._stamp()
-            self._log_axes(root, frame, "x along the span (m)",
-                           "EI / design EI (green: design, red: alarm loss)" if alarm_loss is not None else "EI / design EI")
+            self._log_axes(root, frame, "EI / design EI")
             self._rec.log(f"{root}/design", rr.LineStrips2D([frame.points(span_x, [1.0, 1.0])], radii=BAND_RADIUS,
                                                             colors=DESIGN_COLOUR))
             if alarm_loss is not None:
@@ -715,7 +719,7 @@ class View:
             if self._closed:
                 return
             self._stamp()
-            self._log_axes(f"{root}/mril", frame, "x along the span (m)", "deflection per load (mm/MN)")
+            self._log_axes(f"{root}/mril", frame, "deflection per load (mm/MN)")
             for name, J in mm.items():
                 _, colour, radius = curves[name]
                 strips = [frame.points(s[:, 0], s[:, 1]) for s in finite_runs(x, J)]
@@ -785,7 +789,8 @@ class View:
             self._first_estimate_logged.add(bid)
         if first:
             if a is None:
-                text = f"{estimate.n_passes} passes: first estimate; damage hypotheses off (rough deck): no alarm decided"
+                text = (f"{estimate.n_passes} passes: first estimate; damage hypotheses off (rough deck): "
+                        "no alarm decided")
             else:
                 rule = "" if alarm_p is None else f", alarm above {alarm_p:g}"
                 text = (f"{estimate.n_passes} passes: first estimate, {'ALARM' if a.alarm else 'no alarm'} "
@@ -854,7 +859,7 @@ class View:
         lim = float(t.alert_isolated_mm)
         frame = Frame.fit((float(np.nanmin(x)), float(np.nanmax(x))), _finite_range(d1, np.array([-lim, lim])),
                           *TRACK_BOX)
-        self._log_axes(root, frame, "chainage (m)", "D1 level (mm)")
+        self._log_axes(root, frame, "D1 level (mm)")
         self._rec.log(f"{root}/d1", rr.LineStrips2D([frame.points(s[:, 0], s[:, 1]) for s in finite_runs(x, d1)],
                                                     radii=MEAN_RADIUS, colors=MEAN_COLOUR))
         ends = [frame.x_lo, frame.x_hi]

@@ -129,7 +129,7 @@ def test_every_panel_has_data_at_the_end(recording):
     assert not empty, "panels without data:\n" + "\n".join(empty)
     # The panels the issue named as empty before are among those checked.
     names = " ".join(n for n, _, _ in bp.views.values())
-    for panel in ("IRI per 100 m", "IRI per 10 m", "calibration", "stiffness / design", "alarm", "spill"):
+    for panel in ("IRI per 100 m", "IRI per 10 m", "calibration round", "EI / design", "alarm", "spill"):
         assert panel in names
 
 
