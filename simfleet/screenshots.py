@@ -36,7 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
-SETTLE_INTERVAL_S = 3.0  # between the two frames compared: long enough for the viewer to stream and lay out
+SETTLE_INTERVAL_S = 4.0  # between two frames compared
+SETTLE_FRAMES = 3  # consecutive nearly unchanged frames that make a settled view
 # Share of pixel bytes two frames of a settled view may differ by: the viewer's top bar redraws
 # its own counters from frame to frame, while a panel still filling in changes several per cent.
 SETTLE_CHANGE = 0.002
@@ -207,8 +208,10 @@ def frame_change(a: bytes, b: bytes) -> float:
 
 
 def settled_screenshot(dev: DevTools, deadline: float, proc: subprocess.Popen, say) -> bytes:
-    """A frame nearly equal to the one taken ``SETTLE_INTERVAL_S`` before it, once the viewer has started."""
-    last = None
+    """A frame nearly equal to the `SETTLE_FRAMES` taken before it, ``SETTLE_INTERVAL_S`` apart,
+    once the viewer has started (a slow machine ingests a recording for a while: one quiet
+    interval is not enough to say it is done)."""
+    last, quiet = None, 0
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise ScreenshotError(f"the rerun server exited with code {proc.returncode}")
@@ -220,7 +223,8 @@ def settled_screenshot(dev: DevTools, deadline: float, proc: subprocess.Popen, s
             png = dev.screenshot()
             change = 1.0 if last is None else frame_change(last, png)
             say(f"frame: {100 * change:.2f} % changed")
-            if change <= SETTLE_CHANGE:
+            quiet = quiet + 1 if change <= SETTLE_CHANGE else 0
+            if quiet >= SETTLE_FRAMES:
                 return png
             last = png
         else:
