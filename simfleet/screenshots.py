@@ -5,8 +5,8 @@ viewer over HTTP and the recording over gRPC, on free ports) and opened in headl
 with a software GL (SwiftShader), driven through the DevTools protocol over a pipe
 (``--remote-debugging-pipe``: NUL-separated JSON on file descriptors 3 and 4, so no websocket
 client is needed). A picture is taken once the viewer has drawn the same frame twice in a row:
-the wasm is loaded, the recording streamed in and the layout settled. ``--click X,Y`` (repeatable,
-in CSS pixels) clicks there before the next ``--shot``, e.g. to open a tab of the layout.
+the wasm is loaded, the recording streamed in and the layout settled. ``--shot NAME@X,Y`` clicks
+at X,Y (CSS pixels) before that picture, e.g. to open a tab of the layout.
 
 Every process started here is stopped on the way out; a failure is one line on stderr and exit 1.
 """
@@ -289,28 +289,28 @@ def capture(rrd: Path, out_dir: Path, shots: Sequence[Shot], width: int = 1920, 
     return written
 
 
-def _parse_shots(names: Sequence[str], clicks: Sequence[Sequence[str]]) -> list[Shot]:
-    shots = []
-    for i, name in enumerate(names):
-        pts = []
-        for c in clicks[i] if i < len(clicks) else ():
-            try:
-                x, y = (int(v) for v in c.split(","))
-            except ValueError:
-                raise ScreenshotError(f"--click {c!r}: expected X,Y in pixels") from None
-            pts.append((x, y))
-        shots.append(Shot(name, tuple(pts)))
-    return shots
+def parse_shot(spec: str) -> Shot:
+    """``NAME`` or ``NAME@X,Y[;X,Y...]``: a picture and the clicks (CSS px) made before it."""
+    name, _, clicks = spec.partition("@")
+    pts = []
+    for c in filter(None, clicks.split(";")):
+        try:
+            x, y = (int(v) for v in c.split(","))
+        except ValueError:
+            raise ScreenshotError(f"--shot {spec!r}: expected NAME or NAME@X,Y[;X,Y...] in pixels") from None
+        pts.append((x, y))
+    if not name or "/" in name:
+        raise ScreenshotError(f"--shot {spec!r}: a file name (without .png) is needed")
+    return Shot(name, tuple(pts))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m simfleet.screenshots", description=__doc__.splitlines()[0])
     p.add_argument("rrd", help="the Rerun recording (.rrd) to render")
     p.add_argument("--out", default="docs/img", help="directory for the PNGs (default docs/img)")
-    p.add_argument("--shot", action="append", default=None, metavar="NAME",
-                   help="a picture to save as NAME.png, in order (repeatable; default demo-view)")
-    p.add_argument("--click", action="append", nargs="+", default=[], metavar="X,Y",
-                   help="clicks (CSS px) before the corresponding --shot (one --click per --shot)")
+    p.add_argument("--shot", action="append", default=None, metavar="NAME[@X,Y;...]",
+                   help="a picture to save as NAME.png, after clicking at X,Y (CSS px, e.g. on a tab); "
+                        "repeatable, taken in order (default: demo-view)")
     p.add_argument("--size", default="1920x1200", help="viewport WIDTHxHEIGHT in CSS pixels (default 1920x1200)")
     p.add_argument("--verbose", action="store_true", help="say what is happening on stderr")
     p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S, help="seconds for everything (default 600)")
@@ -320,10 +320,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             width, height = (int(v) for v in args.size.lower().split("x"))
         except ValueError:
             raise ScreenshotError(f"--size {args.size!r}: expected WIDTHxHEIGHT") from None
-        if args.shot is None:
-            shots = [Shot("demo-view")] if not args.click else _parse_shots(["demo-view"], args.click)
-        else:
-            shots = _parse_shots(args.shot, args.click)
+        shots = [parse_shot(spec) for spec in args.shot or ["demo-view"]]
         say = (lambda text: print(f"screenshots: {text}", file=sys.stderr, flush=True)) if args.verbose else \
             (lambda text: None)
         for path in capture(Path(args.rrd), Path(args.out), shots, width, height, args.timeout, say):

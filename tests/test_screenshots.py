@@ -42,3 +42,13 @@ def test_a_missing_recording_is_one_line_and_exit_1(tmp_path, capsys):
     done = subprocess.run([sys.executable, "-m", "simfleet.screenshots", str(tmp_path / "x.rrd"), "--size", "big"],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 1 and len(done.stderr.strip().splitlines()) == 1
+
+
+def test_shots_name_their_clicks():
+    from simfleet.screenshots import ScreenshotError, Shot, parse_shot
+
+    assert parse_shot("demo-view") == Shot("demo-view")
+    assert parse_shot("tab@156,901;10,20") == Shot("tab", ((156, 901), (10, 20)))
+    for bad in ("tab@x,y", "@1,2", "a/b"):
+        with pytest.raises(ScreenshotError):
+            parse_shot(bad)
