@@ -1,26 +1,36 @@
 """The cloud's Rerun view: current estimates logged to an explicit recording stream, one default blueprint.
 
-One ``log_<thing>()`` per group of entities; every temporal row carries the ``pass`` (completed
-passes so far, set with `View.set_pass`) and ``wall_time`` timelines. Entity paths are keys::
+The blueprint opens on the ``pass`` timeline (completed passes so far, set with `View.set_pass`);
+every temporal row also carries ``wall_time``. One ``log_<thing>()`` per group of entities; entity
+paths are keys::
 
-    profile/<route>/mean              LineStrips2D, (chainage m, -elevation mm), NaN gaps split strips
-    profile/<route>/band              LineStrips2D, the 95 % band as thinner lower and upper strips
-    profile/<route>/passes_per_tile   BarChart, passes per tile against tile-centre chainage (m)
-    stats/<key>, stats/<key>/<sub>    Scalars, aggregator counters (``rejected/<reason>``, ``rejected/total``)
-    fleet/status                      TextDocument, a markdown table of per-vehicle status
-    bridge/<bridge>/stiffness         Scalars, element stiffness ratio: mean, lo95, hi95 per element
-    bridge/<bridge>/mril/current      LineStrips2D, the fleet's MR-IL (x m, J mm/MN, drawn downwards)
-    bridge/<bridge>/mril/baseline     LineStrips2D, the healthy baseline MR-IL it is compared with
-    bridge/<bridge>/indicators        Scalars, D1 and D2 (%, eq. 3.24) and P(damage) (%)
-    bridge/<bridge>/summary           TextDocument, the hypotheses' probabilities and the decision
-    bridge/<bridge>/alarms            TextLog, alarms with a severity level
-    rail/<route>/track_quality/...    LineStrips2D ``d1``, ``sd_per_200m``, ``alert_limits`` (mm, up); ``table``
-    rail/<vehicle>/runs               TextDocument, a carriage's run estimates with 95 % intervals
-    rail/<vehicle>/runs/<quantity>    Points2D (run index, estimate) and ``ci95`` LineStrips2D
+    profile/<route>/mean, band, band_fill   the profile (mm) against chainage (m) and its 95 % band
+    profile/<route>/bridges                 the route's bridges, marked between their supports
+    profile/<route>/axes/...                gridlines, tick labels and titles of that chart
+    profile/<route>/iri_<L>m/<class>        BarChart: IRI (m/km) per L = 10, 100 m, one entity per condition class
+    profile/<route>/passes_per_tile         BarChart: passes per tile against tile-centre chainage (m)
+    fleet/calibration/<param>/...           each vehicle's calibrated value and 95 % interval per round
+    fleet/status                            TextDocument: per-vehicle status
+    stats/<key>, stats/rejected/<reason>    Scalars: aggregator counters, grouped by scale in the blueprint
+    bridge/<bridge>/span/...                stiffness ratio per element along the span with 95 % whiskers
+    bridge/<bridge>/damage                  Scalars: P(damage) (%), the alarm threshold (%), the alarm (0/100)
+    bridge/<bridge>/indicators              Scalars: D1 and D2 (%, eq. 3.24)
+    bridge/<bridge>/mril/...                the fleet's MR-IL (mm/MN, drawn downwards) and its baseline
+    bridge/<bridge>/summary, alarms         TextDocument (the assessment), TextLog (decisions and alarms)
+    rail/<route>/track_quality/...          EN 13848 D1 level against chainage, sd per 200 m bars, table
+    rail/<vehicle>/runs                     TextDocument, a carriage's run estimates with 95 % intervals
 
-Rerun's 2D view draws +y downwards and ignores view coordinates in 2D (rerun-io/rerun#1387), so the
-profile strips store ``-elevation`` in mm: up on the screen is up on the road. Readers of the
-recording flip the sign back (`SCREEN_Y`).
+**Charts of one quantity against another** (profile against chainage, stiffness along the span,
+MR-IL, track level) are 2D views of a `cloud.chart.Frame`. Rerun's time-series plots have real
+axes but plot against a *timeline*: a profile logged at every pass on a ``chainage`` timeline
+would draw every pass's profile over the others, and the view would need the whole viewer off the
+``pass`` timeline. A 2D view keeps the current pass's curve alone, but has no axes, one scale for
+x and y and y pointing down; so each chart maps its data rectangle (e.g. chainage m × elevation
+mm, sized to the data at that pass) onto a fixed screen box that the blueprint's visual bounds
+frame, and draws its own gridlines and labelled ticks. A reader of the recording gets data
+coordinates back with the frame logged beside it (``axes/frame``: x_lo, x_hi, y_lo, y_hi, width,
+height as Scalars). Bars against chainage (IRI, passes per tile) are Rerun bar charts with an
+abscissa; quantities over passes (calibration, P(damage), counters) are time series on ``pass``.
 
 Rerun is imported at module top: only the cloud node imports this module, and it does so lazily.
 """
@@ -40,31 +50,67 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
+from cloud.chart import Frame
+
 log = logging.getLogger(__name__)
 
 APPLICATION_ID = "driveby"
 MAX_STRIP_POINTS = 4000  # per profile curve sent to the viewer
-SCREEN_Y = -1.0  # stored y = SCREEN_Y * elevation_mm (the 2D view's y axis points down)
-DEFAULT_PROFILE_RANGE_MM = 50.0
+MAX_FILL_LINES = 800  # vertical strokes that shade a band: about one per screen pixel of a wide panel
 DEFAULT_VIEWER_PORT = 9876
 
+# Screen boxes (screen units) of the 2D charts: their aspect is that of the panel they are drawn in,
+# so the chart fills it; the margins hold the tick labels and titles.
+PROFILE_BOX = (1000.0, 115.0)
+SPAN_BOX = (600.0, 300.0)
+MRIL_BOX = (600.0, 300.0)
+CAL_BOX = (500.0, 250.0)
+TRACK_BOX = (1000.0, 200.0)
+LABEL_GAP = 0.035  # of the box's height: tick labels sit this far outside it
+
 MEAN_COLOUR = (70, 160, 255)
-BAND_COLOUR = (150, 150, 170)
+BAND_COLOUR = (120, 150, 200)
+FILL_COLOUR = (120, 160, 230, 70)
+GRID_COLOUR = (128, 128, 128, 90)
+AXIS_COLOUR = (150, 150, 150)
+LABEL_COLOUR = (200, 200, 200)
+BRIDGE_COLOUR = (235, 150, 60)
 TILE_COLOUR = (110, 190, 130)
-IRI_COLOUR = (230, 140, 90)
+DESIGN_COLOUR = (90, 190, 110)
+THRESHOLD_COLOUR = (235, 80, 70)
 MRIL_COLOUR = (70, 160, 255)
 BASELINE_COLOUR = (150, 150, 170)
-INDICATOR_SERIES = (("D1 %", (70, 160, 255)), ("D2 %", (160, 120, 255)), ("P(damage) %", (235, 80, 70)))
 MRIL_MM_PER_MN = 1e9  # J (m/N) → mm/MN
 MEAN_RADIUS = rr.Radius.ui_points(1.5)
 BAND_RADIUS = rr.Radius.ui_points(0.75)
+GRID_RADIUS = rr.Radius.ui_points(0.5)
+FILL_RADIUS = rr.Radius.ui_points(1.0)
+LABEL_RADIUS = rr.Radius.ui_points(0.01)
+
+# IRI condition classes (m/km) after FHWA's pavement ride quality ranges (FHWA, "Status of the
+# Nation's Highways, Bridges, and Transit: Conditions and Performance", ride quality on the NHS):
+# good below 95 in/mi (1.50 m/km), acceptable up to 170 in/mi (2.68 m/km, quoted as 2.7), poor above.
+IRI_CLASSES = (("good", 0.0, 1.5, (80, 190, 110)),
+               ("acceptable", 1.5, 2.7, (235, 185, 60)),
+               ("poor", 2.7, float("inf"), (230, 80, 70)))
+IRI_LENGTHS_M = (100.0, 10.0)
+CALIBRATION_UNITS = {"K/M": "1/s²", "k/M": "1/s²", "C/M": "1/s", "c/M": "1/s", "m/M": "–"}  # quarter-car ratios
+
+DAMAGE_SERIES = (("P(damage) %", (235, 80, 70), 2.0), ("alarm threshold %", (80, 80, 80), 1.5),
+                 ("alarm (100 = raised)", (250, 200, 60), 3.0))
+INDICATOR_SERIES = (("D1 %", (70, 160, 255)), ("D2 %", (160, 120, 255)))
 STATS_COLOURS = {
     "accepted": (80, 200, 120),
     "passes_complete": (70, 160, 255),
     "passes": (160, 120, 255),
     "segments_held": (200, 200, 200),
     "rejected/total": (235, 80, 70),
+    "spill_bytes": (200, 160, 80),
 }
+# Counters grouped by scale: a pass count (tens) beside a segment count (thousands) or the spill
+# file's bytes (hundreds of thousands) would be a flat line at zero.
+PASS_STATS = ("passes", "passes_complete", "foreign_passes")
+BYTE_STATS = ("spill_bytes",)
 REJECT_COLOUR = (240, 160, 60)
 OTHER_COLOUR = (170, 170, 170)
 TEXT_LOG_LEVELS = ("TRACE", "DEBUG", "INFO", "WARN", "ERROR", "CRITICAL")
@@ -100,70 +146,117 @@ def rail_path(name: str) -> str:
     return f"rail/{_part(name)}"
 
 
+def iri_class(iri_m_per_km: float) -> str:
+    """The condition class (`IRI_CLASSES`) of an IRI in m/km; NaN has none ("")."""
+    for name, lo, hi, _ in IRI_CLASSES:
+        if lo <= iri_m_per_km < hi:
+            return name
+    return ""
+
+
+def _chart_bounds(box: tuple[float, float]) -> rrb.VisualBounds2D:
+    """The screen box with room for the tick labels (left, below) and the titles (above)."""
+    w, h = box
+    return rrb.VisualBounds2D(x_range=[-0.075 * w, 1.02 * w], y_range=[-0.16 * h, 1.17 * h])
+
+
+def _stats_view(name: str, keys: Sequence[str] | None, exclude: Sequence[str] = ()) -> rrb.TimeSeriesView:
+    contents = [f"stats/{k}" for k in keys] if keys is not None else ["stats/**"] + [f"- stats/{k}" for k in exclude]
+    return rrb.TimeSeriesView(origin="stats", contents=contents, name=name)
+
+
 def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
-              profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM,
               calibration_params: Sequence[str] = (), rail_routes: Sequence[str] = (),
               rail_vehicles: Sequence[str] = (), run_names: Sequence[str] = ()) -> rrb.Blueprint:
-    """The one default layout: profiles per route, aggregator counters and fleet, bridges, rail.
+    """The one default layout, opened on the ``pass`` timeline: road, bridges, fleet, rail.
 
     Parameters
     ----------
-    routes : mapping route id → route length (m); each gets a profile panel bounded to
-        [0, length] m by ±``profile_range_mm`` and a passes-per-tile bar chart.
-    bridges : bridge ids or registry `Bridge` objects; each gets a stiffness time series, its
-        MR-IL (bounded to the span when a `Bridge` is given), D1/D2 and P(damage) on the pass
-        timeline, the hypotheses' summary and an alarm log. No bridge, no bridge row.
-    rail_routes, rail_vehicles, run_names : a ``rail`` row below the rest: per rail route its
-        EN 13848 D1 level, sd per 200 m and alert limits against chainage and the table; per
-        carriage its runs' estimates of each of ``run_names``. No rail route or carriage, no row.
+    routes : mapping route id → route length (m); each gets its profile chart, IRI per 100 m
+        and per 10 m by condition class, and passes per tile.
+    bridges : bridge ids or registry `Bridge` objects; each gets its stiffness along the span,
+        P(damage) with the alarm over passes, D1/D2, the MR-IL, the assessment and the alarm log.
+    calibration_params : the fleet-calibrated quantities, one convergence plot each.
+    rail_routes, rail_vehicles, run_names : per rail route its track quality; per carriage its runs.
     """
-    route_tabs = []
-    for rid, length in routes.items():
-        root = profile_path(rid)
-        bounds = rrb.VisualBounds2D(x_range=[0.0, float(length)], y_range=[-profile_range_mm, profile_range_mm])
-        route_tabs.append(rrb.Vertical(
-            rrb.Spatial2DView(origin=root, contents=["$origin/mean", "$origin/band"],
-                              name=f"{rid}: profile (mm, up) vs chainage (m)", visual_bounds=bounds),
-            rrb.Horizontal(
-                rrb.BarChartView(origin=f"{root}/passes_per_tile", name=f"{rid}: passes per tile"),
-                rrb.BarChartView(origin=f"{root}/iri_100m", name=f"{rid}: IRI per 100 m (m/km)"),
-                rrb.BarChartView(origin=f"{root}/iri_10m", name=f"{rid}: IRI per 10 m (m/km)")),
-            row_shares=[3, 1], name=str(rid)))
     rows: list = []
-    if route_tabs:
-        rows.append(rrb.Tabs(*route_tabs, name="profiles"))
-    fleet_tabs = [rrb.Horizontal(
-        rrb.TimeSeriesView(origin="stats", name="aggregator counters"),
-        rrb.TextDocumentView(origin="fleet/status", name="fleet"),
-        column_shares=[3, 2], name="fleet")]
+    shares: list[float] = []
+    bridges = list(bridges)
+    bridge_routes = {getattr(b, "route", None) for b in bridges}
+    road = [_road_view(rid, rid in bridge_routes) for rid in routes]
+    if road:
+        rows.append(rrb.Tabs(*road, name="road") if len(road) > 1 else road[0])
+        shares.append(5.0)
+    bridge_views = [_bridge_view(b) for b in bridges]
+    if bridge_views:
+        rows.append(rrb.Tabs(*bridge_views, name="bridges") if len(bridge_views) > 1 else bridge_views[0])
+        shares.append(4.0)
+    fleet = []
     if calibration_params:
-        fleet_tabs.append(rrb.Grid(*[rrb.TimeSeriesView(origin=calibration_path(p), name=f"{p} per vehicle (95 %)")
-                                     for p in calibration_params], name="calibration"))
-    rows.append(rrb.Tabs(*fleet_tabs, name="fleet"))
-    bridge_tabs = []
-    for b in bridges:
-        bid = _bridge_id(b)
-        root = bridge_path(bid)
-        bridge_tabs.append(rrb.Vertical(
-            rrb.Horizontal(
-                rrb.TimeSeriesView(origin=f"{root}/stiffness", name=f"{bid}: element stiffness / design (95 %)"),
-                rrb.Spatial2DView(origin=f"{root}/mril", contents=["$origin/**"], visual_bounds=_mril_bounds(b),
-                                  name=f"{bid}: MR-IL (mm/MN, down) vs x (m)"),
-                column_shares=[1, 1]),
-            rrb.Horizontal(
-                rrb.TimeSeriesView(origin=f"{root}/indicators", name=f"{bid}: D1, D2, P(damage) (%)"),
-                rrb.TextDocumentView(origin=f"{root}/summary", name=f"{bid}: assessment"),
-                rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: alarms"),
-                column_shares=[2, 2, 2]),
-            row_shares=[3, 2], name=bid))
-    if bridge_tabs:
-        rows.append(rrb.Tabs(*bridge_tabs, name="bridges"))
-    shares = [3] * bool(route_tabs) + [2] + [2] * bool(bridge_tabs)
-    layout = rrb.Vertical(*rows, row_shares=shares)
-    rail_tabs = _rail_tabs(rail_routes, rail_vehicles, run_names)
-    if rail_tabs:
-        layout = rrb.Vertical(layout, rrb.Tabs(*rail_tabs, name="rail"), row_shares=[3, 1])
-    return rrb.Blueprint(layout, auto_views=False)
+        fleet.append(rrb.Grid(*[rrb.Spatial2DView(origin=calibration_path(p), contents=["$origin/**"],
+                                                  visual_bounds=_chart_bounds(CAL_BOX),
+                                                  name=f"{p} of each vehicle against calibration round, 95 %")
+                                for p in calibration_params], grid_columns=len(calibration_params),
+                              name="calibration"))
+    fleet.append(rrb.Horizontal(
+        _stats_view("passes", PASS_STATS),
+        _stats_view("segments", None, PASS_STATS + BYTE_STATS),
+        _stats_view("spill file (bytes)", BYTE_STATS),
+        rrb.TextDocumentView(origin="fleet/status", name="vehicles"),
+        column_shares=[1, 1, 1, 2], name="aggregator"))
+    rows.append(rrb.Tabs(*fleet, name="fleet"))
+    shares.append(3.0)
+    rail = _rail_tabs(rail_routes, rail_vehicles, run_names)
+    if rail:
+        rows.append(rrb.Tabs(*rail, name="rail"))
+        shares.append(3.0)
+    return rrb.Blueprint(
+        rrb.Vertical(*rows, row_shares=shares),
+        rrb.TimePanel(timeline="pass", play_state="following", state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+        auto_views=False)
+
+
+def _road_view(rid: str, has_bridges: bool) -> rrb.Container:
+    root = profile_path(rid)
+    (good, _, g_hi, _), (fair, _, f_hi, _), (poor, _, _, _) = IRI_CLASSES
+    classes = f"green {good} < {g_hi:g}, amber {fair} {g_hi:g}–{f_hi:g}, red {poor} > {f_hi:g}"
+    no_legend = rrb.PlotLegend(visible=False)
+    return rrb.Vertical(
+        rrb.Spatial2DView(origin=root, contents=["$origin/axes/**", "$origin/band_fill", "$origin/band", "$origin/mean"]
+                          + ["$origin/bridges"] * has_bridges,
+                          name=f"{rid}: profile (mm) and its 95 % band against chainage (m)",
+                          visual_bounds=_chart_bounds(PROFILE_BOX)),
+        rrb.Horizontal(
+            rrb.BarChartView(origin=f"{root}/iri_100m", name=f"IRI per 100 m (m/km): FHWA {classes}",
+                             plot_legend=no_legend),
+            rrb.BarChartView(origin=f"{root}/iri_10m", name="IRI per 10 m (m/km), classes as per 100 m",
+                             plot_legend=no_legend),
+            rrb.BarChartView(origin=f"{root}/passes_per_tile", name="passes per 50 m tile", plot_legend=no_legend),
+            column_shares=[2, 2, 1]),
+        row_shares=[3, 2], name=str(rid))
+
+
+def _bridge_view(b: Any) -> rrb.Container:
+    bid = _bridge_id(b)
+    root = bridge_path(bid)
+    return rrb.Horizontal(
+        rrb.Spatial2DView(origin=f"{root}/span", contents=["$origin/**"], visual_bounds=_chart_bounds(SPAN_BOX),
+                          name=f"{bid}: EI / design per element along the span (m), 95 %; "
+                               "green design, red alarm loss"),
+        rrb.Vertical(
+            rrb.TimeSeriesView(origin=f"{root}/damage", name=f"{bid}: P(damage) and the alarm over passes (%)",
+                               axis_y=rrb.ScalarAxis(range=[0.0, 105.0])),
+            rrb.TimeSeriesView(origin=f"{root}/indicators", name=f"{bid}: D1, D2 stiffness loss (%)"),
+            row_shares=[3, 2]),
+        rrb.Tabs(
+            rrb.TextDocumentView(origin=f"{root}/summary", name="assessment"),
+            rrb.Spatial2DView(origin=f"{root}/mril", contents=["$origin/**"], visual_bounds=_chart_bounds(MRIL_BOX),
+                              name="MR-IL (mm/MN, down) along the span (m)"),
+            name=f"{bid}"),
+        rrb.TextLogView(origin=f"{root}/alarms", name=f"{bid}: decisions and alarms",
+                        columns=rrb.archetypes.TextLogColumns(text_log_columns=["loglevel", "body"])),
+        column_shares=[4, 3, 3, 3], name=bid)
 
 
 def _rail_tabs(routes: Sequence[str], vehicles: Sequence[str], run_names: Sequence[str]) -> list:
@@ -171,27 +264,20 @@ def _rail_tabs(routes: Sequence[str], vehicles: Sequence[str], run_names: Sequen
     for route in routes:
         root = f"{rail_path(route)}/track_quality"
         tabs.append(rrb.Horizontal(
-            rrb.Spatial2DView(origin=root, contents=["$origin/d1", "$origin/sd_per_200m", "$origin/alert_limits"],
-                              name=f"{route}: EN 13848 D1 (mm, up) vs chainage (m)"),
+            rrb.Spatial2DView(origin=root, contents=["$origin/axes/**", "$origin/d1", "$origin/alert_limits"],
+                              visual_bounds=_chart_bounds(TRACK_BOX),
+                              name=f"{route}: EN 13848 D1 longitudinal level (mm) against chainage (m)"),
+            rrb.BarChartView(origin=f"{root}/sd_200m", name=f"{route}: D1 sd per 200 m (mm)"),
             rrb.TextDocumentView(origin=f"{root}/table", name=f"{route}: D1 per 200 m"),
-            column_shares=[3, 2], name=f"{route} track"))
+            column_shares=[3, 2, 2], name=f"{route} track"))
     for vid in vehicles:
         root = f"{rail_path(vid)}/runs"
         tabs.append(rrb.Horizontal(
             rrb.TextDocumentView(origin=root, name=f"{vid}: runs (95 %)"),
             *[rrb.Spatial2DView(origin=f"{root}/{_part(k)}", contents=["$origin/**"], name=f"{vid}: {k} per run")
-              for k in run_names], name=f"{vid} runs"))
+              for k in run_names],
+            name=f"{vid} runs"))
     return tabs
-
-
-def _mril_bounds(bridge: Any) -> rrb.VisualBounds2D | None:
-    """The span and 1.6× the design mid-span ordinate L³/48EI, for a registry `Bridge`."""
-    try:
-        span, ei = float(bridge.span_m), float(bridge.E_pa) * float(bridge.I_m4)
-    except (AttributeError, TypeError, ValueError):
-        return None
-    j_mid = span**3 / (48.0 * ei) * MRIL_MM_PER_MN
-    return rrb.VisualBounds2D(x_range=[-0.05 * span, 1.05 * span], y_range=[-0.3 * j_mid, 1.6 * j_mid])
 
 
 # -- array helpers (pure) -----------------------------------------------------------------------------
@@ -264,10 +350,13 @@ class View:
     rrd_path : save the recording to this .rrd file.
     spawn_viewer : start the viewer that ships with the wheel (needs a display) and stream to it.
     connect_url : stream to a running viewer, e.g. ``rerun+http://127.0.0.1:9876/proxy``.
-    routes : route id → length (m), for the blueprint's profile panels.
-    bridges : bridge ids or registry `Bridge` objects, for the blueprint's bridge panels.
+    routes : route id → length (m), for the blueprint's road panels and the profile's x axis.
+    bridges : bridge ids or registry `Bridge` objects, for the blueprint's bridge panels (registry
+        bridges are also marked on their route's profile).
     recording_id : defaults to a fresh UUID.
     clock : seconds since the epoch for the ``wall_time`` timeline (tests pass a fixed clock).
+    calibration_params : calibrated quantities known up front; others join the blueprint when
+        `log_calibration` first sees them.
 
     At least one output is required. Methods are thread-safe; calls after `close` are ignored.
     """
@@ -276,7 +365,7 @@ class View:
                  connect_url: str | None = None, routes: Mapping[str, float] | None = None,
                  bridges: Sequence[Any] = (), *, recording_id: str | None = None,
                  clock: Callable[[], float] = time.time, viewer_port: int = DEFAULT_VIEWER_PORT,
-                 profile_range_mm: float = DEFAULT_PROFILE_RANGE_MM, calibration_params: Sequence[str] = ()):
+                 calibration_params: Sequence[str] = ()):
         sinks: list = []
         if rrd_path is not None:
             Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
@@ -295,14 +384,22 @@ class View:
         self._pass = 0
         self._closed = False
         self._styled: dict[str, Any] = {}  # entity path → what its static style was made for
-        self._layout = (dict(routes or {}), list(bridges), profile_range_mm, tuple(calibration_params))
+        self._routes = dict(routes or {})
+        self._bridges = list(bridges)
+        self._calibration_params = tuple(calibration_params)
+        self._calibration_rounds = 0
+        self._calibration_history: dict[str, dict[str, list]] = {}  # param → vehicle → (round, mean, lo, hi)
         self._rail_layout: tuple = ((), (), ())  # (rail routes, carriages, run quantities) in the blueprint
+        self._first_estimate_logged: set[str] = set()
         self.recording_id = recording_id or str(uuid.uuid4())
         self._rec = rr.RecordingStream(APPLICATION_ID, recording_id=self.recording_id)
         # Exactly two timelines: `pass` and `wall_time` (log_time would duplicate wall_time).
         self._rec.set_log_time_enabled(False)
         self._rec.set_log_tick_enabled(False)
-        self._rec.set_sinks(*sinks, default_blueprint=blueprint(*self._layout))
+        self._rec.set_sinks(*sinks, default_blueprint=self._blueprint())
+
+    def _blueprint(self) -> rrb.Blueprint:
+        return blueprint(self._routes, self._bridges, self._calibration_params, *self._rail_layout)
 
     # -- time ------------------------------------------------------------------------------------------
     @property
@@ -329,31 +426,70 @@ class View:
             self._rec.log(path, make(), static=True)
             self._styled[path] = key
 
+    def _log_axes(self, root: str, frame: Frame, y_title: str) -> None:
+        """A chart's gridlines, outline, labelled ticks and y title under ``<root>/axes``."""
+        gap = LABEL_GAP * frame.height
+        self._rec.log(f"{root}/axes/grid", rr.LineStrips2D(frame.gridlines(), radii=GRID_RADIUS, colors=GRID_COLOUR,
+                                                           draw_order=-10.0))
+        self._rec.log(f"{root}/axes/box", rr.LineStrips2D([frame.box()], radii=GRID_RADIUS, colors=AXIS_COLOUR,
+                                                          draw_order=-9.0))
+        for name, (pos, text) in (("x_ticks", frame.x_labels(gap)), ("y_ticks", frame.y_labels(3 * gap))):
+            self._rec.log(f"{root}/axes/{name}", rr.Points2D(pos, labels=text, radii=LABEL_RADIUS, colors=LABEL_COLOUR,
+                                                             show_labels=True))
+        # The y axis's title above its ticks (a label is centred on its point: a long one starts
+        # further in); the x axis's unit is in the view's name, where it is never clipped.
+        title = np.array([[min(0.008 * frame.width * len(y_title), 0.4 * frame.width), -3.0 * gap]])
+        self._rec.log(f"{root}/axes/titles", rr.Points2D(title, labels=[y_title], radii=LABEL_RADIUS,
+                                                         colors=LABEL_COLOUR, show_labels=True))
+
     # -- profile ---------------------------------------------------------------------------------------
     def log_profile(self, snapshot: Any) -> None:
-        """Log one update of a route's profile: the mean and its 95 % band, mm against chainage m.
+        """Log one update of a route's profile: the mean and its 95 % band (mm) against chainage (m).
 
         ``snapshot`` is a `cloud.road.mean_profile.ProfileSnapshot` (or anything with
         ``route_id``, ``chainage_m``, ``elevation_m``, ``lo95_m``, ``hi95_m`` in metres). Curves are
-        binned to at most `MAX_STRIP_POINTS` points and split at NaN gaps.
+        binned to at most `MAX_STRIP_POINTS` points and split at NaN gaps; the chart's elevation
+        axis is sized to the band at this pass, its chainage axis to the route.
         """
         x = np.asarray(snapshot.chainage_m, dtype=float)
         cols = [np.asarray(a, dtype=float) * 1e3 for a in (snapshot.elevation_m, snapshot.lo95_m, snapshot.hi95_m)]
         if x.ndim != 1 or any(c.shape != x.shape for c in cols):
             raise ValueError("log_profile: chainage_m, elevation_m, lo95_m and hi95_m must be 1-D of one length")
-        x, mean, lo, hi = decimate_profile(x, *cols)
-        mean_strips = finite_runs(x, SCREEN_Y * mean)
-        band_strips = finite_runs(x, SCREEN_Y * lo) + finite_runs(x, SCREEN_Y * hi)
-        root = profile_path(snapshot.route_id)
+        rid = snapshot.route_id
+        length = float(self._routes.get(rid, x[-1] if x.size else 1.0))
+        frame = Frame.fit((0.0, max(length, 1e-3)), _finite_range(cols[1], cols[2], cols[0]), *PROFILE_BOX)
+        xd, mean, lo, hi = decimate_profile(x, *cols)
+        mean_strips = [frame.points(s[:, 0], s[:, 1]) for s in finite_runs(xd, mean)]
+        band_strips = [frame.points(s[:, 0], s[:, 1]) for s in finite_runs(xd, lo) + finite_runs(xd, hi)]
+        xf, _, flo, fhi = decimate_profile(x, *cols, max_points=MAX_FILL_LINES)
+        ok = np.isfinite(xf) & np.isfinite(flo) & np.isfinite(fhi)
+        fill = np.stack([frame.points(xf[ok], flo[ok]), frame.points(xf[ok], fhi[ok])], axis=1)
+        root = profile_path(rid)
         with self._lock:
             if self._closed:
                 return
             self._stamp()
-            self._rec.log(f"{root}/mean", rr.LineStrips2D(mean_strips, radii=MEAN_RADIUS, colors=MEAN_COLOUR))
+            self._log_axes(root, frame, "elevation (mm)")
+            self._log_route_bridges(root, rid, frame)
+            self._rec.log(f"{root}/band_fill", rr.LineStrips2D(list(fill), radii=FILL_RADIUS, colors=FILL_COLOUR))
             self._rec.log(f"{root}/band", rr.LineStrips2D(band_strips, radii=BAND_RADIUS, colors=BAND_COLOUR))
+            self._rec.log(f"{root}/mean", rr.LineStrips2D(mean_strips, radii=MEAN_RADIUS, colors=MEAN_COLOUR))
+
+    def _log_route_bridges(self, root: str, route_id: str, frame: Frame) -> None:
+        spans = [(_bridge_id(b), float(b.start_chainage_m), float(b.end_chainage_m)) for b in self._bridges
+                 if getattr(b, "route", None) == route_id and hasattr(b, "start_chainage_m")]
+        if not spans:
+            return
+        x0 = frame.sx([s[1] for s in spans])
+        x1 = frame.sx([s[2] for s in spans])
+        self._rec.log(f"{root}/bridges", rr.Boxes2D(
+            mins=np.column_stack([x0, np.zeros(len(spans))]),
+            sizes=np.column_stack([x1 - x0, np.full(len(spans), frame.height)]),
+            labels=[f"bridge {bid}" for bid, _, _ in spans], colors=BRIDGE_COLOUR, radii=GRID_RADIUS,
+            show_labels=True, draw_order=-5.0))
 
     def log_tile_counts(self, route_id: str, tile_m: float, counts: np.ndarray) -> None:
-        """Log passes per tile of ``tile_m`` (m) as a bar chart against tile-centre chainage (m).
+        """Log passes per tile of ``tile_m`` (m) as a bar chart against chainage (m), a bar across each tile.
 
         The whole array is one row (a BarChart tensor) at the current pass: a ``tile`` timeline
         would hide the other panels whenever it is the selected one.
@@ -363,8 +499,8 @@ class View:
             raise ValueError("log_tile_counts: counts must be 1-D and tile_m positive")
         if counts.size and counts.min() < 0:
             raise ValueError("log_tile_counts: counts must be non-negative")
-        centres = (np.arange(counts.size) + 0.5) * float(tile_m)
-        chart = rr.BarChart(counts.astype(np.int64), abscissa=centres,
+        lefts = (np.arange(counts.size) + 0.05) * float(tile_m)  # Rerun draws a bar from its abscissa
+        chart = rr.BarChart(counts.astype(np.int64), abscissa=lefts,
                             widths=np.full(counts.size, 0.9 * float(tile_m), dtype=np.float32), color=TILE_COLOUR)
         with self._lock:
             if self._closed:
@@ -372,51 +508,83 @@ class View:
             self._stamp()
             self._rec.log(f"{profile_path(route_id)}/passes_per_tile", chart)
 
-    def log_roughness(self, route_id: str, length_m: float, start_m: np.ndarray, iri: np.ndarray) -> None:
-        """Log IRI (m/km) per ``length_m`` segment (10 or 100 m) as bars along the route."""
+    def log_roughness(self, route_id: str, length_m: float, start_m: np.ndarray, iri: np.ndarray,
+                      end_m: np.ndarray | None = None) -> None:
+        """Log IRI (m/km) per ``length_m`` segment (10 or 100 m) as bars along the route, coloured by
+        condition class (`IRI_CLASSES`): one bar chart entity per class, ``iri_<L>m/<class>``, each
+        zero outside its class so that the bars of one segment never stack. ``end_m`` (default
+        ``start_m + length_m``) bounds each bar; NaN IRI (not enough profile) is no bar."""
         start = np.asarray(start_m, dtype=float)
         iri = np.asarray(iri, dtype=float)
-        if start.shape != iri.shape or start.ndim != 1:
-            raise ValueError("log_roughness: start_m and iri must be 1-D of one length")
-        chart = rr.BarChart(np.nan_to_num(iri), abscissa=start + 0.5 * length_m,
-                            widths=np.full(start.size, 0.9 * length_m, dtype=np.float32), color=IRI_COLOUR)
+        end = start + float(length_m) if end_m is None else np.asarray(end_m, dtype=float)
+        if start.shape != iri.shape or start.ndim != 1 or end.shape != start.shape:
+            raise ValueError("log_roughness: start_m, end_m and iri must be 1-D of one length")
+        # Rerun draws a bar from its abscissa to abscissa + width: a gap of 5 % each side.
+        lefts, widths = start + 0.05 * (end - start), (0.9 * (end - start)).astype(np.float32)
+        route_m = self._routes.get(route_id)
+        ends = [] if route_m is None else [0.0, float(route_m)]
+        # Zero-height bars at the route's ends: the chart's x range is the route.
+        lefts = np.concatenate([lefts, ends])
+        widths = np.concatenate([widths, np.full(len(ends), 1e-3, dtype=np.float32)])
+        root = f"{profile_path(route_id)}/iri_{int(round(length_m))}m"
+        charts = {}
+        for name, lo, hi, colour in IRI_CLASSES:
+            mine = np.isfinite(iri) & (iri >= lo) & (iri < hi)
+            values = np.concatenate([np.where(mine, iri, 0.0), np.zeros(len(ends))])
+            charts[name] = rr.BarChart(values, abscissa=lefts, widths=widths, color=colour)
         with self._lock:
             if self._closed:
                 return
             self._stamp()
-            self._rec.log(f"{profile_path(route_id)}/iri_{int(round(length_m))}m", chart)
+            for name, chart in charts.items():
+                self._rec.log(f"{root}/{name}", chart)
 
     def log_calibration(self, rows: Sequence[Mapping[str, Any]]) -> None:
-        """Log every vehicle's calibrated quantities with 95 % intervals at the current pass.
+        """Log one calibration round: every vehicle's calibrated quantities with 95 % intervals.
 
-        ``rows`` as in ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95. One entity per
-        quantity, three series (mean, lo95, hi95) per vehicle.
+        ``rows`` as in ``vehicles.parquet``: vehicle_id, param, mean, lo95, hi95. Per quantity a
+        chart of each vehicle's value (line) and interval (thin lines) against the round number,
+        every round so far: rounds run when the bus is quiet, often many at one pass count, so
+        the ``pass`` timeline could not show them converge. A quantity seen for the first time
+        joins the blueprint.
         """
         by_param: dict[str, list[Mapping[str, Any]]] = {}
         for r in rows:
             by_param.setdefault(str(r["param"]), []).append(r)
+        if not by_param:
+            return
         with self._lock:
             if self._closed:
                 return
+            new = tuple(p for p in by_param if p not in self._calibration_params)
+            if new:
+                self._calibration_params += new
+                self._rec.send_blueprint(self._blueprint())
+            self._calibration_rounds += 1
+            k = self._calibration_rounds
+            self._stamp()
             for param, rs in by_param.items():
-                rs = sorted(rs, key=lambda r: str(r["vehicle_id"]))
-                path = calibration_path(param)
-                ids = tuple(str(r["vehicle_id"]) for r in rs)
+                history = self._calibration_history.setdefault(param, {})
+                for r in rs:
+                    history.setdefault(str(r["vehicle_id"]), []).append(
+                        (k, float(r["mean"]), float(r["lo95"]), float(r["hi95"])))
+                self._log_calibration_chart(param, history, k)
 
-                def style(ids=ids):
-                    names, colours, widths = [], [], []
-                    for k, vid in enumerate(ids):
-                        hue = _element_colour(k, len(ids))
-                        for label, w in (("", 1.5), (" lo95", 0.5), (" hi95", 0.5)):
-                            names.append(f"{vid}{label}")
-                            colours.append(hue)
-                            widths.append(w)
-                    return rr.SeriesLines(names=names, colors=colours, widths=widths)
-
-                self._style_once(path, ids, style)
-                self._stamp()
-                values = np.array([[float(r["mean"]), float(r["lo95"]), float(r["hi95"])] for r in rs]).ravel()
-                self._rec.log(path, rr.Scalars(values))
+    def _log_calibration_chart(self, param: str, history: Mapping[str, list], rounds: int) -> None:
+        ids = sorted(history)
+        arr = {vid: np.asarray(history[vid], dtype=float) for vid in ids}
+        frame = Frame.fit((1.0, float(max(rounds, 2))), _finite_range(*[a[:, 2:] for a in arr.values()]), *CAL_BOX,
+                          x_ticks=6)
+        root = calibration_path(param)
+        colours = [_element_colour(i, len(ids)) for i in range(len(ids))]
+        unit = CALIBRATION_UNITS.get(param)
+        self._log_axes(root, frame, f"{param} ({unit})" if unit else param)
+        means = [frame.points(arr[v][:, 0], arr[v][:, 1]) for v in ids]
+        bands = [frame.points(arr[v][:, 0], arr[v][:, c]) for c in (2, 3) for v in ids]
+        self._rec.log(f"{root}/band", rr.LineStrips2D(bands, radii=GRID_RADIUS,
+                                                      colors=[(*c, 110) for c in colours] * 2))
+        self._rec.log(f"{root}/mean", rr.LineStrips2D(means, radii=BAND_RADIUS, colors=colours,
+                                                      labels=ids if len(ids) <= 8 else None))
 
     # -- fleet and aggregator --------------------------------------------------------------------------
     def log_vehicle_status(self, status: Mapping[str, Mapping[str, Any]]) -> None:
@@ -481,73 +649,106 @@ class View:
 
     # -- bridges ---------------------------------------------------------------------------------------
     def log_bridge_stiffness(self, bridge_id: str, element_x_m: np.ndarray, ratio_mean: np.ndarray,
-                             lo: np.ndarray, hi: np.ndarray) -> None:
-        """Log each element's stiffness ratio (EI / design EI) with its 95 % band at the current pass.
+                             lo: np.ndarray, hi: np.ndarray, element_bounds_m: np.ndarray | None = None,
+                             alarm_loss: float | None = None) -> None:
+        """Log each element's stiffness ratio (EI / design EI) with its 95 % interval along the span
+        at the current pass: a bar across the element at the mean, a whisker at its centre
+        ``element_x_m`` (m from the first support), the design ratio 1 and, given ``alarm_loss``,
+        the ratio ``1 − alarm_loss`` below which an element counts as damaged.
 
-        One entity ``bridge/<id>/stiffness`` with three series per element (mean, lo95, hi95),
-        named by the element's centre ``element_x_m`` (m from the first support).
+        ``element_bounds_m`` (n, 2) are the elements' ends; by default they meet halfway between
+        the centres.
         """
         arrays = [np.asarray(a, dtype=float) for a in (element_x_m, ratio_mean, lo, hi)]
-        x = arrays[0]
-        if x.ndim != 1 or any(a.shape != x.shape for a in arrays):
+        x, mean, lo, hi = arrays
+        if x.ndim != 1 or any(a.shape != x.shape for a in arrays) or x.size == 0:
             raise ValueError("log_bridge_stiffness: element_x_m, ratio_mean, lo and hi must be 1-D of one length")
-        values = np.column_stack(arrays[1:]).ravel()  # mean, lo, hi of element 0, then element 1, ...
-        path = f"{bridge_path(bridge_id)}/stiffness"
-
-        def style():
-            names, colours, widths = [], [], []
-            for k, xk in enumerate(x):
-                hue = _element_colour(k, x.size)
-                for label, w in (("", 2.0), (" lo95", 0.75), (" hi95", 0.75)):
-                    names.append(f"x={xk:.1f} m{label}")
-                    colours.append(hue)
-                    widths.append(w)
-            return rr.SeriesLines(names=names, colors=colours, widths=widths)
-
+        if element_bounds_m is None:
+            half = 0.5 * (x[1] - x[0]) if x.size > 1 else 0.5, 0.5 * (x[-1] - x[-2]) if x.size > 1 else 0.5
+            edges = np.concatenate([[x[0] - half[0]], 0.5 * (x[1:] + x[:-1]), [x[-1] + half[1]]])
+            bounds = np.column_stack([edges[:-1], edges[1:]])
+        else:
+            bounds = np.asarray(element_bounds_m, dtype=float)
+            if bounds.shape != (x.size, 2):
+                raise ValueError("log_bridge_stiffness: element_bounds_m must be (n, 2)")
+        refs = [1.0] + ([1.0 - float(alarm_loss)] if alarm_loss is not None else [])
+        frame = Frame.fit((float(bounds.min()), float(bounds.max())), _finite_range(lo, hi, np.array(refs)),
+                          *SPAN_BOX, y_pad=0.08)
+        w = 0.25 * (bounds[:, 1] - bounds[:, 0])  # whisker caps: half the element's width
+        bars = [frame.points(b, [m, m]) for b, m in zip(bounds, mean) if np.isfinite(m)]
+        whiskers = []
+        for xc, a, b, c in zip(x, lo, hi, w):
+            if np.isfinite(a) and np.isfinite(b):
+                whiskers += [frame.points([xc, xc], [a, b]), frame.points([xc - c, xc + c], [a, a]),
+                             frame.points([xc - c, xc + c], [b, b])]
+        span_x = [frame.x_lo, frame.x_hi]
+        root = f"{bridge_path(bridge_id)}/span"
         with self._lock:
             if self._closed:
                 return
-            self._style_once(path, tuple(np.round(x, 6)), style)
             self._stamp()
-            self._rec.log(path, rr.Scalars(values))
+            self._log_axes(root, frame, "EI / design EI")
+            self._rec.log(f"{root}/design", rr.LineStrips2D([frame.points(span_x, [1.0, 1.0])], radii=BAND_RADIUS,
+                                                            colors=DESIGN_COLOUR))
+            if alarm_loss is not None:
+                self._rec.log(f"{root}/threshold", rr.LineStrips2D(
+                    [frame.points(span_x, [refs[1], refs[1]])], radii=BAND_RADIUS, colors=THRESHOLD_COLOUR))
+            self._rec.log(f"{root}/whiskers", rr.LineStrips2D(whiskers, radii=BAND_RADIUS, colors=BAND_COLOUR))
+            self._rec.log(f"{root}/mean", rr.LineStrips2D(bars, radii=rr.Radius.ui_points(2.5), colors=MEAN_COLOUR))
 
     def log_bridge_mril(self, bridge_id: str, x_m: np.ndarray, J_m_per_n: np.ndarray,
                         baseline_J_m_per_n: np.ndarray | None = None) -> None:
         """Log the fleet's MR-IL (deflection per unit load, m/N, on ``x_m`` from the first support)
-        and, when given, the baseline it is compared with; drawn in mm/MN, deflection downwards."""
+        and, when given, the baseline it is compared with: a chart in mm/MN along the span."""
         x = np.asarray(x_m, dtype=float)
-        curves = {"current": (J_m_per_n, MRIL_COLOUR, MEAN_RADIUS), "baseline": (baseline_J_m_per_n, BASELINE_COLOUR,
-                                                                               BAND_RADIUS)}
-        strips = {}
-        for name, (J, colour, radius) in curves.items():
+        curves = {"current": (J_m_per_n, MRIL_COLOUR, MEAN_RADIUS),
+                  "baseline": (baseline_J_m_per_n, BASELINE_COLOUR, BAND_RADIUS)}
+        mm = {}
+        for name, (J, _, _) in curves.items():
             if J is None:
                 continue
             J = np.asarray(J, dtype=float)
             if J.shape != x.shape or x.ndim != 1:
                 raise ValueError("log_bridge_mril: x_m and the MR-ILs must be 1-D of one length")
-            # Up on the screen is up: deflection (J > 0, downwards) is stored as SCREEN_Y · (−J) = +J.
-            strips[name] = rr.LineStrips2D(finite_runs(x, -SCREEN_Y * J * MRIL_MM_PER_MN), radii=radius,
-                                           colors=colour)
+            mm[name] = J * MRIL_MM_PER_MN
+        if not x.size:
+            return
+        frame = Frame.fit((float(np.nanmin(x)), float(np.nanmax(x))), _finite_range(np.zeros(1), *mm.values()),
+                          *MRIL_BOX)
         root = bridge_path(bridge_id)
         with self._lock:
             if self._closed:
                 return
             self._stamp()
-            for name, strip in strips.items():
-                self._rec.log(f"{root}/mril/{name}", strip)
+            self._log_axes(f"{root}/mril", frame, "deflection per load (mm/MN)")
+            for name, J in mm.items():
+                _, colour, radius = curves[name]
+                strips = [frame.points(s[:, 0], s[:, 1]) for s in finite_runs(x, J)]
+                self._rec.log(f"{root}/mril/{name}", rr.LineStrips2D(strips, radii=radius, colors=colour,
+                                                                     labels=[name] * len(strips)))
 
-    def log_bridge_indicators(self, bridge_id: str, d1_pct: float, d2_pct: float, damage_probability: float) -> None:
-        """Log D1 and D2 (% stiffness loss against the baseline, eq. 3.24) and the probability that
-        some element lost more than the alarm fraction (as %) at the current pass. NaN: not known yet."""
-        path = f"{bridge_path(bridge_id)}/indicators"
-        values = np.array([d1_pct, d2_pct, 100.0 * damage_probability], dtype=float)
+    def log_bridge_indicators(self, bridge_id: str, d1_pct: float, d2_pct: float, damage_probability: float,
+                              alarm: bool | None = None, alarm_probability: float | None = None) -> None:
+        """Log at the current pass D1 and D2 (% stiffness loss against the baseline, eq. 3.24) to
+        ``indicators``, and to ``damage`` the probability that some element lost more than the
+        alarm fraction, the probability above which the alarm is raised and the alarm itself
+        (100: raised, 0: not), all in %. NaN or None: not known."""
+        nan = float("nan")
+        damage = np.array([100.0 * damage_probability,
+                           nan if alarm_probability is None else 100.0 * alarm_probability,
+                           nan if alarm is None else 100.0 * bool(alarm)], dtype=float)
+        root = bridge_path(bridge_id)
         with self._lock:
             if self._closed:
                 return
-            self._style_once(path, "indicators", lambda: rr.SeriesLines(
-                names=[n for n, _ in INDICATOR_SERIES], colors=[c for _, c in INDICATOR_SERIES], widths=[2.0] * 3))
+            self._style_once(f"{root}/indicators", "indicators", lambda: rr.SeriesLines(
+                names=[n for n, _ in INDICATOR_SERIES], colors=[c for _, c in INDICATOR_SERIES], widths=[2.0] * 2))
+            self._style_once(f"{root}/damage", "damage", lambda: rr.SeriesLines(
+                names=[n for n, _, _ in DAMAGE_SERIES], colors=[c for _, c, _ in DAMAGE_SERIES],
+                widths=[w for _, _, w in DAMAGE_SERIES]))
             self._stamp()
-            self._rec.log(path, rr.Scalars(values))
+            self._rec.log(f"{root}/indicators", rr.Scalars(np.array([d1_pct, d2_pct], dtype=float)))
+            self._rec.log(f"{root}/damage", rr.Scalars(damage))
 
     def log_bridge_summary(self, bridge_id: str, markdown: str) -> None:
         """Log the bridge's current assessment as a markdown document."""
@@ -558,15 +759,21 @@ class View:
             self._stamp()
             self._rec.log(f"{bridge_path(bridge_id)}/summary", doc)
 
-    def log_bridge_estimate(self, estimate: Any, baseline: Any = None) -> None:
-        """Log one bridge estimate (a `cloud.bridge.estimator.BridgeEstimate`, duck-typed): element
-        stiffness with 95 % bands, the MR-IL (and ``baseline``, an MR-IL on the same grid), D1/D2 and
-        P(damage), and the hypotheses' summary."""
+    def log_bridge_estimate(self, estimate: Any, baseline: Any = None, hypotheses: Any = None) -> None:
+        """Log one bridge estimate (a `cloud.bridge.estimator.BridgeEstimate`, duck-typed): stiffness
+        along the span with 95 % intervals, the MR-IL (and ``baseline``, an MR-IL on the same grid),
+        D1/D2, P(damage) and the alarm, and the assessment. ``hypotheses`` (a
+        `cloud.bridge.hypotheses.HypothesisSettings`: ``alarm_loss``, ``alarm_probability``) draws
+        the alarm's thresholds. The bridge's first estimate also goes to its decision log, so the
+        log says what is being decided before any alarm is raised."""
         bid = _bridge_id(estimate.bridge)
         post = estimate.posterior
         bounds = np.asarray(post.element_bounds, dtype=float)
         d = float(post.ei_design)
-        self.log_bridge_stiffness(bid, bounds.mean(axis=1), post.stiffness_ratio, post.ei_lo95 / d, post.ei_hi95 / d)
+        alarm_loss = getattr(hypotheses, "alarm_loss", None)
+        alarm_p = getattr(hypotheses, "alarm_probability", None)
+        self.log_bridge_stiffness(bid, bounds.mean(axis=1), post.stiffness_ratio, post.ei_lo95 / d, post.ei_hi95 / d,
+                                  element_bounds_m=bounds, alarm_loss=alarm_loss)
         m = estimate.mril
         base = None
         if baseline is not None and np.shape(baseline.J) == np.shape(m.J):
@@ -575,8 +782,21 @@ class View:
         ind, a = estimate.indicators, estimate.assessment
         nan = float("nan")
         self.log_bridge_indicators(bid, nan if ind is None else ind.D1_pct, nan if ind is None else ind.D2_pct,
-                                   nan if a is None else a.loss_probability)
+                                   nan if a is None else a.loss_probability,
+                                   alarm=None if a is None else bool(a.alarm), alarm_probability=alarm_p)
         self.log_bridge_summary(bid, bridge_summary_markdown(estimate))
+        with self._lock:
+            first = bid not in self._first_estimate_logged
+            self._first_estimate_logged.add(bid)
+        if first:
+            if a is None:
+                text = (f"{estimate.n_passes} passes: first estimate; damage hypotheses off (rough deck): "
+                        "no alarm decided")
+            else:
+                rule = "" if alarm_p is None else f", alarm above {alarm_p:g}"
+                text = (f"{estimate.n_passes} passes: first estimate, {'ALARM' if a.alarm else 'no alarm'} "
+                        f"(P(damage) {a.loss_probability:.2f}{rule})")
+            self.log_alarm(bid, text, "ERROR" if a is not None and a.alarm else "INFO")
 
     def log_alarm(self, bridge_id: str, message: str, severity: str = "WARN") -> None:
         """Log an alarm for a bridge; ``severity`` is a text-log level (INFO, WARN, ERROR, CRITICAL...)."""
@@ -601,14 +821,14 @@ class View:
             if self._closed:
                 return
             if layout != self._rail_layout and (layout[0] or layout[1]):
-                self._rec.send_blueprint(blueprint(*self._layout, *layout))
                 self._rail_layout = layout
+                self._rec.send_blueprint(self._blueprint())
             self._stamp()
             for vid, route, runs in rows.runs:
                 self._log_runs(vid, route, runs, rows.run_names)
             for b in rows.bridges:
                 self.log_bridge_mril(b.bridge_id, b.x_m, b.J, b.reference_J)
-                self.log_bridge_indicators(b.bridge_id, b.d1_pct, b.d2_pct, float(b.damaged))
+                self.log_bridge_indicators(b.bridge_id, b.d1_pct, b.d2_pct, float(b.damaged), alarm=bool(b.damaged))
             for t in rows.track:
                 self._log_track_quality(t)
 
@@ -633,17 +853,28 @@ class View:
                           rr.LineStrips2D([np.array([[i, a], [i, b]]) for i, a, b in zip(idx, lo, hi)]))
 
     def _log_track_quality(self, t: Any) -> None:
-        """A rail route's D1 level (mm, up) against chainage, its sd per 200 m as steps, the
-        isolated-defect alert limits and a table per 200 m (``sd``/``isolated`` alerts)."""
-        x, d1 = np.asarray(t.chainage_m, float), np.asarray(t.d1_m, float)
+        """A rail route's D1 level (mm) against chainage with the isolated-defect alert limits, its
+        sd per 200 m as bars (within / above the sd alert limit) and a table per 200 m."""
+        x, d1 = np.asarray(t.chainage_m, float), 1e3 * np.asarray(t.d1_m, float)
         root = f"{rail_path(t.route_id)}/track_quality"
-        self._rec.log(f"{root}/d1", rr.LineStrips2D(finite_runs(x, SCREEN_Y * 1e3 * d1)))
-        steps = [np.array([[s.start_m, SCREEN_Y * s.sd_d1_mm], [s.end_m, SCREEN_Y * s.sd_d1_mm]])
-                 for s in t.segments if np.isfinite(s.sd_d1_mm)]
-        self._rec.log(f"{root}/sd_per_200m", rr.LineStrips2D(steps))
+        lim = float(t.alert_isolated_mm)
+        frame = Frame.fit((float(np.nanmin(x)), float(np.nanmax(x))), _finite_range(d1, np.array([-lim, lim])),
+                          *TRACK_BOX)
+        self._log_axes(root, frame, "D1 level (mm)")
+        self._rec.log(f"{root}/d1", rr.LineStrips2D([frame.points(s[:, 0], s[:, 1]) for s in finite_runs(x, d1)],
+                                                    radii=MEAN_RADIUS, colors=MEAN_COLOUR))
+        ends = [frame.x_lo, frame.x_hi]
         self._rec.log(f"{root}/alert_limits", rr.LineStrips2D(
-            [np.array([[0.0, SCREEN_Y * lim], [x[-1], SCREEN_Y * lim]]) for lim in
-             (t.alert_isolated_mm, -t.alert_isolated_mm)]))
+            [frame.points(ends, [v, v]) for v in (lim, -lim)], radii=BAND_RADIUS, colors=THRESHOLD_COLOUR,
+            labels=[f"alert ±{lim:g} mm", ""], show_labels=True))
+        segs = [s for s in t.segments if np.isfinite(s.sd_d1_mm)]
+        lefts = np.array([s.start_m + 0.05 * (s.end_m - s.start_m) for s in segs], dtype=float)
+        widths = np.array([0.9 * (s.end_m - s.start_m) for s in segs], dtype=np.float32)
+        sd = np.array([s.sd_d1_mm for s in segs], dtype=float)
+        above = sd > t.alert_sd_mm
+        for name, mask, colour in (("within", ~above, IRI_CLASSES[0][3]), ("above_alert", above, IRI_CLASSES[2][3])):
+            self._rec.log(f"{root}/sd_200m/{name}", rr.BarChart(np.where(mask, sd, 0.0), abscissa=lefts,
+                                                                widths=widths, color=colour))
         lines = [f"### {t.route_id}: EN 13848 D1 (3–25 m)", "",
                  "| start m | end m | sd mm | max abs mm | alert |", "|---|---|---|---|---|"]
         for s in t.segments:
@@ -690,7 +921,7 @@ class View:
 
 
 def bridge_summary_markdown(estimate: Any) -> str:
-    """A short markdown account of a bridge estimate: passes, global stiffness, the hypotheses."""
+    """A short markdown account of a bridge estimate: passes, global stiffness, the decision, the hypotheses."""
     post, a, ind = estimate.posterior, estimate.assessment, estimate.indicators
     ratio = np.asarray(post.stiffness_ratio, dtype=float)
     lines = [f"**{_bridge_id(estimate.bridge)}** after {estimate.n_passes} passes", "",
@@ -699,17 +930,24 @@ def bridge_summary_markdown(estimate: Any) -> str:
     if ind is not None:
         lines.append(f"* D1 {ind.D1_pct:.1f} %, D2 {ind.D2_pct:.1f} %")
     if a is None:
-        lines.append("* damage hypotheses: off for this bridge's settings")
+        lines.append("* damage hypotheses: off for this bridge (rough deck): no alarm is decided")
     else:
         state = "**ALARM**" if a.alarm else "no alarm"
-        lines += [f"* {state}: P(element loss > threshold) = {a.loss_probability:.3f}; most probable: {a.best}", "",
-                  "| hypothesis | probability |", "|---|---:|"]
-        lines += [f"| {k} | {v:.3f} |" for k, v in a.probabilities.items()]
+        lines += [f"* {state}: P(element loss > threshold) = {a.loss_probability:.3f}",
+                  "* hypotheses: " + ", ".join(f"{k} {v:.2f}" for k, v in a.probabilities.items())
+                  + f" (most probable: {a.best})"]
     return "\n".join(lines)
 
 
+def _finite_range(*arrays: np.ndarray) -> tuple[float, float]:
+    """(min, max) over the finite values of ``arrays``; (−1, 1) if there are none."""
+    vals = np.concatenate([np.ravel(np.asarray(a, dtype=float)) for a in arrays]) if arrays else np.zeros(0)
+    vals = vals[np.isfinite(vals)]
+    return (float(vals.min()), float(vals.max())) if vals.size else (-1.0, 1.0)
+
+
 def _element_colour(k: int, n: int) -> tuple[int, int, int]:
-    """Blue (first support) to orange (second) along the span."""
+    """Blue (first) to orange (last)."""
     t = k / max(n - 1, 1)
     return (int(60 + 195 * t), int(140 + 20 * t), int(255 - 195 * t))
 

@@ -110,12 +110,17 @@ def test_track_quality_in_export_and_rerun(batch):
     # Rerun: the D1 level against chainage, its sd per 200 m, the alert limits and a table.
     table = _rows(rrd, "/rail/L1/track_quality/table")
     assert table and f"| 0 | 100 | {sd:.3f} | {quality[0]['max_abs_d1_mm']:.3f} |" in str(table[-1])
-    steps = [r for r in _rows(rrd, "/rail/L1/track_quality/sd_per_200m")]
-    strip = np.asarray(steps[-1]["LineStrips2D:strips"][0])
-    assert strip[0, 0] == 0.0 and strip[0, 1] == pytest.approx(-sd)
+    # sd per 200 m as bars, split at the sd alert limit (one bar here: the route is 100 m)
+    bars = [_rows(rrd, f"/rail/L1/track_quality/sd_200m/{k}")[-1]["BarChart:values"][0]["buffer"]
+            for k in ("within", "above_alert")]
+    assert sorted(b[0] for b in bars) == pytest.approx([0.0, sd])
+    # the D1 chart in mm, read through its y tick labels (screen position → value)
+    ticks = _rows(rrd, "/rail/L1/track_quality/axes/y_ticks")[-1]
+    slope, icpt = np.polyfit([p[1] for p in ticks["Points2D:positions"]],
+                             [float(t) for t in ticks["Points2D:labels"]], 1)
     d1 = np.concatenate([np.asarray(s) for s in _rows(rrd, "/rail/L1/track_quality/d1")[-1]["LineStrips2D:strips"]])
     assert d1.shape[0] > 900 and np.all(np.isfinite(d1))
-    assert np.abs(d1[:, 1]).max() == pytest.approx(quality[0]["max_abs_d1_mm"], rel=1e-6)
+    assert np.abs(slope * d1[:, 1] + icpt).max() == pytest.approx(quality[0]["max_abs_d1_mm"], rel=1e-6)
     # The run estimates: one point per run for each property.
     mv = _rows(rrd, "/rail/car-0001/runs/mv")[-1]["Points2D:positions"]
     assert len(mv) == N_RUNS and all(25e3 < p[1] < 40e3 for p in mv)

@@ -15,8 +15,8 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from cloud.road.mean_profile import ProfileSnapshot  # noqa: E402
 from cloud.view import (  # noqa: E402
+    IRI_CLASSES,
     MAX_STRIP_POINTS,
-    SCREEN_Y,
     View,
     blueprint,
     decimate_profile,
@@ -24,6 +24,7 @@ from cloud.view import (  # noqa: E402
 )
 
 T0 = 1_700_000_000.0
+F32 = 1e-5  # Rerun stores 2D positions as float32: data read back through a chart agree to this share of its axis
 
 
 class FakeClock:
@@ -58,6 +59,21 @@ def temporal_rows(path: Path, entity: str) -> list[dict]:
     return sorted(rows, key=lambda r: r["pass"])
 
 
+def data_axes(path: Path, root: str, row: int = -1):
+    """Screen → data maps of a chart at its ``row``-th update, read from its labelled ticks alone:
+    a straight line through (screen position, label value) of the x ticks and of the y ticks."""
+    maps = []
+    for name, col in (("x_ticks", 0), ("y_ticks", 1)):
+        r = temporal_rows(path, f"{root}/axes/{name}")[row]
+        pos = np.asarray(r["Points2D:positions"], dtype=float)[:, col]
+        val = np.asarray([float(t) for t in r["Points2D:labels"]])
+        slope, icpt = np.polyfit(pos, val, 1)
+        # evenly placed (positions are stored as float32: a few parts in 10⁷ of the axis)
+        np.testing.assert_allclose(slope * pos + icpt, val, atol=F32 * (val.max() - val.min()))
+        maps.append(lambda s, a=slope, b=icpt: a * np.asarray(s, dtype=float) + b)
+    return maps
+
+
 def entities(path: Path) -> set[str]:
     return {c.entity_path for c in RrdReader(path).stream()}
 
@@ -84,15 +100,27 @@ def test_profile_updates_are_rows_on_the_pass_timeline(rrd):
     assert set(mean[0]) == {"pass", "wall_time", "LineStrips2D:strips", "LineStrips2D:radii", "LineStrips2D:colors"}
     band = temporal_rows(rrd, "/profile/R1/band")
     assert [r["pass"] for r in band] == list(range(1, n + 1))
-    # the last update holds the last snapshot: mean in mm, drawn up (SCREEN_Y), band on either side
+    # the last update holds the last snapshot: mean in mm against chainage in m, read through the
+    # chart's own tick labels; up on the screen (smaller y) is up on the road
+    fx, fy = data_axes(rrd, "/profile/R1")
     s = snapshot(offset_m=0.005)
     (strip,) = mean[-1]["LineStrips2D:strips"]
     pts = np.array(strip)
-    np.testing.assert_allclose(pts[:, 0], s.chainage_m, atol=1e-4)
-    np.testing.assert_allclose(pts[:, 1] * SCREEN_Y, s.elevation_m * 1e3, atol=1e-4)
+    np.testing.assert_allclose(fx(pts[:, 0]), s.chainage_m, atol=1e-4)
+    np.testing.assert_allclose(fy(pts[:, 1]), s.elevation_m * 1e3, atol=1e-4)
     lo, hi = (np.array(b) for b in band[-1]["LineStrips2D:strips"])
-    np.testing.assert_allclose(lo[:, 1] * SCREEN_Y, s.lo95_m * 1e3, atol=1e-4)
-    np.testing.assert_allclose(hi[:, 1] * SCREEN_Y, s.hi95_m * 1e3, atol=1e-4)
+    np.testing.assert_allclose(fy(lo[:, 1]), s.lo95_m * 1e3, atol=1e-4)
+    np.testing.assert_allclose(fy(hi[:, 1]), s.hi95_m * 1e3, atol=1e-4)
+    assert (hi[:, 1] < lo[:, 1]).all()
+    # the elevation axis holds the band: every point of it inside the chart's y ticks' range
+    ticks = [float(t) for t in temporal_rows(rrd, "/profile/R1/axes/y_ticks")[-1]["Points2D:labels"]]
+    assert min(ticks) <= 1e3 * s.lo95_m.min() and max(ticks) >= 1e3 * s.hi95_m.max()
+    # the band is shaded: one vertical stroke per binned point, from its lower to its upper bound
+    (fill,) = temporal_rows(rrd, "/profile/R1/band_fill")[-1:]
+    strokes = np.array(fill["LineStrips2D:strips"])
+    assert strokes.shape[1:] == (2, 2) and len(strokes) > 50
+    np.testing.assert_allclose(strokes[:, 0, 0], strokes[:, 1, 0])
+    assert (fy(strokes[:, 1, 1]) >= fy(strokes[:, 0, 1])).all()
 
 
 def test_nan_gaps_split_strips_without_nan_coordinates(rrd):
@@ -106,7 +134,8 @@ def test_nan_gaps_split_strips_without_nan_coordinates(rrd):
     strips = [np.array(s) for s in mean[0]["LineStrips2D:strips"]]
     assert len(strips) == 2
     assert all(np.isfinite(s).all() for s in strips)
-    assert strips[0][-1, 0] < 30.0 and strips[1][0, 0] >= 45.0
+    fx, _ = data_axes(rrd, "/profile/R1", 0)
+    assert fx(strips[0][-1, 0]) < 30.0 and fx(strips[1][0, 0]) >= 45.0
     assert len(band[0]["LineStrips2D:strips"]) == 4
     assert all(np.isfinite(np.array(s)).all() for s in band[0]["LineStrips2D:strips"])
     assert mean[1]["LineStrips2D:strips"] == [] and band[1]["LineStrips2D:strips"] == []
@@ -121,7 +150,8 @@ def test_long_profiles_are_binned_for_the_viewer(rrd):
     assert len(strips) == 2
     assert sum(len(p) for p in strips) <= MAX_STRIP_POINTS
     assert all(np.isfinite(p).all() for p in strips)
-    assert strips[0][0, 0] < 1.0 and strips[-1][-1, 0] > 999.0
+    fx, _ = data_axes(rrd, "/profile/R1")
+    assert fx(strips[0][0, 0]) < 1.0 and fx(strips[-1][-1, 0]) > 999.0
 
 
 def test_decimate_profile_against_a_loop():
@@ -166,7 +196,9 @@ def test_tile_counts_are_a_bar_chart_per_pass(rrd):
     assert [r["pass"] for r in rows] == [1, 2]
     (values,), (abscissa,) = rows[1]["BarChart:values"], rows[1]["BarChart:abscissa"]
     assert values["shape"] == [4] and values["buffer"] == [2, 1, 1, 0]
-    assert abscissa["buffer"] == [25.0, 75.0, 125.0, 175.0]
+    # Rerun draws a bar from its abscissa over its width: each bar across 90 % of its tile
+    assert abscissa["buffer"] == pytest.approx([2.5, 52.5, 102.5, 152.5])
+    assert rows[1]["BarChart:widths"] == pytest.approx([45.0] * 4)
     with pytest.raises(ValueError):
         View(rrd.with_name("x.rrd")).log_tile_counts("R1", 50.0, np.array([-1]))
 
@@ -216,24 +248,73 @@ def test_vehicle_status_is_a_markdown_table(rrd):
     assert "2 vehicles" in lines[0]
 
 
-def test_bridge_stiffness_and_alarms(rrd):
+def test_bridge_stiffness_along_the_span_and_alarms(rrd):
     x = np.array([1.0, 3.0, 5.0])
     with View(rrd, routes={"R1": 100.0}, bridges=["B1"], clock=FakeClock()) as view:
         view.set_pass(10)
-        view.log_bridge_stiffness("B1", x, [1.0, 0.8, 1.0], [0.9, 0.7, 0.9], [1.1, 0.9, 1.1])
+        view.log_bridge_stiffness("B1", x, [1.0, 0.8, 1.0], [0.9, 0.7, 0.9], [1.1, 0.9, 1.1], alarm_loss=0.05)
         view.log_alarm("B1", "element at 3.0 m below 85 % of design", severity="warning")
         with pytest.raises(ValueError):
             view.log_alarm("B1", "?", severity="loud")
         with pytest.raises(ValueError):
             view.log_bridge_stiffness("B1", x, [1.0], [1.0], [1.0])
-    (row,) = temporal_rows(rrd, "/bridge/B1/stiffness")
+    fx, fy = data_axes(rrd, "/bridge/B1/span")
+    (row,) = temporal_rows(rrd, "/bridge/B1/span/mean")
     assert row["pass"] == 10
-    np.testing.assert_allclose(row["Scalars:scalars"], [1.0, 0.9, 1.1, 0.8, 0.7, 0.9, 1.0, 0.9, 1.1])
+    bars = [np.array(b) for b in row["LineStrips2D:strips"]]  # one bar across each element at its mean
+    np.testing.assert_allclose([fx(b[:, 0]) for b in bars], [[0.0, 2.0], [2.0, 4.0], [4.0, 6.0]], atol=F32 * 6)
+    np.testing.assert_allclose([fy(b[:, 1]) for b in bars], [[1.0, 1.0], [0.8, 0.8], [1.0, 1.0]], atol=F32)
+    (wrow,) = temporal_rows(rrd, "/bridge/B1/span/whiskers")
+    whiskers = [np.array(w) for w in wrow["LineStrips2D:strips"]][::3]  # the vertical stroke of each (then caps)
+    np.testing.assert_allclose([fx(w[:, 0]) for w in whiskers], [[1.0, 1.0], [3.0, 3.0], [5.0, 5.0]], atol=F32 * 6)
+    np.testing.assert_allclose([fy(w[:, 1]) for w in whiskers], [[0.9, 1.1], [0.7, 0.9], [0.9, 1.1]], atol=F32)
+    (thr,) = temporal_rows(rrd, "/bridge/B1/span/threshold")
+    np.testing.assert_allclose(fy(np.array(thr["LineStrips2D:strips"][0])[:, 1]), [0.95, 0.95], atol=F32)
     (alarm,) = temporal_rows(rrd, "/bridge/B1/alarms")
     assert alarm["TextLog:level"] == ["WARN"] and alarm["TextLog:text"][0].startswith("element at 3.0 m")
-    static = {c.entity_path: c.to_record_batch() for c in RrdReader(rrd).stream() if c.is_static}
-    names = static["/bridge/B1/stiffness"].column("SeriesLines:names").to_pylist()[0]
-    assert names[:3] == ["x=1.0 m", "x=1.0 m lo95", "x=1.0 m hi95"] and len(names) == 9
+
+
+def test_calibration_converges_per_round_with_its_band(rrd):
+    rounds = [{"V1": (400.0, 300.0, 500.0), "V2": (420.0, 320.0, 520.0)},
+              {"V1": (410.0, 380.0, 440.0), "V2": (415.0, 390.0, 440.0)},
+              {"V1": (412.0, 405.0, 419.0), "V2": (414.0, 407.0, 421.0)}]
+    with View(rrd, routes={"R1": 100.0}, clock=FakeClock()) as view:
+        view.set_pass(5)  # every round at one pass count, as when rounds run once the bus is quiet
+        for r in rounds:
+            view.log_calibration([{"vehicle_id": v, "param": "K/M", "mean": m, "lo95": lo, "hi95": hi}
+                                  for v, (m, lo, hi) in r.items()])
+    root = "/fleet/calibration/K_over_M"
+    fx, fy = data_axes(rrd, root)
+    last = temporal_rows(rrd, f"{root}/mean")[-1]
+    assert last["pass"] == 5
+    for strip, vid in zip(last["LineStrips2D:strips"], ("V1", "V2")):
+        pts = np.array(strip)
+        np.testing.assert_allclose(fx(pts[:, 0]), [1, 2, 3], atol=F32 * 2)
+        np.testing.assert_allclose(fy(pts[:, 1]), [r[vid][0] for r in rounds], atol=F32 * 250)
+    bands = [np.array(b) for b in temporal_rows(rrd, f"{root}/band")[-1]["LineStrips2D:strips"]]
+    np.testing.assert_allclose(fy(bands[0][:, 1]), [r["V1"][1] for r in rounds], atol=F32 * 250)  # V1's lower bounds
+    np.testing.assert_allclose(fy(bands[3][:, 1]), [r["V2"][2] for r in rounds], atol=F32 * 250)  # V2's upper bounds
+
+
+def test_iri_bars_are_split_by_condition_class(rrd):
+    start = np.array([0.0, 100.0, 200.0, 300.0])
+    iri = np.array([1.2, 2.0, 3.5, np.nan])
+    with View(rrd, routes={"R1": 400.0}, clock=FakeClock()) as view:
+        view.set_pass(3)
+        view.log_roughness("R1", 100.0, start, iri)
+    got = {}
+    for name, lo, hi, _ in IRI_CLASSES:
+        (row,) = temporal_rows(rrd, f"/profile/R1/iri_100m/{name}")
+        ((values,), (abscissa,)) = row["BarChart:values"], row["BarChart:abscissa"]
+        got[name] = np.asarray(values["buffer"], dtype=float)[:4]
+        # the segments' centres, then a zero bar at each end of the route (the chart's x range)
+        np.testing.assert_allclose(abscissa["buffer"], [*(start + 5.0), 0.0, 400.0])
+        assert values["buffer"][4:] == [0.0, 0.0]
+    # each segment's bar in exactly its class; the NaN segment has no bar
+    np.testing.assert_allclose(got["good"], [1.2, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(got["acceptable"], [0.0, 2.0, 0.0, 0.0])
+    np.testing.assert_allclose(got["poor"], [0.0, 0.0, 3.5, 0.0])
+    assert [c[1] for c in IRI_CLASSES] == [0.0, 1.5, 2.7]  # FHWA's thresholds (m/km)
 
 
 def test_close_is_idempotent_and_later_calls_are_ignored(rrd):
@@ -272,6 +353,8 @@ def test_rrd_verify_accepts_the_file(rrd, tmp_path):
             view.log_stats({"accepted": k, "rejected": {"duplicate": 1}, "passes_complete": k})
             view.log_vehicle_status({"V1": {"passes": k}})
             view.log_bridge_stiffness("B1", [2.5, 7.5], [1.0, 1.0], [0.9, 0.9], [1.1, 1.1])
+            view.log_roughness("R1", 10.0, np.arange(0.0, 100.0, 10.0), np.linspace(0.5, 4.0, 10))
+            view.log_calibration([{"vehicle_id": "V1", "param": "K/M", "mean": 400.0, "lo95": 380.0, "hi95": 420.0}])
         view.log_alarm("B1", "test", "INFO")
     cli = Path(sys.executable).with_name("rerun")
     assert cli.exists(), "the rerun CLI ships with rerun-sdk and must be installed beside the interpreter"
@@ -291,20 +374,23 @@ def test_bridge_mril_indicators_and_summary(rrd):
     with View(rrd, bridges=["B1"], clock=FakeClock()) as view:
         view.set_pass(4)
         view.log_bridge_mril("B1", x, J, 0.9 * J)
-        view.log_bridge_indicators("B1", 10.0, 9.5, 0.97)
+        view.log_bridge_indicators("B1", 10.0, 9.5, 0.97, alarm=True, alarm_probability=0.95)
         view.log_bridge_summary("B1", "**B1** after 4 passes")
         with pytest.raises(ValueError):
             view.log_bridge_mril("B1", x, J[:3])
     (cur,) = temporal_rows(rrd, "/bridge/B1/mril/current")
     (base,) = temporal_rows(rrd, "/bridge/B1/mril/baseline")
     assert cur["pass"] == 4
+    fx, fy = data_axes(rrd, "/bridge/B1/mril")
     pts = np.asarray(cur["LineStrips2D:strips"][0])
-    np.testing.assert_allclose(pts[:, 0], x)
-    # Deflection is drawn downwards: stored y = SCREEN_Y · (−J) in mm/MN.
-    np.testing.assert_allclose(pts[:, 1], -SCREEN_Y * J * MRIL_MM_PER_MN, rtol=1e-6)
-    np.testing.assert_allclose(np.asarray(base["LineStrips2D:strips"][0])[:, 1], 0.9 * pts[:, 1], rtol=1e-6)
+    np.testing.assert_allclose(fx(pts[:, 0]), x, atol=F32 * 20)
+    np.testing.assert_allclose(fy(pts[:, 1]), J * MRIL_MM_PER_MN, atol=F32 * 4)
+    np.testing.assert_allclose(fy(np.asarray(base["LineStrips2D:strips"][0])[:, 1]), 0.9 * J * MRIL_MM_PER_MN,
+                               atol=F32 * 4)
     (ind,) = temporal_rows(rrd, "/bridge/B1/indicators")
-    np.testing.assert_allclose(ind["Scalars:scalars"], [10.0, 9.5, 97.0])
+    np.testing.assert_allclose(ind["Scalars:scalars"], [10.0, 9.5])
+    (dmg,) = temporal_rows(rrd, "/bridge/B1/damage")
+    np.testing.assert_allclose(dmg["Scalars:scalars"], [97.0, 95.0, 100.0])
     (doc,) = temporal_rows(rrd, "/bridge/B1/summary")
     assert doc["TextDocument:text"][0].startswith("**B1**")
 

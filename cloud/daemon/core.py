@@ -47,6 +47,7 @@ from cloud.road.long_wave import drift_of, with_long_wave_band
 from cloud.road.mean_profile import MeanProfile
 
 log = logging.getLogger("driveby.cloud")
+VIEW_IRI_DRAWS = 20  # profile draws behind the view's IRI bars at every pass (the export's take 100)
 
 
 
@@ -423,6 +424,10 @@ class Cloud:
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
             epochs.issued(cal.vehicle_id)
         if self.view is not None:
+            try:
+                self.view.log_calibration(self.vehicle_rows())  # this round's vehicles, with their intervals
+            except Exception:  # the view is a side subscriber: never let it take the daemon down
+                log.exception("rerun calibration view update failed")
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
@@ -616,10 +621,19 @@ class Cloud:
         try:
             self.view.set_pass(self.passes_complete)
             P = tile_points(self.profile.spacing_m)
-            for snap in self.snapshot().values():
+            snaps = self.snapshot()
+            segs = self.fused_segments() if snaps else []
+            for snap in snaps.values():
                 self.view.log_profile(snap)
                 counts = [int(snap.n_passes[i : i + P].max(initial=0)) for i in range(0, snap.n_passes.size, P)]
                 self.view.log_tile_counts(snap.route_id, TILE_M, np.asarray(counts))
+                if np.isfinite(snap.elevation_m).any():  # the export's IRI, from fewer draws
+                    draws = profile_draws(self.profile, snap.route_id, snap, segs, VIEW_IRI_DRAWS, 0)
+                    rough = roughness_table(snap.route_id, snap.chainage_m, draws, self.profile.spacing_m).to_pydict()
+                    for length in sorted(set(rough["length_m"])):
+                        rows = [i for i, v in enumerate(rough["length_m"]) if v == length]
+                        self.view.log_roughness(snap.route_id, length, np.take(rough["start_m"], rows),
+                                                np.take(rough["iri_m_per_km"], rows), np.take(rough["end_m"], rows))
             self.view.log_vehicle_status(dict(self.vehicles))
             self.view.log_stats(self.aggregator.stats())
         except Exception:  # the view is a side subscriber: never let it take the daemon down
@@ -631,7 +645,7 @@ class Cloud:
             for st in self.bridges.bridges.values():
                 if st.latest is not None:
                     baseline = getattr(getattr(st.estimator, "baseline", None), "mril", None)
-                    self.view.log_bridge_estimate(st.latest, baseline)
+                    self.view.log_bridge_estimate(st.latest, baseline, hypotheses=self.settings.bridge.hypotheses)
             for alarm in alarms:
                 self.view.log_alarm(alarm.bridge_id, alarm.message, "INFO" if alarm.kind == CLEARED else "ERROR")
         except Exception:  # the view is a side subscriber: never let it take the daemon down

@@ -1,0 +1,164 @@
+"""Every panel of the recording's blueprint has data at the end of a run (edge + cloud in process, real .rrd).
+
+The blueprint is read back from the recording itself (the last blueprint store, the one in effect
+at the end): every view reachable from the viewport, its origin and its content queries, resolved
+against the recording's entities as the viewer resolves them. A view none of whose entities has
+data, or an entity a view names explicitly without data, fails the test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import uuid
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rerun.chunk import RrdReader
+
+from cloud.view import View
+from shared.drivelog import list_drive_logs, read_drive_log
+from shared.registry import load_site
+from simfleet.harness import Harness
+from simfleet.scenarios import SCENARIOS
+from simfleet.sim import generate
+
+PASSES = 4  # the bridge estimates from its third pass (BridgeSettings.min_passes), calibration from the first round
+
+
+@dataclasses.dataclass
+class Blueprint:
+    views: dict[str, tuple[str, str, list[str]]]  # view id → (name, origin, queries)
+    timeline: str | None
+
+
+def read_blueprint(path: Path) -> Blueprint:
+    """The last blueprint store of ``path``: the views reachable from its viewport and its time panel."""
+    reader = RrdReader(path)
+    store = reader.blueprints()[-1]
+    latest: dict[tuple[str, str], object] = {}
+    for chunk in reader.stream(store=store):
+        rb = chunk.to_record_batch()
+        for name in rb.schema.names:
+            if ":" not in name or name.startswith("rerun.controls"):
+                continue
+            values = [v for v in rb.column(name).to_pylist() if v is not None]
+            if values:
+                latest[(chunk.entity_path.strip("/"), name)] = values[-1]
+    (root,) = latest[("viewport", "ViewportBlueprint:root_container")]  # a UUID as 16 bytes
+    root = uuid.UUID(bytes=bytes(root))
+    views, todo = {}, [f"container/{root}"]
+    while todo:
+        node = todo.pop()
+        if node.startswith("view/"):
+            vid = node
+            origin = latest[(vid, "ViewBlueprint:space_origin")][0]
+            name = latest.get((vid, "ViewBlueprint:display_name"), [vid])[0]
+            queries = latest.get((f"{vid}/ViewContents", "ViewContents:query"), ["$origin/**"])
+            views[vid] = (name, origin, list(queries))
+        else:
+            todo += [c.strip("/") for c in latest.get((node, "ContainerBlueprint:contents"), [])]
+    timeline = latest.get(("time_panel", "TimePanelBlueprint:timeline"))
+    return Blueprint(views, timeline[0] if isinstance(timeline, list) else timeline)
+
+
+def entities_with_data(path: Path) -> set[str]:
+    """Entities of the recording with at least one row of a logged component (static or temporal)."""
+    has = defaultdict(int)
+    for chunk in RrdReader(path).stream():
+        rb = chunk.to_record_batch()
+        if any(":" in n and not n.startswith("rerun.controls") for n in rb.schema.names):
+            has[chunk.entity_path.strip("/")] += chunk.num_rows
+    return {e for e, n in has.items() if n}
+
+
+def resolve(origin: str, queries: list[str], entities: set[str]) -> tuple[set[str], list[str]]:
+    """The entities a view shows (Rerun's query rules: ``$origin``, ``/**`` subtrees, ``- `` exclusions)
+    and the queries naming one entity exactly."""
+    def matches(expr: str, e: str) -> bool:
+        if expr.endswith("/**"):
+            base = expr[:-3]
+            return e == base or e.startswith(base + "/")
+        return e == expr
+
+    shown, exact = set(), []
+    rules = [(q[:2] != "- ", q[2:] if q[:2] in ("- ", "+ ") else q) for q in queries]
+    rules = [(inc, expr.replace("$origin", origin).strip("/")) for inc, expr in rules]
+    for inc, expr in rules:
+        if inc and not expr.endswith("/**"):
+            exact.append(expr)
+    for e in entities:
+        included = [inc for inc, expr in rules if matches(expr, e)]
+        if included and included[-1] and not any(not inc and matches(expr, e) for inc, expr in rules):
+            shown.add(e)
+    return shown, exact
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    """A bridge run (smooth deck: the damage hypotheses and the alarm decision are on) through the
+    harness with fleet calibration, the view logging to a real .rrd."""
+    tmp = tmp_path_factory.mktemp("panels")
+    sc = SCENARIOS["bridge-crack10-10m"]
+    generate(sc, tmp / "sim", seed=3, passes=PASSES, vehicles=PASSES, workers=1, progress=False)
+    site = load_site(tmp / "sim" / "site.toml")
+    h = Harness(site)
+    rrd = tmp / "run.rrd"
+    h.cloud.view = View(rrd, routes={r.id: r.length_m for r in site.routes}, bridges=list(site.bridges))
+    for path in list_drive_logs(tmp / "sim" / "logs"):
+        h.replay([read_drive_log(path)])
+    h.settle()
+    h.cloud.export(tmp / "export")  # every pass in the bridge's estimate, as at the end of a run
+    h.cloud.view.close()
+    return rrd
+
+
+def test_every_panel_has_data_at_the_end(recording):
+    bp = read_blueprint(recording)
+    entities = entities_with_data(recording)
+    assert bp.timeline == "pass"
+    assert len(bp.views) >= 12, f"expected the road, bridge and fleet panels, got {len(bp.views)} views"
+    empty = []
+    for name, origin, queries in bp.views.values():
+        shown, exact = resolve(origin, queries, entities)
+        missing = [e for e in exact if e not in entities]
+        if not shown or missing:
+            empty.append(f"{name!r} (origin {origin}, queries {queries}): missing {missing or 'everything'}")
+    assert not empty, "panels without data:\n" + "\n".join(empty)
+    # The panels the issue named as empty before are among those checked.
+    names = " ".join(n for n, _, _ in bp.views.values())
+    for panel in ("IRI per 100 m", "IRI per 10 m", "calibration round", "EI / design", "alarm", "spill"):
+        assert panel in names
+
+
+def test_resolve_follows_rerun_query_rules():
+    ents = {"stats/passes", "stats/accepted", "stats/rejected/total", "profile/R1/mean", "profile/R1/axes/grid"}
+    shown, exact = resolve("stats", ["stats/**", "- stats/passes"], ents)
+    assert shown == {"stats/accepted", "stats/rejected/total"} and exact == []
+    shown, exact = resolve("profile/R1", ["$origin/axes/**", "$origin/mean", "$origin/band"], ents)
+    assert shown == {"profile/R1/mean", "profile/R1/axes/grid"} and exact == ["profile/R1/mean", "profile/R1/band"]
+
+
+def test_an_unlogged_panel_is_caught(tmp_path):
+    """A view whose entities were never logged is reported: the check can fail."""
+    rrd = tmp_path / "partial.rrd"
+    with View(rrd, routes={"R1": 100.0}, bridges=["B1"]) as view:
+        view.set_pass(1)
+        x = np.arange(0.0, 100.0, 0.5)
+        view.log_profile(_Snap("R1", x, 0.001 * np.sin(x), 0.001 * np.sin(x) - 0.002, 0.001 * np.sin(x) + 0.002))
+    bp = read_blueprint(rrd)
+    entities = entities_with_data(rrd)
+    empty = {origin for _, origin, q in bp.views.values() if not resolve(origin, q, entities)[0]}
+    assert "profile/R1" not in empty
+    assert {"bridge/B1/span", "bridge/B1/damage", "profile/R1/iri_100m", "fleet/status"} <= empty
+
+
+@dataclasses.dataclass
+class _Snap:
+    route_id: str
+    chainage_m: np.ndarray
+    elevation_m: np.ndarray
+    lo95_m: np.ndarray
+    hi95_m: np.ndarray
