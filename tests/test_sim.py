@@ -25,7 +25,8 @@ BRIDGE_STATES = [
 ]
 EXPECTED = ["road-qc", "road-hc", "road-qc-gnss", "carpet", *BRIDGE_STATES,
             *(f"{b}-rough" for b in BRIDGE_STATES), "fleet-large",
-            "rail-track", *(f"rail-bridge-state{s}-profile{p}" for s in range(1, 8) for p in (1, 2)), "network", "network-clean"]
+            "rail-track", *(f"rail-bridge-state{s}-profile{p}" for s in range(1, 8) for p in (1, 2)), "demo-crack20-14m", "demo-healthy", "rail-track-prior", "rail-bridge-prior-loss0", "rail-bridge-prior-loss10",
+            "network", "network-clean"]
 GENERATED = ["road-qc", "road-hc", "carpet", "bridge-crack10-10m", "bearing-1e10"]
 PASSES = 3
 SEED = 11
