@@ -103,9 +103,9 @@ def test_run_exports_bridge_tables_and_recording_and_no_alarm_on_a_healthy_bridg
 
     chunks = list(RrdReader(str(rrd)).stream())
     seen = {c.entity_path for c in chunks}
-    for entity in ("stiffness", "mril/current", "mril/baseline", "indicators", "summary"):
+    for entity in ("span/mean", "span/whiskers", "mril/current", "mril/baseline", "indicators", "summary"):
         assert f"/bridge/B1/{entity}" in seen, (entity, sorted(seen))
-    stiffness_passes = [p for c in chunks if c.entity_path == "/bridge/B1/stiffness" and not c.is_static
+    stiffness_passes = [p for c in chunks if c.entity_path == "/bridge/B1/span/mean" and not c.is_static
                         for p in c.to_record_batch().column("pass").to_pylist()]
     assert stiffness_passes and max(stiffness_passes) == passes
     assert all(3 <= p <= passes for p in stiffness_passes)  # the estimator needs 3 passes
