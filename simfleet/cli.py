@@ -16,6 +16,7 @@ import argparse
 import importlib
 import json
 import logging
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -132,6 +133,9 @@ def _control_args(p: argparse.ArgumentParser, what: str) -> None:
         add_cloud_arguments(p)
     if what == "status":
         p.add_argument("--json", action="store_true", help="print the clouds' status as JSON (one object per line)")
+        p.add_argument("--wait", type=float, default=None, metavar="S",
+                       help="ask again until every cloud has settled (calibration and estimates caught up with "
+                            "the passes acknowledged); exit 1 if not within S seconds")
     if what == "export":
         p.add_argument("--out", required=True, help="directory to write the export's Parquet tables into")
 
@@ -149,6 +153,9 @@ def _cmd_status(args) -> int:
     from .control import ControlError, UsageError, format_status, status
 
     if _no_router(args, "status"):
+        return 2
+    if args.wait is not None and not (math.isfinite(args.wait) and args.wait > 0):
+        print(f"driveby status: --wait {args.wait:g}: must be a positive number of seconds", file=sys.stderr)
         return 2
     try:
         bodies = status(args)

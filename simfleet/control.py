@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import time
 from pathlib import Path
 
 import pyarrow as pa
@@ -27,6 +28,7 @@ from shared.transport import add_zenoh_arguments, config_from_args, zenoh_messag
 from .replay import ACK_IDLE_S, DAEMONS_WAIT_S, ReplayError, replay_to
 
 QUERY_TIMEOUT_S = 10.0  # a cloud that does not answer a status query within this long is not there
+SETTLE_POLL_S = 1.0  # between status queries while waiting for the clouds to settle
 EXPORT_TIMEOUT_S = 300.0  # an export computes every estimate first: minutes on a large network
 MANIFEST = "manifest.json"  # cloud.daemon.node.MANIFEST: the first reply of an export
 
@@ -117,11 +119,22 @@ def _ask(session: zenoh.Session, net: str, cloud: str, verb: str, timeout_s: flo
 
 
 def status(args: argparse.Namespace) -> list[dict]:
-    """Every asked cloud's status (``control/<id>/status``)."""
+    """Every asked cloud's status (``control/<id>/status``); with ``args.wait`` (seconds), asked again
+    until every cloud has settled (its calibration and estimates caught up with the passes it
+    acknowledged), a ``ControlError`` if they have not within that long."""
     timeout = args.timeout or QUERY_TIMEOUT_S
+    wait = getattr(args, "wait", None)
     with _session(args) as session:
-        return [json.loads(_ask(session, args.net, c, "status", timeout)[0].payload.to_bytes())
-                for c in _clouds(session, args, timeout)]
+        clouds = _clouds(session, args, timeout)
+        deadline = time.monotonic() + (wait or 0.0)
+        while True:
+            bodies = [json.loads(_ask(session, args.net, c, "status", timeout)[0].payload.to_bytes()) for c in clouds]
+            working = [b["id"] for b in bodies if not b["settled"]]
+            if not wait or not working:
+                return bodies
+            if time.monotonic() >= deadline:
+                raise ControlError(f"--wait {wait:g}: {', '.join(working)} still working after {wait:g} s")
+            time.sleep(SETTLE_POLL_S)
 
 
 def _num(v, fmt: str = ".3f") -> str:

@@ -102,6 +102,7 @@ CASES = [
     (["fleet", "--site", "x.toml", "--vehicles", "0"], 2, "--vehicles"),
     (["status", "--timeout", "soon"], 2, "--timeout"),
     (["status"], 2, "--connect"),
+    (["status", "--connect", "tcp/127.0.0.1:7447", "--wait", "-1"], 2, "--wait"),
     (["status", "--connect", "tcp/127.0.0.1:7447", "--cloud", "a/b"], 2, "--cloud"),
     (["export", "--connect", "tcp/127.0.0.1:7447", "--net", "a b", "--out", "x"], 2, "--net"),
     (["replay", "--connect", "localhost", "--logs", "x"], 2, "endpoint"),

@@ -132,6 +132,7 @@ def test_the_readme_deployment_recipe_runs_as_written(tmp_path):
 
         shown = _run(_argv(cmds["status"], port), work)
         assert "cloud cloud-1 (net city)" in shown.stdout and " 0 rejected" in shown.stdout, shown.stdout
+        assert ", settled;" in shown.stdout, shown.stdout  # --wait: the export below is the settled one
         body = json.loads(_run([*_argv(cmds["status"], port), "--json"], work).stdout)
         assert body["stats"]["passes_complete"] >= passes and body["stats"]["rejected"] == {}, body
         assert body["passes"] == passes and len(body["vehicles"]) == 4, body
