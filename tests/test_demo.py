@@ -71,7 +71,6 @@ def test_the_alarm_message_carries_the_loss_band_the_demo_reads():
     assert abs(float(m["lo"]) - 100 * a.severity_lo95) < 0.051 and abs(float(m["hi"]) - 100 * a.severity_hi95) < 0.051
 
 
-@pytest.mark.skipif(os.environ.get("DRIVEBY_SKIP_DEMO") == "1", reason="DRIVEBY_SKIP_DEMO=1")
 def test_the_demo_prints_the_crack_its_band_and_the_alarm(tmp_path):
     """The whole ``driveby demo`` (simulation, edge and cloud daemons over a local Zenoh router, the
     export, the recording read back): every line the issue asks for, each saying yes."""
