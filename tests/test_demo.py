@@ -19,7 +19,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from cloud.bridge.estimator import BridgeSettings
 from cloud.bridge.monitor import raised_alarm
