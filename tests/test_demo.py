@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from rerun.chunk import RrdReader
 
 from cloud.bridge.estimator import BridgeSettings
 from cloud.bridge.monitor import raised_alarm
@@ -83,3 +84,9 @@ def test_the_demo_prints_the_crack_its_band_and_the_alarm(tmp_path):
     assert "band covers the true" in out and out.split("band covers the true")[1].split("\n")[0].endswith("yes"), out
     assert "ALARM raised, in the recording: crack damage at element" in out, out
     assert f"driveby view {tmp_path / 'd' / 'demo.rrd'}" in out, out
+    # The demo calibrates once on its whole batch, so its bridge takes every pass at once: caught up in
+    # steps, the recording still shows P(damage) over passes, ending at the last pass.
+    damage_passes = sorted({p for c in RrdReader(str(tmp_path / "d" / "demo.rrd")).stream()
+                            if c.entity_path == "/bridge/B1/damage" and not c.is_static
+                            for p in c.to_record_batch().column("pass").to_pylist()})
+    assert len(damage_passes) >= 3 and damage_passes[-1] == PASSES, damage_passes

@@ -35,9 +35,15 @@ class Blueprint:
 
 
 def read_blueprint(path: Path) -> Blueprint:
-    """The last blueprint store of ``path``: the views reachable from its viewport and its time panel."""
+    """The blueprint ``path`` opens with: of its blueprint stores (the default one and one per
+    `send_blueprint`, each under a random id, so listed in no particular order), the one with the most
+    views — the view only ever adds panels as quantities appear."""
     reader = RrdReader(path)
-    store = reader.blueprints()[-1]
+    return max((_blueprint_of(reader, store) for store in reader.blueprints()), key=lambda bp: len(bp.views))
+
+
+def _blueprint_of(reader: RrdReader, store) -> Blueprint:
+    """One blueprint store: the views reachable from its viewport and its time panel."""
     latest: dict[tuple[str, str], object] = {}
     for chunk in reader.stream(store=store):
         rb = chunk.to_record_batch()

@@ -34,6 +34,18 @@ from cloud.bridge.estimator import BridgeEstimate, BridgeEstimator, BridgeSettin
 log = logging.getLogger(__name__)
 
 CLEARED = "cleared"  # Alarm.kind of the message that ends an alarm
+CATCH_UP_ESTIMATES = 6  # at most this many estimates when many passes arrive at once (one each step)
+CATCH_UP_LEAST = 5  # passes per step at least: a few passes at once are one estimate
+
+
+def catch_up_steps(pending: int) -> list[int | None]:
+    """The ``limit`` of each :meth:`BridgeMonitor.sync` that feeds ``pending`` passes arriving at
+    once (a calibration epoch ending, a restart) in steps, the last without a limit: estimated after
+    each step, the record shows P(damage) and the decision as the passes came in, not one point at
+    the end, for at most :data:`CATCH_UP_ESTIMATES` estimates (each costs less than the one before
+    it made cheaper: the fit starts from the last)."""
+    step = max(CATCH_UP_LEAST, -(-pending // CATCH_UP_ESTIMATES))
+    return [step] * ((pending - 1) // step) + [None]
 
 
 def _utc_now() -> str:
@@ -106,20 +118,10 @@ class BridgeMonitor:
         return any(st.dirty for st in self.bridges.values())
 
     # -- data ------------------------------------------------------------------------------
-    def sync(self, passes: Mapping, held: Mapping[tuple, ApSegment],
-             params_of: Callable[[str, str, int], dict | None],
-             uncertainty_of: Callable[[str, str, int], dict | None] | None = None) -> int:
-        """Bring every estimator up to date with the aggregator; returns the passes (re-)added.
-
-        ``passes``: ``Aggregator.passes`` ((vehicle, pass) → PassState); ``held``: the segments the
-        estimators hold per slot; ``params_of(vehicle, model, calib_version)``: the parameters the
-        edge used for that calibration version, or None if it is not the vehicle's current one;
-        ``uncertainty_of(vehicle, model, calib_version)``: the log-sd of those parameters' calibration
-        quantities (None: the estimator's default).
-        """
-        if not self.bridges:
-            return 0
-        changed = 0
+    def _changed(self, passes: Mapping, held: Mapping[tuple, ApSegment]):
+        """The (key, pass state, its held segments, bridge) pairs a sync would (re-)feed, in the
+        aggregator's order: acknowledged passes on a bridge's route that the bridge does not hold
+        as they are now."""
         for key, ps in passes.items():
             if not ps.acked or not ps.slots:
                 continue
@@ -132,29 +134,55 @@ class BridgeMonitor:
                 if fed is not None and fed.calib_version == ps.calib_version and len(fed.segments) == len(segs) \
                         and all(a is b for a, b in zip(fed.segments, segs)):
                     continue  # unchanged
-                if ps.model and ps.model != self.model:  # the estimator models single-contact vehicles
-                    self.skipped["unsupported_model"] += 1
-                    st.fed[key] = _Fed(ps.calib_version, segs)
-                    continue
-                # What the edge says it used (pass-done v1.2), else what the cloud knows it sent.
-                params = ps.params if ps.params is not None else \
-                    params_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
-                if params is None:
-                    continue  # a newer calibration is on its way: wait for the recomputed pass
-                sd = None if uncertainty_of is None else \
-                    uncertainty_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
-                try:
-                    crosses = st.estimator.add_segments(segs, ps.model or self.model, params, params_log_sd=sd,
-                                                        sample_interval_s=ps.sample_interval_s)
-                except (ValueError, KeyError, FloatingPointError, ArithmeticError) as e:
-                    log.warning("bridge %s: pass %s/%s not usable: %s", st.bridge.id, *key, e)
-                    self.skipped["unusable"] += 1
-                    crosses = False
-                if not crosses and fed is not None:
-                    st.estimator.remove(*key)
+                yield key, ps, segs, st
+
+    def unfed(self, passes: Mapping, held: Mapping[tuple, ApSegment]) -> int:
+        """How many passes a sync would (re-)feed now (a pass counted once per bridge it is on)."""
+        return sum(1 for _ in self._changed(passes, held)) if self.bridges else 0
+
+    def sync(self, passes: Mapping, held: Mapping[tuple, ApSegment],
+             params_of: Callable[[str, str, int], dict | None],
+             uncertainty_of: Callable[[str, str, int], dict | None] | None = None, limit: int | None = None) -> int:
+        """Bring every estimator up to date with the aggregator; returns the passes (re-)added.
+
+        ``passes``: ``Aggregator.passes`` ((vehicle, pass) → PassState); ``held``: the segments the
+        estimators hold per slot; ``params_of(vehicle, model, calib_version)``: the parameters the
+        edge used for that calibration version, or None if it is not the vehicle's current one;
+        ``uncertainty_of(vehicle, model, calib_version)``: the log-sd of those parameters' calibration
+        quantities (None: the estimator's default); ``limit``: feed at most this many passes, the
+        earliest first (a caller catching up estimates after each such step, so that its record
+        shows the estimate as the passes came in).
+        """
+        if not self.bridges:
+            return 0
+        changed = 0
+        for n, (key, ps, segs, st) in enumerate(list(self._changed(passes, held))):
+            if limit is not None and n >= limit:
+                break
+            fed = st.fed.get(key)
+            if ps.model and ps.model != self.model:  # the estimator models single-contact vehicles
+                self.skipped["unsupported_model"] += 1
                 st.fed[key] = _Fed(ps.calib_version, segs)
-                st.dirty = st.dirty or crosses or fed is not None
-                changed += crosses
+                continue
+            # What the edge says it used (pass-done v1.2), else what the cloud knows it sent.
+            params = ps.params if ps.params is not None else \
+                params_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
+            if params is None:
+                continue  # a newer calibration is on its way: wait for the recomputed pass
+            sd = None if uncertainty_of is None else \
+                uncertainty_of(ps.vehicle_id, ps.model or self.model, ps.calib_version)
+            try:
+                crosses = st.estimator.add_segments(segs, ps.model or self.model, params, params_log_sd=sd,
+                                                    sample_interval_s=ps.sample_interval_s)
+            except (ValueError, KeyError, FloatingPointError, ArithmeticError) as e:
+                log.warning("bridge %s: pass %s/%s not usable: %s", st.bridge.id, *key, e)
+                self.skipped["unusable"] += 1
+                crosses = False
+            if not crosses and fed is not None:
+                st.estimator.remove(*key)
+            st.fed[key] = _Fed(ps.calib_version, segs)
+            st.dirty = st.dirty or crosses or fed is not None
+            changed += crosses
         return changed
 
     # -- estimation --------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from shared.schema import decode_alarm
 from shared.vehicles import RAIL_MODELS
 
 from cloud.bridge.estimator import BridgeSettings
-from cloud.bridge.monitor import CLEARED, BridgeMonitor
+from cloud.bridge.monitor import CLEARED, BridgeMonitor, catch_up_steps
 from cloud.bridge.vehicle_error import class_log_sd, fit_log_sd
 from cloud.daemon.chainage import ChainageAligner
 from cloud.daemon.epochs import Epochs
@@ -489,20 +489,28 @@ class Cloud:
             return False
         t0 = self.clock()
         self.bridge_sync_due = False
-        self.bridges.sync(self.aggregator.passes, self.aggregator.held, self._bridge_params, self._bridge_uncertainty)
-        if not self.bridges.due:
+        passes, held = self.aggregator.passes, self.aggregator.held
+        estimated = False
+        for limit in catch_up_steps(self.bridges.unfed(passes, held)):
+            self.bridges.sync(passes, held, self._bridge_params, self._bridge_uncertainty, limit=limit)
+            if not self.bridges.due:
+                continue
+            alarms = self.bridges.estimate()
+            estimated = True
+            for alarm in alarms:
+                payload = alarm.encode()
+                # The alarm state is durable: a restarted cloud does not raise a standing alarm again.
+                self.alarms[alarm.bridge_id] = payload
+                if self.record is not None:
+                    self.record("alarm", payload)
+                self.publish(keys.alarm_key(self.net, alarm.bridge_id), payload)
+                log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
+            if self.view is not None:
+                # A step of a catch-up is drawn at the pass count it stands for.
+                behind = 0 if limit is None else self.bridges.unfed(passes, held)
+                self._log_bridges(alarms, max(0, self.passes_complete - behind))
+        if not estimated:
             return False
-        alarms = self.bridges.estimate()
-        for alarm in alarms:
-            payload = alarm.encode()
-            # The alarm state is durable: a restarted cloud does not raise a standing alarm again.
-            self.alarms[alarm.bridge_id] = payload
-            if self.record is not None:
-                self.record("alarm", payload)
-            self.publish(keys.alarm_key(self.net, alarm.bridge_id), payload)
-            log.warning("bridge %s: %s", alarm.bridge_id, alarm.message)
-        if self.view is not None:
-            self._log_bridges(alarms)
         self._bridge_done_at = self.clock()
         self._bridge_cost_s = self._bridge_done_at - t0
         return True
@@ -639,9 +647,9 @@ class Cloud:
         except Exception:  # the view is a side subscriber: never let it take the daemon down
             log.exception("rerun view update failed")
 
-    def _log_bridges(self, alarms) -> None:
+    def _log_bridges(self, alarms, at_pass: int) -> None:
         try:
-            self.view.set_pass(self.passes_complete)
+            self.view.set_pass(at_pass)
             for st in self.bridges.bridges.values():
                 if st.latest is not None:
                     baseline = getattr(getattr(st.estimator, "baseline", None), "mril", None)
