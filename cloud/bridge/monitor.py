@@ -15,7 +15,9 @@ has been recalibrated since is kept as it is until its recomputation is acknowle
 
 The alarm is a state: :meth:`BridgeMonitor.estimate` returns an :class:`~shared.schema.Alarm` only
 when a bridge's damage decision changes — raised (``kind`` = the damage hypothesis: crack,
-global, bearings) or cleared (``kind`` = ``"cleared"``) — never once per pass.
+global, bearings) or cleared (``kind`` = ``"cleared"``) — or when a standing alarm's diagnosis
+(its kind or element) changes, e.g. a crack first seen somewhere on the span is located as passes
+come in; never once per pass.
 """
 
 from __future__ import annotations
@@ -68,7 +70,18 @@ class BridgeState:
     dirty: bool = False  # passes changed since the last estimate
     latest: BridgeEstimate | None = None
     alarmed: bool = False
+    diagnosis: tuple[str, int] | None = None  # (kind, element) of the standing alarm as last published
     version: int = 0  # estimates made so far
+
+
+def _diagnosis_moved(old: tuple[str, int] | None, new: tuple[str, int]) -> bool:
+    """Whether a standing alarm's diagnosis changed enough to say so again: another kind of damage,
+    a place found (or lost), or an element more than one away (neighbours trade places as passes
+    come in; an alarm repeated for each would be noise). ``old`` None: not known (a restart)."""
+    if old is None:
+        return False
+    (kind0, e0), (kind1, e1) = old, new
+    return kind0 != kind1 or (e0 > 0) != (e1 > 0) or abs(e0 - e1) > 1
 
 
 def raised_alarm(bridge_id: str, est: BridgeEstimate, time_utc: str) -> Alarm:
@@ -205,9 +218,10 @@ class BridgeMonitor:
     def _alarm(self, st: BridgeState, est: BridgeEstimate) -> Alarm | None:
         a = est.assessment
         raised = bool(a is not None and a.alarm)
-        if raised == st.alarmed:
+        diagnosis = (a.kind, int(a.element)) if raised else None
+        if raised == st.alarmed and (not raised or not _diagnosis_moved(st.diagnosis, diagnosis)):
             return None
-        st.alarmed = raised
+        st.alarmed, st.diagnosis = raised, diagnosis
         if raised:
             return raised_alarm(st.bridge.id, est, self.clock())
         p = 0.0 if a is None else min(max(a.loss_probability, 0.0), 1.0)

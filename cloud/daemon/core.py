@@ -527,6 +527,7 @@ class Cloud:
         st = self.bridges.bridges.get(alarm.bridge_id)
         if st is not None:
             st.alarmed = alarm.kind != CLEARED
+            st.diagnosis = (alarm.kind, alarm.element) if st.alarmed else None
             self.alarms[alarm.bridge_id] = bytes(payload)
 
     def bridge_state(self, bridge_id: str) -> bytes:
