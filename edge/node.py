@@ -45,6 +45,8 @@ from shared.transport import (LOG_LEVELS, IdInUseError, Presence, add_zenoh_argu
                               zenoh_message)
 from shared.vehicles import MODELS, vehicle_from_params
 
+from .bank import feed_bank
+from .bank_decode import ChunkDecoder
 from .outbox import DEFAULT_MAX_BYTES, Outbox
 from .pipeline import EdgeConfig, PassProcessor
 
@@ -119,6 +121,7 @@ class Edge:
         # that chunk releases is published with it, so a benchmark can time a segment from its raw chunk.
         self.trace: bytes | None = None
         self._models: dict[tuple, InverseModel] = {}
+        self.decoder = ChunkDecoder()
         self.outbox = outbox
         self.cloud_present = outbox is None
         self.resent = 0  # messages sent again because an aggregator (re)appeared
@@ -157,30 +160,60 @@ class Edge:
 
     # -- streams ---------------------------------------------------------------------------
     def on_chunk(self, payload, key_vehicle: str | None = None) -> None:
-        try:
-            chunk = decode_sensor_chunk(payload)
-        except DecodeError as e:
-            self.rejected[e.reason] += 1
-            return
-        if key_vehicle is not None and key_vehicle != chunk.vehicle_id:
-            self.rejected["key_mismatch"] += 1
-            return
-        if (self.only is not None and chunk.vehicle_id not in self.only) or not in_shard(chunk.vehicle_id, self.shard):
-            return
-        if chunk.vehicle_model not in MODELS:
-            self.rejected["unsupported_model"] += 1
-            return
-        task = self.tasks.setdefault(chunk.vehicle_id, VehicleTask(chunk.vehicle_id))
-        raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload)  # zenoh.ZBytes, or bytes
-        try:
-            self._feed(task, chunk, raw)
-        except Exception:  # isolation: one vehicle's failure must not stop the others
-            task.errors += 1
-            self.rejected["processing_error"] += 1
-            log.exception("vehicle %s: pass %s failed", chunk.vehicle_id, chunk.pass_id)
-            task.current, task.current_raw = None, []
+        """One raw chunk (tagged with ``self.trace``): :meth:`on_chunks` of one."""
+        self.on_chunks([(payload, key_vehicle, self.trace)])
 
-    def _feed(self, task: VehicleTask, chunk: SensorChunk, raw: bytes) -> None:
+    def on_chunks(self, messages: list[tuple[object, str | None, bytes | None]]) -> None:
+        """Raw chunks as one tick, ``(payload, key_vehicle, trace)`` in arrival order: decoded together
+        (:class:`edge.bank_decode.ChunkDecoder`), then fed in rounds, each vehicle's next chunk per
+        round, every round's passes as one bank (:func:`edge.bank.feed_bank`). Each vehicle's
+        chunks are processed in their order, with the results of feeding them one at a time; what
+        a chunk releases is published tagged with its own trace."""
+        raws = [p.to_bytes() if hasattr(p, "to_bytes") else bytes(p) for p, _, _ in messages]  # zenoh.ZBytes, or bytes
+        queues: dict[str, collections.deque] = {}
+        for (_, key_vehicle, trace), raw, chunk in zip(messages, raws, self.decoder.decode(raws)):
+            if isinstance(chunk, DecodeError):
+                self.rejected[chunk.reason] += 1
+                continue
+            if key_vehicle is not None and key_vehicle != chunk.vehicle_id:
+                self.rejected["key_mismatch"] += 1
+                continue
+            if (self.only is not None and chunk.vehicle_id not in self.only) or not in_shard(chunk.vehicle_id, self.shard):
+                continue
+            if chunk.vehicle_model not in MODELS:
+                self.rejected["unsupported_model"] += 1
+                continue
+            queues.setdefault(chunk.vehicle_id, collections.deque()).append((chunk, raw, trace))
+        while queues:
+            ready = []
+            for vehicle in list(queues):
+                chunk, raw, trace = queues[vehicle].popleft()
+                if not queues[vehicle]:
+                    del queues[vehicle]
+                task = self.tasks.setdefault(vehicle, VehicleTask(vehicle))
+                try:
+                    if self._begin(task, chunk, raw):
+                        ready.append((task, chunk, trace))
+                except Exception:  # isolation: one vehicle's failure must not stop the others
+                    self._failed(task, chunk)
+            results = feed_bank([(task.current, chunk) for task, chunk, _ in ready])
+            for (task, chunk, trace), segments in zip(ready, results):
+                self.trace = trace
+                try:
+                    if isinstance(segments, Exception):
+                        raise segments
+                    self._end(task, chunk, segments)
+                except Exception:  # isolation, as above
+                    self._failed(task, chunk)
+
+    def _failed(self, task: VehicleTask, chunk) -> None:
+        task.errors += 1
+        self.rejected["processing_error"] += 1
+        log.exception("vehicle %s: pass %s failed", chunk.vehicle_id, chunk.pass_id)
+        task.current, task.current_raw = None, []
+
+    def _begin(self, task: VehicleTask, chunk, raw: bytes) -> bool:
+        """Start or continue the vehicle's pass with this chunk; False if the chunk is refused."""
         if task.current is not None and task.current.pass_id == chunk.pass_id and chunk.seq == 0:
             # The vehicle sends the pass again from its start (it was never acknowledged): start over.
             self.restarted += 1
@@ -188,11 +221,11 @@ class Edge:
         if task.current is None or task.current.pass_id != chunk.pass_id:
             if chunk.seq != 0:
                 self.rejected["missing_pass_start"] += 1
-                return
+                return False
             chosen = self._params_for(task, chunk)
             if chosen is None:
                 self.rejected["no_calibration"] += 1
-                return
+                return False
             params, version = chosen
             model = self._model(chunk.vehicle_model, params, 1.0 / chunk.sample_rate_hz)
             task.current = PassProcessor(model, chunk.vehicle_id, chunk.pass_id, chunk.route_id, version,
@@ -201,10 +234,14 @@ class Edge:
         if chunk.seq != task.expected_seq:
             self.rejected["sequence_gap"] += 1
             task.current, task.current_raw = None, []
-            return
+            return False
         task.expected_seq += 1
         task.current_raw.append(raw)
-        self._publish_segments(task.current.feed(chunk))
+        return True
+
+    def _end(self, task: VehicleTask, chunk, segments: list[ApSegment]) -> None:
+        """Publish what the chunk released; at the pass's last chunk, its end."""
+        self._publish_segments(segments)
         if chunk.final:
             segments, done = task.current.finish()
             done = dataclasses.replace(done, params=task.current_params)  # the cloud models the pass alike

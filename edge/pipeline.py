@@ -395,15 +395,24 @@ class PassProcessor:
         self._d4_t = np.zeros(0)
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
+        z = self.channels_of(chunk)
+        return self.feed_ap(chunk, z, self.inverse.update(z) if chunk.n else None)
+
+    def channels_of(self, chunk: SensorChunk) -> np.ndarray:
+        """The chunk's channels as the inverse takes them: (samples, channels) in the model's order."""
         names = self.channel_names
         missing = [n for n in names if n not in chunk.channels]
         if missing:
             raise ValueError(f"chunk lacks channel(s) {', '.join(missing)} for model {chunk.vehicle_model}")
+        z = np.empty((chunk.n, len(names)))
+        for j, name in enumerate(names):
+            z[:, j] = chunk.channels[name]
+        return z
+
+    def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
+        """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
+        chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
         if chunk.n:
-            z = np.empty((chunk.n, len(names)))
-            for j, name in enumerate(names):
-                z[:, j] = chunk.channels[name]
-            ap = self.inverse.update(z)
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
             t = chunk.t
             if self.error_model:
