@@ -18,8 +18,8 @@ from shared.vehicles import RAIL_MODELS
 
 from .chainage import ChainageTracker
 from .drift import drift_trend
-from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, fourth_differences,
-                          noise_sd_from_d4, unit_spectra, white_equivalent)
+from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, noise_sd_from_d4, unit_spectra,
+                          white_equivalent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,6 +212,45 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
     return index.size
 
 
+@kernel
+def _fourth_differences_into(tail, z, out, at):
+    """``np.diff(concatenate([tail, z]), 4, axis=0)`` (its operations, so its bits) written to
+    ``out[at:]``; returns the rows written."""
+    m = tail.shape[0] + z.shape[0]
+    if m < 5:
+        return 0
+    c = z.shape[1]
+    a = np.empty((m, c))
+    a[: tail.shape[0]] = tail
+    a[tail.shape[0] :] = z
+    for order in range(4):
+        for i in range(m - order - 1):
+            for j in range(c):
+                a[i, j] = a[i + 1, j] - a[i, j]
+    out[at : at + m - 4] = a[: m - 4]
+    return m - 4
+
+
+class _Rows:
+    """Rows appended at the end and dropped from the start, in amortised O(rows): a buffer of
+    doubling capacity, compacted when the dropped part would otherwise be copied past."""
+
+    def __init__(self, width: int) -> None:
+        self.data = np.zeros((1024, width))
+        self.t = np.zeros(1024)
+        self.lo = self.hi = 0
+
+    def reserve(self, rows: int) -> None:
+        """Room for ``rows`` more at the end."""
+        n = self.hi - self.lo
+        if self.hi + rows <= self.t.size:
+            return
+        cap = max(self.t.size, 2 * (n + rows))
+        data, t = np.zeros((cap, self.data.shape[1])), np.zeros(cap)
+        data[:n], t[:n] = self.data[self.lo : self.hi], self.t[self.lo : self.hi]
+        self.data, self.t, self.lo, self.hi = data, t, 0, n
+
+
 class AxleGrid:
     """The AP of one axle on the global grid, growing as the pass advances.
 
@@ -382,6 +421,7 @@ class PassProcessor:
         self.seq = 0
         self.n_samples = 0
         self.speeds: list[float] = []
+        self._speed_mean = (0, 0.0)  # (chunks, their mean speed) last computed
         self.finished = False
         # Time from which the inverse has forgotten its initial state; earlier points are sent
         # down-weighted (see EdgeConfig.hard_warmup_s). -inf: no such points.
@@ -391,8 +431,7 @@ class PassProcessor:
         # Rail vehicles keep the white sigma: their cloud re-runs the dynamics itself.
         self.error_model = self.config.error_model and model_name not in RAIL_MODELS
         self._z_tail = np.zeros((0, len(self.channel_names)))
-        self._d4 = np.zeros((0, len(self.channel_names)))
-        self._d4_t = np.zeros(0)
+        self._d4 = _Rows(len(self.channel_names))
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -441,13 +480,19 @@ class PassProcessor:
                         vehicle_model=self.model_name, sample_interval_s=self.model.constants.dt)
         return segments, done
 
+    def _mean_speed(self) -> float:
+        """The mean of the chunks' mean speeds so far (m/s; computed once per chunk count)."""
+        if self._speed_mean[0] != len(self.speeds):
+            self._speed_mean = (len(self.speeds), float(np.mean(self.speeds)) if self.speeds else 0.0)
+        return self._speed_mean[1]
+
     def _add_differences(self, z: np.ndarray, t: np.ndarray) -> None:
-        zz = np.concatenate([self._z_tail, z])
-        if zz.shape[0] >= 5:
-            d4 = fourth_differences(zz)
-            self._d4 = np.concatenate([self._d4, d4])
-            self._d4_t = np.concatenate([self._d4_t, t[t.size - d4.shape[0]:]])
-        self._z_tail = zz[-4:]
+        d4 = self._d4
+        d4.reserve(z.shape[0])
+        k = _fourth_differences_into(self._z_tail, z, d4.data, d4.hi)
+        d4.t[d4.hi : d4.hi + k] = t[t.size - k :]
+        d4.hi += k
+        self._z_tail = np.concatenate([self._z_tail, z])[-4:] if z.shape[0] < 4 else z[-4:]
 
     def _trim_differences(self) -> None:
         """Drop the differences older than any segment still to come needs."""
@@ -460,17 +505,17 @@ class PassProcessor:
             if not 0 <= k < g.done:
                 return
             starts.append(g.t[k])
-        cut = int(np.searchsorted(self._d4_t, min(starts)))
-        if cut > 0:
-            self._d4, self._d4_t = self._d4[cut:], self._d4_t[cut:]
+        d4 = self._d4
+        d4.lo += int(np.searchsorted(d4.t[d4.lo : d4.hi], min(starts)))
 
     def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
         """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
         (edge.error_model), or None when there is too little to measure the noise from."""
-        lo, hi = np.searchsorted(self._d4_t, [t0, t1], side="left")
+        d4 = self._d4
+        lo, hi = np.searchsorted(d4.t[d4.lo : d4.hi], [t0, t1], side="left") + d4.lo
         if hi - lo < 64 or not t1 > t0:
             return None
-        sd = noise_sd_from_d4(self._d4[lo:hi])
+        sd = noise_sd_from_d4(d4.data[lo:hi])
         if not (np.all(np.isfinite(sd)) and np.any(sd > 0)):
             return None
         speed = (n_points - 1) * self.config.spacing_m / (t1 - t0)  # the segment's own chainage speed
@@ -547,7 +592,7 @@ class PassProcessor:
             out.append(ApSegment.make(
                 seg_vals, sigma, vehicle_id=self.vehicle_id, pass_id=self.pass_id, route_id=self.route_id,
                 tile=tile, axle=axle, start_index=a + int(first), spacing_m=self.config.spacing_m,
-                calib_version=self.calib_version, speed_mps=float(np.mean(self.speeds)) if self.speeds else 0.0,
+                calib_version=self.calib_version, speed_mps=self._mean_speed(),
                 t_first=float(t_seg[0]), t_last=float(t_seg[-1]), seq=self.seq, flags=flags,
                 error_model=error_model,
             ))
