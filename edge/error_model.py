@@ -145,6 +145,39 @@ def unit_spectra(model: InverseModel, speed_mps: float, spacing_m: float, drift_
     return out
 
 
+_UNIT_FITS: OrderedDict = OrderedDict()
+
+
+def unit_error_band(model: InverseModel, speed_mps: float, spacing_m: float, drift_points: int, axle: int,
+                    order: int = BAND_ORDER, longest_m: float = LONGEST_M) -> tuple[float, np.ndarray, float, float]:
+    """The fit of a one-channel vehicle's error model at unit channel variance, once per inverse,
+    speed bucket and axle: ``(sd, band, white, level)``, the fit's marginal sd and band
+    (:func:`fit_error_band` without a fill ceiling), the :func:`white_equivalent` of the band at
+    unit sd and the fill's long-wave level of the unit spectrum.
+
+    Why once: with one channel the spectrum is ``σ² S`` and the fit is scale-equivariant — the band
+    is the same for every σ and the sd scales with σ — as long as the fill's ceiling (the AP's own
+    white level) lies above ``σ² · level``; a segment whose ceiling binds is fitted on its own. The
+    results agree with a fit per segment up to rounding (the least squares solved at another scale).
+    """
+    v = speed_bucket(max(speed_mps, 0.5))
+    key = (_model_key(model), v, spacing_m, drift_points, axle, order, longest_m)
+    hit = _UNIT_FITS.get(key)
+    if hit is not None:
+        _UNIT_FITS.move_to_end(key)
+        return hit
+    omega, S = unit_spectra(model, speed_mps, spacing_m, drift_points)
+    unit = S[0, axle - 1]
+    long = _fit_grid(omega, spacing_m, longest_m)[2]
+    level = float(np.mean(unit[long])) if long.any() else 0.0
+    sd, band = fit_error_band(omega, unit, spacing_m, order, longest_m)
+    out = (sd, band, white_equivalent(1.0, band), level)
+    _UNIT_FITS[key] = out
+    if len(_UNIT_FITS) > _CACHE_SIZE:
+        _UNIT_FITS.popitem(last=False)
+    return out
+
+
 def band_symbol(band: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """``P(ω) = c₀ + 2 Σ c_k cos kω`` of a precision band ``c`` (its inverse is the spectral density)."""
     band = np.asarray(band, dtype=np.float64)

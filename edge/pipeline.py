@@ -18,8 +18,8 @@ from shared.vehicles import RAIL_MODELS
 
 from .chainage import ChainageTracker
 from .drift import drift_trend
-from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, noise_sd_from_d4, unit_spectra,
-                          white_equivalent)
+from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, noise_sd_from_d4,
+                          unit_error_band, unit_spectra, white_equivalent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -519,6 +519,14 @@ class PassProcessor:
         if not (np.all(np.isfinite(sd)) and np.any(sd > 0)):
             return None
         speed = (n_points - 1) * self.config.spacing_m / (t1 - t0)  # the segment's own chainage speed
+        cfg = self.config
+        if sd.size == 1 and sd[0] > 0:  # one channel: the unit fit, scaled (see unit_error_band)
+            sd1, band, white1, level = unit_error_band(self.model, speed, cfg.spacing_m, cfg.drift_points, axle,
+                                                       cfg.error_band_order, cfg.error_longest_m)
+            if sd[0] ** 2 * level <= sigma_white**2:
+                sd_m = float(sd[0]) * sd1
+                sd_m *= max(1.0, sigma_white / (sd_m * white1))  # as below
+                return encode_error_model(sd_m, band, sigma_white)
         omega, S = unit_spectra(self.model, speed, self.config.spacing_m, self.config.drift_points)
         spectrum = np.tensordot(sd * sd, S[:, axle - 1], axes=1)
         if not np.any(spectrum > 0):
