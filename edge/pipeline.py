@@ -251,12 +251,90 @@ class _Rows:
         self.data, self.t, self.lo, self.hi = data, t, 0, n
 
 
+# AxleGrid's scalar state, one int64 array the kernels update in place.
+_HAS_BASE, _BASE, _SIZE, _DONE, _N_SEEN, _S_LO, _S_HI, _S0, _HAS_LAST = range(9)
+
+
+@kernel
+def _grid_filter(st, values, smooth, valid, speed, index, sap, srel, dt, min_speed, final):
+    """Anti-alias the points whose window the samples cover (all, if ``final``); drop the samples
+    no pending point can reach: its window is at most ± the kernel's half-width at min_speed
+    (slower points are not filtered)."""
+    n = st[_SIZE]
+    lo, hi = st[_S_LO], st[_S_HI]
+    done = _antialias(sap[lo:hi], srel[lo:hi], st[_S0], index[:n], speed[:n], values[:n], smooth[:n], valid[:n],
+                      st[_DONE], dt, min_speed, final)
+    st[_DONE] = done
+    horizon = index[done] if done < n else float(st[_N_SEEN])
+    keep = int(math.floor(horizon - _AA_HALF_WIDTH_M / (min_speed * dt))) - 1 - st[_S0]
+    if keep > 0:
+        st[_S_LO] += keep
+        st[_S0] += keep
+
+
+@kernel
+def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid, smooth, speed, index, sap, srel,
+              antialias, dt, min_speed):
+    """:meth:`AxleGrid.add` in one call. Returns ``(points, samples)``: (0, 0) once done, else the
+    capacities the grid's point and sample arrays need first (nothing has changed then)."""
+    n_new = x.size
+    carried = st[_HAS_LAST] == 1
+    m = n_new + (1 if carried else 0)
+    xx, aa, tt, rr = np.empty(m), np.empty(m), np.empty(m), np.empty(m, dtype=np.bool_)
+    k0 = 0
+    if carried:  # the previous chunk's last sample: the interval up to this chunk's first
+        xx[0], aa[0], tt[0], rr[0] = last[0], last[1], last[2], last[3] != 0.0
+        k0 = 1
+    for i in range(n_new):
+        xx[k0 + i], aa[k0 + i], tt[k0 + i], rr[k0 + i] = x[i], ap[i], t[i], rel[i]
+    # the grid points these samples pass, and the room they need
+    first, stop, a = 0, 0, 0
+    if m >= 2:
+        filled_end = (st[_BASE] if st[_HAS_BASE] else 0) + st[_SIZE]
+        if st[_HAS_BASE]:
+            first = max(max(int(math.floor(xx[0] / spacing)) + 1, min_index), filled_end)
+        else:
+            first = max(int(math.ceil(xx[0] / spacing)), min_index)
+            filled_end = first
+        stop = int(math.floor(xx[m - 1] / spacing)) + 1
+        if stop > first:
+            a = st[_SIZE] + first - filled_end  # skipped grid points (e.g. a stop) stay invalid
+    need_points = a + stop - first if stop > first else 0
+    need_samples = st[_S_HI] + n_new if antialias else 0
+    if need_points > values.size or need_samples > sap.size:
+        return need_points, need_samples
+    if antialias:
+        for i in range(n_new):
+            sap[st[_S_HI] + i] = ap[i]
+            srel[st[_S_HI] + i] = rel[i]
+        st[_S_HI] += n_new
+    if m > 0:
+        last[0], last[1], last[2], last[3] = xx[m - 1], aa[m - 1], tt[m - 1], 1.0 if rr[m - 1] else 0.0
+        st[_HAS_LAST] = 1
+    if m >= 2 and stop > first:
+        if not st[_HAS_BASE]:
+            st[_HAS_BASE], st[_BASE] = 1, first
+        b = a + stop - first
+        st[_SIZE] = b
+        _to_grid(xx, aa, tt, rr, first, spacing, values[a:b], times[a:b], valid[a:b])
+        if antialias:  # xx[0] is sample n_seen (this chunk's first) or, carried over, the one before it
+            _grid_positions(xx, st[_N_SEEN] - k0, first, spacing, index[a:b], speed[a:b], dt)
+    st[_N_SEEN] += n_new
+    if antialias:
+        _grid_filter(st, values, smooth, valid, speed, index, sap, srel, dt, min_speed, False)
+    else:
+        st[_DONE] = st[_SIZE]
+    return 0, 0
+
+
 class AxleGrid:
     """The AP of one axle on the global grid, growing as the pass advances.
 
     The grid lives in arrays of doubling capacity, so appending a chunk's points costs amortised
     O(points) (appending by concatenation would copy the whole pass every chunk: O(n²) over a long
-    pass). ``values``, ``valid`` and ``t`` are views of the part that is final.
+    pass). ``values``, ``valid`` and ``t`` are views of the part that is final. A chunk is added in
+    one compiled call (:func:`_grid_add`): the per-chunk work is a few dozen samples, so the calls
+    around it would otherwise cost more than the work.
 
     Without anti-alias a point is final once interpolated. With it (``min_speed`` given), a point
     is final once the samples reach past its filter window (~0.36 m ahead), or at ``flush()``; the
@@ -264,23 +342,40 @@ class AxleGrid:
     """
 
     def __init__(self, antialias: bool = False, dt: float = 0.0, min_speed: float = 0.5) -> None:
-        self.base: int | None = None  # grid index of values[0]
-        self.size = 0  # points interpolated
-        self.done = 0  # points final (== size without anti-alias)
-        self._values = np.zeros(0)  # linear interpolation
-        self._valid = np.zeros(0, dtype=bool)
-        self._t = np.zeros(0)
-        self._last: tuple[float, float, float, bool] | None = None  # (chainage, ap, t, reliable)
         self.antialias = antialias
         if antialias and not (dt > 0 and min_speed > 0):
             raise ValueError("AxleGrid: anti-alias needs the sample interval dt and min_speed > 0")
         self._dt, self._min_speed = dt, min_speed
+        self._st = np.zeros(9, dtype=np.int64)
+        self._last = np.zeros(4)  # the last sample (chainage, ap, t, reliable) for the next chunk's interval
+        self._values = np.zeros(0)  # linear interpolation
+        self._valid = np.zeros(0, dtype=bool)
+        self._t = np.zeros(0)
         self._smooth = np.zeros(0)  # anti-aliased values
         self._speed = np.zeros(0)  # chainage speed at each point (m/s; 0 in gaps)
         self._index = np.zeros(0)  # fractional sample number of each point
-        self._sap, self._srel = np.zeros(0), np.zeros(0, dtype=bool)  # the samples kept …
-        self._s0 = 0  # … from this sample number on
-        self._n_seen = 0  # samples added
+        self._samples = np.zeros(0)  # the samples kept (from sample number _S0 on, at _S_LO … _S_HI)
+        self._sreliable = np.zeros(0, dtype=bool)
+
+    @property
+    def base(self) -> int | None:
+        """Grid index of the first point (None before any)."""
+        return int(self._st[_BASE]) if self._st[_HAS_BASE] else None
+
+    @property
+    def size(self) -> int:
+        """Points interpolated."""
+        return int(self._st[_SIZE])
+
+    @property
+    def done(self) -> int:
+        """Points final (== size without anti-alias)."""
+        return int(self._st[_DONE])
+
+    @property
+    def _sap(self) -> np.ndarray:
+        """The samples kept."""
+        return self._samples[self._st[_S_LO] : self._st[_S_HI]]
 
     @property
     def values(self) -> np.ndarray:
@@ -302,82 +397,50 @@ class AxleGrid:
     @property
     def end(self) -> int:
         """One past the last final grid index."""
-        return (self.base or 0) + self.done
+        st = self._st
+        return int((st[_BASE] if st[_HAS_BASE] else 0) + st[_DONE])
 
     def add(self, x: np.ndarray, ap: np.ndarray, t: np.ndarray, reliable: np.ndarray, spacing: float,
             min_index: int = 0) -> None:
         """Interpolate samples (chainage ``x`` increasing) onto the grid points they pass, from grid
         index ``min_index`` on (0: nothing before the route's start)."""
-        if self.antialias and x.size:
-            self._sap = np.concatenate([self._sap, ap])
-            self._srel = np.concatenate([self._srel, reliable])
-        self._interpolate(x, ap, t, reliable, spacing, min_index)
-        self._n_seen += x.size
-        if self.antialias:
-            self._filter(final=False)
-        else:
-            self.done = self.size
+        while True:
+            points, samples = _grid_add(x, ap, t, reliable, spacing, min_index, self._st, self._last, self._values,
+                                        self._t, self._valid, self._smooth, self._speed, self._index, self._samples,
+                                        self._sreliable, self.antialias, self._dt, self._min_speed)
+            if points == 0 and samples == 0:
+                return
+            self._reserve(points)
+            self._reserve_samples(samples)
 
     def flush(self) -> None:
         """The pass has ended: make every point final (those whose window the end cuts are invalid)."""
         if self.antialias:
-            self._filter(final=True)
+            _grid_filter(self._st, self._values, self._smooth, self._valid, self._speed, self._index, self._samples,
+                         self._sreliable, self._dt, self._min_speed, True)
 
-    def _interpolate(self, x, ap, t, reliable, spacing, min_index) -> None:
-        carried = self._last is not None
-        if carried:
-            x = np.concatenate([[self._last[0]], x])
-            ap = np.concatenate([[self._last[1]], ap])
-            t = np.concatenate([[self._last[2]], t])
-            reliable = np.concatenate([[self._last[3]], reliable])
-        if x.size == 0:
-            return
-        self._last = (float(x[-1]), float(ap[-1]), float(t[-1]), bool(reliable[-1]))
-        if x.size < 2:
-            return
-        filled_end = (self.base or 0) + self.size
-        first = max(int(math.floor(x[0] / spacing)) + 1, min_index) if self.base is not None else max(
-            int(math.ceil(x[0] / spacing)), min_index)
-        if self.base is not None:
-            first = max(first, filled_end)
-        last = int(math.floor(x[-1] / spacing))
-        if last < first:
-            return
-        if self.base is None:
-            self.base = first
-            filled_end = first
-        gap = first - filled_end  # skipped grid points (e.g. a stop) stay invalid
-        a = self.size + gap
-        b = self._reserve(a + last + 1 - first)
-        _to_grid(x, ap, t, reliable, first, spacing, self._values[a:b], self._t[a:b], self._valid[a:b])
-        if self.antialias:
-            # x[0] is sample n_seen (this chunk's first) or, carried over, the one before it
-            _grid_positions(x, self._n_seen - (1 if carried else 0), first, spacing, self._index[a:b],
-                            self._speed[a:b], self._dt)
-
-    def _filter(self, final: bool) -> None:
-        n = self.size
-        self.done = _antialias(self._sap, self._srel, self._s0, self._index[:n], self._speed[:n], self._values[:n],
-                               self._smooth[:n], self._valid[:n], self.done, self._dt, self._min_speed, final)
-        # Drop the samples no pending point can reach: its window is at most ± the kernel's
-        # half-width at min_speed (slower points are not filtered).
-        horizon = self._index[self.done] if self.done < n else float(self._n_seen)
-        keep = int(math.floor(horizon - _AA_HALF_WIDTH_M / (self._min_speed * self._dt))) - 1 - self._s0
-        if keep > 0:
-            self._sap, self._srel = self._sap[keep:], self._srel[keep:]
-            self._s0 += keep
-
-    def _reserve(self, size: int) -> int:
-        """Grow the capacity to at least ``size`` points (new points are 0, invalid); set the size."""
+    def _reserve(self, size: int) -> None:
+        """Capacity for at least ``size`` points (new points are 0, invalid)."""
         if size > self._values.size:
             cap = max(size, 2 * self._values.size, 1024)
+            n = self.size
             for name in ("_values", "_valid", "_t", "_smooth", "_speed", "_index"):
                 old = getattr(self, name)
                 new = np.zeros(cap, dtype=old.dtype)
-                new[: self.size] = old[: self.size]
+                new[:n] = old[:n]
                 setattr(self, name, new)
-        self.size = size
-        return size
+
+    def _reserve_samples(self, size: int) -> None:
+        """Room for the kept samples to reach ``size`` (counted from the buffer's start): the kept ones
+        are moved to the start, into a larger buffer if need be."""
+        if size > self._samples.size:
+            st = self._st
+            lo, hi = int(st[_S_LO]), int(st[_S_HI])
+            cap = max(2 * (hi - lo + size - hi), 1024)
+            samples, reliable = np.zeros(cap), np.zeros(cap, dtype=bool)
+            samples[: hi - lo], reliable[: hi - lo] = self._samples[lo:hi], self._sreliable[lo:hi]
+            self._samples, self._sreliable = samples, reliable
+            st[_S_LO], st[_S_HI] = 0, hi - lo
 
 
 def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
