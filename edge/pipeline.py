@@ -475,6 +475,7 @@ class PassProcessor:
             self.min_index = -int(math.ceil(behind / config.spacing_m)) - 1
         self.config = config
         self.inverse = InverseStream(model)
+        self._hard_warmup = min(self.inverse.reliable_from, int(math.ceil(self.config.hard_warmup_s / model.constants.dt)))
         self.tracker = ChainageTracker(model.constants.dt)
         # (points slower than min_speed are not filtered; the floor bounds the samples a grid keeps)
         self.grids = [AxleGrid(config.antialias, model.constants.dt, max(config.min_speed_mps, 0.1))
@@ -495,6 +496,7 @@ class PassProcessor:
         self.error_model = self.config.error_model and model_name not in RAIL_MODELS
         self._z_tail = np.zeros((0, len(self.channel_names)))
         self._d4 = _Rows(len(self.channel_names))
+        self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -520,7 +522,7 @@ class PassProcessor:
             if self.error_model:
                 self._add_differences(z, t)
             reliable = chunk.speed >= self.config.min_speed_mps  # moving
-            hard = min(self.inverse.reliable_from, int(math.ceil(self.config.hard_warmup_s / self.model.constants.dt)))
+            hard = self._hard_warmup
             warmup = hard - self.n_samples  # samples of this chunk still warming up
             if warmup > 0:
                 reliable[:warmup] = False
@@ -530,7 +532,7 @@ class PassProcessor:
             for i, grid in enumerate(self.grids):
                 grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m, self.min_index)
             self.n_samples += chunk.n
-            self.speeds.append(float(np.mean(chunk.speed)))
+            self.speeds.append(float(np.add.reduce(chunk.speed)) / chunk.n)  # np.mean's sum and division
         return self._emit(final=False)
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
@@ -558,7 +560,10 @@ class PassProcessor:
         self._z_tail = np.concatenate([self._z_tail, z])[-4:] if z.shape[0] < 4 else z[-4:]
 
     def _trim_differences(self) -> None:
-        """Drop the differences older than any segment still to come needs."""
+        """Drop the differences older than any segment still to come needs (once per next tile:
+        the start times it depends on are final)."""
+        if self._trimmed_for == self.next_tile:
+            return
         P = self.config.tile_points
         starts = []
         for g in self.grids:
@@ -570,6 +575,7 @@ class PassProcessor:
             starts.append(g.t[k])
         d4 = self._d4
         d4.lo += int(np.searchsorted(d4.t[d4.lo : d4.hi], min(starts)))
+        self._trimmed_for = self.next_tile
 
     def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
         """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
