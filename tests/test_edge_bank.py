@@ -169,3 +169,69 @@ def test_the_decoder_accepts_and_refuses_as_the_contract(world):
     assert isinstance(got[1], DecodeError) and got[1].reason == "non_finite"
     assert isinstance(got[2], DecodeError) and got[2].reason == "bad_value"
     assert same_chunk(got[0], decode_sensor_chunk(good[5]))
+
+
+def test_the_daemon_serves_ticks_over_zenoh_as_one_chunk_at_a_time(world):
+    """serve(): raw chunks from several vehicles put back to back (so the worker takes them in ticks
+    of many), a calibration among them; what the edge publishes over a real router is, per vehicle,
+    what the in-process edge publishes one chunk at a time, calibration in the same place."""
+    import threading
+
+    import zenoh
+
+    from edge.node import serve
+    from shared import keys
+    from shared.transport import run_router, zenoh_config
+
+    site, logs = world
+    streams = _fleet(logs, 6, 2)
+    cal_vehicle = "bk-01"
+    first = decode_sensor_chunk(streams[1][0])
+    cal = Calibration(cal_vehicle, 1, first.vehicle_model, {k: v * 0.95 for k, v in first.nominal_params.items()},
+                      "fleet").encode()
+    order: list[tuple[str, str, bytes]] = []  # (kind, vehicle, payload) in publication order
+    for k in range(max(len(s) for s in streams)):
+        if k == 5:
+            order.append(("calib", cal_vehicle, cal))
+        order += [("imu", decode_sensor_chunk(s[k]).vehicle_id, s[k]) for s in streams if k < len(s)]
+    want: list[tuple[str, bytes]] = []
+    ref = Edge(NET, lambda key, p: want.append((key, p)), site)
+    for kind, vehicle, payload in order:
+        (ref.on_chunk if kind == "imu" else ref.on_calibration)(payload, vehicle)
+    n_expected = len(want)
+
+    got: list[tuple[str, bytes]] = []
+    all_in, stop = threading.Event(), threading.Event()
+
+    def collect(sample):
+        got.append((str(sample.key_expr), sample.payload.to_bytes()))
+        if len(got) >= n_expected:
+            all_in.set()
+
+    with run_router() as endpoint, zenoh.open(zenoh_config("client", connect=[endpoint])) as edge_s, \
+            zenoh.open(zenoh_config("client", connect=[endpoint])) as veh_s:
+        edge = Edge(NET, lambda key, p: edge_s.put(key, p, congestion_control=zenoh.CongestionControl.BLOCK), site)
+        subs = [veh_s.declare_subscriber(keys.ap_keyexpr(NET), collect),
+                veh_s.declare_subscriber(keys.done_keyexpr(NET), collect)]
+        server = threading.Thread(target=serve, args=(edge_s, edge, "edge-bank", stop), daemon=True)
+        server.start()
+        up = threading.Event()
+        watch = veh_s.liveliness().declare_subscriber(keys.alive_key(NET, "edge", "edge-bank"),
+                                                      lambda s: up.set(), history=True)
+        assert up.wait(60.0), "the edge never came up"
+        watch.undeclare()
+        for kind, vehicle, payload in order:
+            key = keys.imu_key(NET, vehicle) if kind == "imu" else keys.calib_key(NET, vehicle)
+            veh_s.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        assert all_in.wait(120.0), f"{len(got)} of {n_expected} messages arrived"
+        stop.set()
+        server.join(30.0)
+        for s in subs:
+            s.undeclare()
+    assert not edge.rejected
+    # per vehicle and kind (two subscriptions: their deliveries interleave freely), in order
+    def split(messages):
+        return {(v, kind): [m for m in ms if f"/{kind}/" in m[0]] for v, ms in _by_vehicle(messages).items()
+                for kind in ("ap", "done")}
+
+    assert split(got) == split(want) and len(got) == n_expected
