@@ -52,6 +52,7 @@ import numpy as np
 from scipy.signal import welch
 
 from shared.dynamics.inverse import InverseModel, InverseStream
+from shared.jit import kernel
 
 from .drift import drift_trend
 
@@ -76,11 +77,31 @@ def fourth_differences(z: np.ndarray) -> np.ndarray:
     return np.diff(np.asarray(z, dtype=np.float64), n=4, axis=0)
 
 
+@kernel
+def median_abs_deviations(x):
+    """Each column's median absolute deviation from its median, of finite values (n ≥ 1, columns):
+    ``np.median(np.abs(x - np.median(x, axis=0)), axis=0)``, the same numbers (a median selects an
+    element, or averages the middle two as numpy does), without numpy's per-call overhead."""
+    n, c = x.shape
+    out = np.empty(c)
+    col = np.empty(n)
+    for j in range(c):
+        for i in range(n):
+            col[i] = x[i, j]
+        med = np.median(col)
+        for i in range(n):
+            col[i] = abs(x[i, j] - med)
+        out[j] = np.median(col)
+    return out
+
+
 def noise_sd_from_d4(d4: np.ndarray) -> np.ndarray:
     """Per channel white-noise sd from its fourth differences (n, channels): MAD-based, robust."""
     d4 = np.asarray(d4, dtype=np.float64)
-    med = np.median(d4, axis=0)
-    return _MAD * np.median(np.abs(d4 - med), axis=0) / math.sqrt(_D4_VAR)
+    if d4.shape[0] == 0 or not np.isfinite(d4).all():  # numpy's NaN rules
+        med = np.median(d4, axis=0)
+        return _MAD * np.median(np.abs(d4 - med), axis=0) / math.sqrt(_D4_VAR)
+    return _MAD * median_abs_deviations(d4) / math.sqrt(_D4_VAR)
 
 
 def channel_noise_sd(z: np.ndarray) -> np.ndarray:

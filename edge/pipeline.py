@@ -18,8 +18,8 @@ from shared.vehicles import RAIL_MODELS
 
 from .chainage import ChainageTracker
 from .drift import drift_trend
-from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, noise_sd_from_d4,
-                          unit_error_band, unit_spectra, white_equivalent)
+from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, median_abs_deviations,
+                          noise_sd_from_d4, unit_error_band, unit_spectra, white_equivalent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -449,7 +449,8 @@ def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
     if v.size < 5:
         return 1e-3
     d2 = np.diff(v, 2)
-    return float(max(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0), 1e-7))
+    mad = median_abs_deviations(d2[:, None])[0] if np.isfinite(d2).all() else np.median(np.abs(d2 - np.median(d2)))
+    return float(max(1.4826 * mad / math.sqrt(6.0), 1e-7))
 
 
 

@@ -43,3 +43,16 @@ def test_a_binding_ceiling_changes_the_fit(model):
     _, band = fit_error_band(omega, S[0, 0], SPACING, fill_ceiling=0.01 * level)
     assert not np.allclose(band, band1, rtol=1e-3)
     assert math.isfinite(sd1) and level > 0
+
+
+def test_median_abs_deviations_are_numpys_to_the_bit():
+    from edge.error_model import median_abs_deviations
+
+    rng = np.random.default_rng(1)
+    for trial in range(600):
+        n, c = int(rng.integers(1, 400)), int(rng.integers(1, 4))  # odd and even counts
+        x = rng.standard_normal((n, c)) * 10.0 ** rng.uniform(-8, 3)
+        if trial % 3 == 0:
+            x = np.round(x, 1)  # ties
+        want = np.median(np.abs(x - np.median(x, axis=0)), axis=0)
+        assert median_abs_deviations(x).tobytes() == want.tobytes()
