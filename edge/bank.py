@@ -16,10 +16,11 @@ from shared.schema import ApSegment
 from .pipeline import PassProcessor
 
 
-def feed_bank(items: list[tuple[PassProcessor, object]]) -> list[list[ApSegment] | Exception]:
+def feed_bank(items: list[tuple[PassProcessor, object]], done=None) -> list[list[ApSegment] | Exception]:
     """``[p.feed(chunk) for p, chunk in items]`` with one inverse call per vehicle model and chunk
     length. A pass whose chunk fails (e.g. lacks a channel) gets the exception in its place and the
-    others carry on. Each processor appears at most once."""
+    others carry on. Each processor appears at most once. ``done(i, result)``, if given, is called
+    as soon as item ``i`` is through (so what it releases can leave before the rest is tiled)."""
     out: list = [None] * len(items)
     z_of: list = [None] * len(items)
     groups: dict[tuple, list[int]] = {}
@@ -39,10 +40,11 @@ def feed_bank(items: list[tuple[PassProcessor, object]]) -> list[list[ApSegment]
         for j, i in enumerate(idx):
             ap_of[i] = ap[:, :, j]
     for i, (proc, chunk) in enumerate(items):
-        if out[i] is not None:
-            continue
-        try:
-            out[i] = proc.feed_ap(chunk, z_of[i], ap_of[i])
-        except Exception as e:  # noqa: BLE001
-            out[i] = e
+        if out[i] is None:
+            try:
+                out[i] = proc.feed_ap(chunk, z_of[i], ap_of[i])
+            except Exception as e:  # noqa: BLE001
+                out[i] = e
+        if done is not None:
+            done(i, out[i])
     return out

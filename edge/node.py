@@ -197,8 +197,9 @@ class Edge:
                         ready.append((task, chunk, trace))
                 except Exception:  # isolation: one vehicle's failure must not stop the others
                     self._failed(task, chunk)
-            results = feed_bank([(task.current, chunk) for task, chunk, _ in ready])
-            for (task, chunk, trace), segments in zip(ready, results):
+
+            def publish(i: int, segments) -> None:  # each vehicle's release leaves as soon as it is ready
+                task, chunk, trace = ready[i]
                 self.trace = trace
                 try:
                     if isinstance(segments, Exception):
@@ -206,6 +207,8 @@ class Edge:
                     self._end(task, chunk, segments)
                 except Exception:  # isolation, as above
                     self._failed(task, chunk)
+
+            feed_bank([(task.current, chunk) for task, chunk, _ in ready], publish)
 
     def _failed(self, task: VehicleTask, chunk) -> None:
         task.errors += 1
