@@ -235,3 +235,52 @@ def test_the_daemon_serves_ticks_over_zenoh_as_one_chunk_at_a_time(world):
                 for kind in ("ap", "done")}
 
     assert split(got) == split(want) and len(got) == n_expected
+
+
+def test_a_busy_edge_holds_zenoh_back_instead_of_queueing_without_bound(world, monkeypatch):
+    """serve(): while the worker is busy, at most INBOX_MESSAGES wait for it (zenoh's delivering
+    thread waits beyond that, so the publisher's puts are held back), and nothing is lost."""
+    import threading
+
+    import zenoh
+
+    from edge import node
+    from edge.node import serve
+    from shared import keys
+    from shared.transport import run_router, zenoh_config
+
+    site, logs = world
+    monkeypatch.setattr(node, "INBOX_MESSAGES", 8)
+    stream = _fleet(logs, 1, 1)[0]
+    vehicle = decode_sensor_chunk(stream[0]).vehicle_id
+    ticks: list[int] = []
+    first_busy = threading.Event()
+
+    class BusyEdge(Edge):
+        def on_chunks(self, messages):
+            ticks.append(len(messages))
+            if len(ticks) == 1:
+                first_busy.wait(0.5)  # busy: the chunks behind this tick pile up against the bound
+            super().on_chunks(messages)
+
+    done, stop = threading.Event(), threading.Event()
+    with run_router() as endpoint, zenoh.open(zenoh_config("client", connect=[endpoint])) as edge_s, \
+            zenoh.open(zenoh_config("client", connect=[endpoint])) as veh_s:
+        edge = BusyEdge(NET, lambda key, p: edge_s.put(key, p), site)
+        sub = veh_s.declare_subscriber(keys.done_keyexpr(NET), lambda s: done.set())
+        server = threading.Thread(target=serve, args=(edge_s, edge, "edge-busy", stop), daemon=True)
+        server.start()
+        up = threading.Event()
+        watch = veh_s.liveliness().declare_subscriber(keys.alive_key(NET, "edge", "edge-busy"),
+                                                      lambda s: up.set(), history=True)
+        assert up.wait(60.0), "the edge never came up"
+        watch.undeclare()
+        for payload in stream:
+            veh_s.put(keys.imu_key(NET, vehicle), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        assert done.wait(120.0), "the pass never ended"
+        stop.set()
+        server.join(30.0)
+        sub.undeclare()
+    assert sum(ticks) == len(stream) and not edge.rejected  # every chunk, once
+    assert max(ticks) <= 8 < len(stream)  # never more than the bound waiting
+    assert len(ticks) > 1
