@@ -73,7 +73,7 @@ def in_shard(vehicle_id: str, shard: tuple[int, int]) -> bool:
     """Whether a vehicle belongs to shard ``(i, n)``: CRC-32 of its id modulo n (stable across
     processes and machines, unlike ``hash``)."""
     i, n = shard
-    return zlib.crc32(vehicle_id.encode()) % n == i
+    return n == 1 or zlib.crc32(vehicle_id.encode()) % n == i
 
 
 @dataclass
@@ -191,7 +191,9 @@ class Edge:
                 chunk, raw, trace = queues[vehicle].popleft()
                 if not queues[vehicle]:
                     del queues[vehicle]
-                task = self.tasks.setdefault(vehicle, VehicleTask(vehicle))
+                task = self.tasks.get(vehicle)
+                if task is None:
+                    task = self.tasks[vehicle] = VehicleTask(vehicle)
                 try:
                     if self._begin(task, chunk, raw):
                         ready.append((task, chunk, trace))
