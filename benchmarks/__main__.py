@@ -22,6 +22,7 @@ REGISTRY: dict[str, str] = {
     "crash": "benchmarks.crash",
     "soak": "benchmarks.soak",
     "rail": "benchmarks.rail",
+    "edge": "benchmarks.edge",
 }
 
 

@@ -52,6 +52,7 @@ import numpy as np
 from scipy.signal import welch
 
 from shared.dynamics.inverse import InverseModel, InverseStream
+from shared.jit import kernel
 
 from .drift import drift_trend
 
@@ -76,11 +77,31 @@ def fourth_differences(z: np.ndarray) -> np.ndarray:
     return np.diff(np.asarray(z, dtype=np.float64), n=4, axis=0)
 
 
+@kernel
+def median_abs_deviations(x):
+    """Each column's median absolute deviation from its median, of finite values (n ≥ 1, columns):
+    ``np.median(np.abs(x - np.median(x, axis=0)), axis=0)``, the same numbers (a median selects an
+    element, or averages the middle two as numpy does), without numpy's per-call overhead."""
+    n, c = x.shape
+    out = np.empty(c)
+    col = np.empty(n)
+    for j in range(c):
+        for i in range(n):
+            col[i] = x[i, j]
+        med = np.median(col)
+        for i in range(n):
+            col[i] = abs(x[i, j] - med)
+        out[j] = np.median(col)
+    return out
+
+
 def noise_sd_from_d4(d4: np.ndarray) -> np.ndarray:
     """Per channel white-noise sd from its fourth differences (n, channels): MAD-based, robust."""
     d4 = np.asarray(d4, dtype=np.float64)
-    med = np.median(d4, axis=0)
-    return _MAD * np.median(np.abs(d4 - med), axis=0) / math.sqrt(_D4_VAR)
+    if d4.shape[0] == 0 or not np.isfinite(d4).all():  # numpy's NaN rules
+        med = np.median(d4, axis=0)
+        return _MAD * np.median(np.abs(d4 - med), axis=0) / math.sqrt(_D4_VAR)
+    return _MAD * median_abs_deviations(d4) / math.sqrt(_D4_VAR)
 
 
 def channel_noise_sd(z: np.ndarray) -> np.ndarray:
@@ -142,6 +163,39 @@ def unit_spectra(model: InverseModel, speed_mps: float, spacing_m: float, drift_
     _CACHE[key] = out
     if len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
+    return out
+
+
+_UNIT_FITS: OrderedDict = OrderedDict()
+
+
+def unit_error_band(model: InverseModel, speed_mps: float, spacing_m: float, drift_points: int, axle: int,
+                    order: int = BAND_ORDER, longest_m: float = LONGEST_M) -> tuple[float, np.ndarray, float, float]:
+    """The fit of a one-channel vehicle's error model at unit channel variance, once per inverse,
+    speed bucket and axle: ``(sd, band, white, level)``, the fit's marginal sd and band
+    (:func:`fit_error_band` without a fill ceiling), the :func:`white_equivalent` of the band at
+    unit sd and the fill's long-wave level of the unit spectrum.
+
+    Why once: with one channel the spectrum is ``σ² S`` and the fit is scale-equivariant — the band
+    is the same for every σ and the sd scales with σ — as long as the fill's ceiling (the AP's own
+    white level) lies above ``σ² · level``; a segment whose ceiling binds is fitted on its own. The
+    results agree with a fit per segment up to rounding (the least squares solved at another scale).
+    """
+    v = speed_bucket(max(speed_mps, 0.5))
+    key = (_model_key(model), v, spacing_m, drift_points, axle, order, longest_m)
+    hit = _UNIT_FITS.get(key)
+    if hit is not None:
+        _UNIT_FITS.move_to_end(key)
+        return hit
+    omega, S = unit_spectra(model, speed_mps, spacing_m, drift_points)
+    unit = S[0, axle - 1]
+    long = _fit_grid(omega, spacing_m, longest_m)[2]
+    level = float(np.mean(unit[long])) if long.any() else 0.0
+    sd, band = fit_error_band(omega, unit, spacing_m, order, longest_m)
+    out = (sd, band, white_equivalent(1.0, band), level)
+    _UNIT_FITS[key] = out
+    if len(_UNIT_FITS) > _CACHE_SIZE:
+        _UNIT_FITS.popitem(last=False)
     return out
 
 

@@ -18,8 +18,8 @@ from shared.vehicles import RAIL_MODELS
 
 from .chainage import ChainageTracker
 from .drift import drift_trend
-from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, fourth_differences,
-                          noise_sd_from_d4, unit_spectra, white_equivalent)
+from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, median_abs_deviations,
+                          noise_sd_from_d4, unit_error_band, unit_spectra, white_equivalent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,12 +212,129 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
     return index.size
 
 
+@kernel
+def _fourth_differences_into(tail, z, out, at):
+    """``np.diff(concatenate([tail, z]), 4, axis=0)`` (its operations, so its bits) written to
+    ``out[at:]``; returns the rows written."""
+    m = tail.shape[0] + z.shape[0]
+    if m < 5:
+        return 0
+    c = z.shape[1]
+    a = np.empty((m, c))
+    a[: tail.shape[0]] = tail
+    a[tail.shape[0] :] = z
+    for order in range(4):
+        for i in range(m - order - 1):
+            for j in range(c):
+                a[i, j] = a[i + 1, j] - a[i, j]
+    out[at : at + m - 4] = a[: m - 4]
+    return m - 4
+
+
+class _Rows:
+    """Rows appended at the end and dropped from the start, in amortised O(rows): a buffer of
+    doubling capacity, compacted when the dropped part would otherwise be copied past."""
+
+    def __init__(self, width: int) -> None:
+        self.data = np.zeros((1024, width))
+        self.t = np.zeros(1024)
+        self.lo = self.hi = 0
+
+    def reserve(self, rows: int) -> None:
+        """Room for ``rows`` more at the end."""
+        n = self.hi - self.lo
+        if self.hi + rows <= self.t.size:
+            return
+        cap = max(self.t.size, 2 * (n + rows))
+        data, t = np.zeros((cap, self.data.shape[1])), np.zeros(cap)
+        data[:n], t[:n] = self.data[self.lo : self.hi], self.t[self.lo : self.hi]
+        self.data, self.t, self.lo, self.hi = data, t, 0, n
+
+
+# AxleGrid's scalar state, one int64 array the kernels update in place.
+_HAS_BASE, _BASE, _SIZE, _DONE, _N_SEEN, _S_LO, _S_HI, _S0, _HAS_LAST = range(9)
+
+
+@kernel
+def _grid_filter(st, values, smooth, valid, speed, index, sap, srel, dt, min_speed, final):
+    """Anti-alias the points whose window the samples cover (all, if ``final``); drop the samples
+    no pending point can reach: its window is at most ± the kernel's half-width at min_speed
+    (slower points are not filtered)."""
+    n = st[_SIZE]
+    lo, hi = st[_S_LO], st[_S_HI]
+    done = _antialias(sap[lo:hi], srel[lo:hi], st[_S0], index[:n], speed[:n], values[:n], smooth[:n], valid[:n],
+                      st[_DONE], dt, min_speed, final)
+    st[_DONE] = done
+    horizon = index[done] if done < n else float(st[_N_SEEN])
+    keep = int(math.floor(horizon - _AA_HALF_WIDTH_M / (min_speed * dt))) - 1 - st[_S0]
+    if keep > 0:
+        st[_S_LO] += keep
+        st[_S0] += keep
+
+
+@kernel
+def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid, smooth, speed, index, sap, srel,
+              antialias, dt, min_speed):
+    """:meth:`AxleGrid.add` in one call. Returns ``(points, samples)``: (0, 0) once done, else the
+    capacities the grid's point and sample arrays need first (nothing has changed then)."""
+    n_new = x.size
+    carried = st[_HAS_LAST] == 1
+    m = n_new + (1 if carried else 0)
+    xx, aa, tt, rr = np.empty(m), np.empty(m), np.empty(m), np.empty(m, dtype=np.bool_)
+    k0 = 0
+    if carried:  # the previous chunk's last sample: the interval up to this chunk's first
+        xx[0], aa[0], tt[0], rr[0] = last[0], last[1], last[2], last[3] != 0.0
+        k0 = 1
+    for i in range(n_new):
+        xx[k0 + i], aa[k0 + i], tt[k0 + i], rr[k0 + i] = x[i], ap[i], t[i], rel[i]
+    # the grid points these samples pass, and the room they need
+    first, stop, a = 0, 0, 0
+    if m >= 2:
+        filled_end = (st[_BASE] if st[_HAS_BASE] else 0) + st[_SIZE]
+        if st[_HAS_BASE]:
+            first = max(max(int(math.floor(xx[0] / spacing)) + 1, min_index), filled_end)
+        else:
+            first = max(int(math.ceil(xx[0] / spacing)), min_index)
+            filled_end = first
+        stop = int(math.floor(xx[m - 1] / spacing)) + 1
+        if stop > first:
+            a = st[_SIZE] + first - filled_end  # skipped grid points (e.g. a stop) stay invalid
+    need_points = a + stop - first if stop > first else 0
+    need_samples = st[_S_HI] + n_new if antialias else 0
+    if need_points > values.size or need_samples > sap.size:
+        return need_points, need_samples
+    if antialias:
+        for i in range(n_new):
+            sap[st[_S_HI] + i] = ap[i]
+            srel[st[_S_HI] + i] = rel[i]
+        st[_S_HI] += n_new
+    if m > 0:
+        last[0], last[1], last[2], last[3] = xx[m - 1], aa[m - 1], tt[m - 1], 1.0 if rr[m - 1] else 0.0
+        st[_HAS_LAST] = 1
+    if m >= 2 and stop > first:
+        if not st[_HAS_BASE]:
+            st[_HAS_BASE], st[_BASE] = 1, first
+        b = a + stop - first
+        st[_SIZE] = b
+        _to_grid(xx, aa, tt, rr, first, spacing, values[a:b], times[a:b], valid[a:b])
+        if antialias:  # xx[0] is sample n_seen (this chunk's first) or, carried over, the one before it
+            _grid_positions(xx, st[_N_SEEN] - k0, first, spacing, index[a:b], speed[a:b], dt)
+    st[_N_SEEN] += n_new
+    if antialias:
+        _grid_filter(st, values, smooth, valid, speed, index, sap, srel, dt, min_speed, False)
+    else:
+        st[_DONE] = st[_SIZE]
+    return 0, 0
+
+
 class AxleGrid:
     """The AP of one axle on the global grid, growing as the pass advances.
 
     The grid lives in arrays of doubling capacity, so appending a chunk's points costs amortised
     O(points) (appending by concatenation would copy the whole pass every chunk: O(n²) over a long
-    pass). ``values``, ``valid`` and ``t`` are views of the part that is final.
+    pass). ``values``, ``valid`` and ``t`` are views of the part that is final. A chunk is added in
+    one compiled call (:func:`_grid_add`): the per-chunk work is a few dozen samples, so the calls
+    around it would otherwise cost more than the work.
 
     Without anti-alias a point is final once interpolated. With it (``min_speed`` given), a point
     is final once the samples reach past its filter window (~0.36 m ahead), or at ``flush()``; the
@@ -225,23 +342,40 @@ class AxleGrid:
     """
 
     def __init__(self, antialias: bool = False, dt: float = 0.0, min_speed: float = 0.5) -> None:
-        self.base: int | None = None  # grid index of values[0]
-        self.size = 0  # points interpolated
-        self.done = 0  # points final (== size without anti-alias)
-        self._values = np.zeros(0)  # linear interpolation
-        self._valid = np.zeros(0, dtype=bool)
-        self._t = np.zeros(0)
-        self._last: tuple[float, float, float, bool] | None = None  # (chainage, ap, t, reliable)
         self.antialias = antialias
         if antialias and not (dt > 0 and min_speed > 0):
             raise ValueError("AxleGrid: anti-alias needs the sample interval dt and min_speed > 0")
         self._dt, self._min_speed = dt, min_speed
+        self._st = np.zeros(9, dtype=np.int64)
+        self._last = np.zeros(4)  # the last sample (chainage, ap, t, reliable) for the next chunk's interval
+        self._values = np.zeros(0)  # linear interpolation
+        self._valid = np.zeros(0, dtype=bool)
+        self._t = np.zeros(0)
         self._smooth = np.zeros(0)  # anti-aliased values
         self._speed = np.zeros(0)  # chainage speed at each point (m/s; 0 in gaps)
         self._index = np.zeros(0)  # fractional sample number of each point
-        self._sap, self._srel = np.zeros(0), np.zeros(0, dtype=bool)  # the samples kept …
-        self._s0 = 0  # … from this sample number on
-        self._n_seen = 0  # samples added
+        self._samples = np.zeros(0)  # the samples kept (from sample number _S0 on, at _S_LO … _S_HI)
+        self._sreliable = np.zeros(0, dtype=bool)
+
+    @property
+    def base(self) -> int | None:
+        """Grid index of the first point (None before any)."""
+        return int(self._st[_BASE]) if self._st[_HAS_BASE] else None
+
+    @property
+    def size(self) -> int:
+        """Points interpolated."""
+        return int(self._st[_SIZE])
+
+    @property
+    def done(self) -> int:
+        """Points final (== size without anti-alias)."""
+        return int(self._st[_DONE])
+
+    @property
+    def _sap(self) -> np.ndarray:
+        """The samples kept."""
+        return self._samples[self._st[_S_LO] : self._st[_S_HI]]
 
     @property
     def values(self) -> np.ndarray:
@@ -263,82 +397,50 @@ class AxleGrid:
     @property
     def end(self) -> int:
         """One past the last final grid index."""
-        return (self.base or 0) + self.done
+        st = self._st
+        return int((st[_BASE] if st[_HAS_BASE] else 0) + st[_DONE])
 
     def add(self, x: np.ndarray, ap: np.ndarray, t: np.ndarray, reliable: np.ndarray, spacing: float,
             min_index: int = 0) -> None:
         """Interpolate samples (chainage ``x`` increasing) onto the grid points they pass, from grid
         index ``min_index`` on (0: nothing before the route's start)."""
-        if self.antialias and x.size:
-            self._sap = np.concatenate([self._sap, ap])
-            self._srel = np.concatenate([self._srel, reliable])
-        self._interpolate(x, ap, t, reliable, spacing, min_index)
-        self._n_seen += x.size
-        if self.antialias:
-            self._filter(final=False)
-        else:
-            self.done = self.size
+        while True:
+            points, samples = _grid_add(x, ap, t, reliable, spacing, min_index, self._st, self._last, self._values,
+                                        self._t, self._valid, self._smooth, self._speed, self._index, self._samples,
+                                        self._sreliable, self.antialias, self._dt, self._min_speed)
+            if points == 0 and samples == 0:
+                return
+            self._reserve(points)
+            self._reserve_samples(samples)
 
     def flush(self) -> None:
         """The pass has ended: make every point final (those whose window the end cuts are invalid)."""
         if self.antialias:
-            self._filter(final=True)
+            _grid_filter(self._st, self._values, self._smooth, self._valid, self._speed, self._index, self._samples,
+                         self._sreliable, self._dt, self._min_speed, True)
 
-    def _interpolate(self, x, ap, t, reliable, spacing, min_index) -> None:
-        carried = self._last is not None
-        if carried:
-            x = np.concatenate([[self._last[0]], x])
-            ap = np.concatenate([[self._last[1]], ap])
-            t = np.concatenate([[self._last[2]], t])
-            reliable = np.concatenate([[self._last[3]], reliable])
-        if x.size == 0:
-            return
-        self._last = (float(x[-1]), float(ap[-1]), float(t[-1]), bool(reliable[-1]))
-        if x.size < 2:
-            return
-        filled_end = (self.base or 0) + self.size
-        first = max(int(math.floor(x[0] / spacing)) + 1, min_index) if self.base is not None else max(
-            int(math.ceil(x[0] / spacing)), min_index)
-        if self.base is not None:
-            first = max(first, filled_end)
-        last = int(math.floor(x[-1] / spacing))
-        if last < first:
-            return
-        if self.base is None:
-            self.base = first
-            filled_end = first
-        gap = first - filled_end  # skipped grid points (e.g. a stop) stay invalid
-        a = self.size + gap
-        b = self._reserve(a + last + 1 - first)
-        _to_grid(x, ap, t, reliable, first, spacing, self._values[a:b], self._t[a:b], self._valid[a:b])
-        if self.antialias:
-            # x[0] is sample n_seen (this chunk's first) or, carried over, the one before it
-            _grid_positions(x, self._n_seen - (1 if carried else 0), first, spacing, self._index[a:b],
-                            self._speed[a:b], self._dt)
-
-    def _filter(self, final: bool) -> None:
-        n = self.size
-        self.done = _antialias(self._sap, self._srel, self._s0, self._index[:n], self._speed[:n], self._values[:n],
-                               self._smooth[:n], self._valid[:n], self.done, self._dt, self._min_speed, final)
-        # Drop the samples no pending point can reach: its window is at most ± the kernel's
-        # half-width at min_speed (slower points are not filtered).
-        horizon = self._index[self.done] if self.done < n else float(self._n_seen)
-        keep = int(math.floor(horizon - _AA_HALF_WIDTH_M / (self._min_speed * self._dt))) - 1 - self._s0
-        if keep > 0:
-            self._sap, self._srel = self._sap[keep:], self._srel[keep:]
-            self._s0 += keep
-
-    def _reserve(self, size: int) -> int:
-        """Grow the capacity to at least ``size`` points (new points are 0, invalid); set the size."""
+    def _reserve(self, size: int) -> None:
+        """Capacity for at least ``size`` points (new points are 0, invalid)."""
         if size > self._values.size:
             cap = max(size, 2 * self._values.size, 1024)
+            n = self.size
             for name in ("_values", "_valid", "_t", "_smooth", "_speed", "_index"):
                 old = getattr(self, name)
                 new = np.zeros(cap, dtype=old.dtype)
-                new[: self.size] = old[: self.size]
+                new[:n] = old[:n]
                 setattr(self, name, new)
-        self.size = size
-        return size
+
+    def _reserve_samples(self, size: int) -> None:
+        """Room for the kept samples to reach ``size`` (counted from the buffer's start): the kept ones
+        are moved to the start, into a larger buffer if need be."""
+        if size > self._samples.size:
+            st = self._st
+            lo, hi = int(st[_S_LO]), int(st[_S_HI])
+            cap = max(2 * (hi - lo + size - hi), 1024)
+            samples, reliable = np.zeros(cap), np.zeros(cap, dtype=bool)
+            samples[: hi - lo], reliable[: hi - lo] = self._samples[lo:hi], self._sreliable[lo:hi]
+            self._samples, self._sreliable = samples, reliable
+            st[_S_LO], st[_S_HI] = 0, hi - lo
 
 
 def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
@@ -347,7 +449,8 @@ def ap_sigma(values: np.ndarray, valid: np.ndarray) -> float:
     if v.size < 5:
         return 1e-3
     d2 = np.diff(v, 2)
-    return float(max(1.4826 * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0), 1e-7))
+    mad = median_abs_deviations(d2[:, None])[0] if np.isfinite(d2).all() else np.median(np.abs(d2 - np.median(d2)))
+    return float(max(1.4826 * mad / math.sqrt(6.0), 1e-7))
 
 
 
@@ -373,6 +476,7 @@ class PassProcessor:
             self.min_index = -int(math.ceil(behind / config.spacing_m)) - 1
         self.config = config
         self.inverse = InverseStream(model)
+        self._hard_warmup = min(self.inverse.reliable_from, int(math.ceil(self.config.hard_warmup_s / model.constants.dt)))
         self.tracker = ChainageTracker(model.constants.dt)
         # (points slower than min_speed are not filtered; the floor bounds the samples a grid keeps)
         self.grids = [AxleGrid(config.antialias, model.constants.dt, max(config.min_speed_mps, 0.1))
@@ -382,6 +486,7 @@ class PassProcessor:
         self.seq = 0
         self.n_samples = 0
         self.speeds: list[float] = []
+        self._speed_mean = (0, 0.0)  # (chunks, their mean speed) last computed
         self.finished = False
         # Time from which the inverse has forgotten its initial state; earlier points are sent
         # down-weighted (see EdgeConfig.hard_warmup_s). -inf: no such points.
@@ -391,25 +496,34 @@ class PassProcessor:
         # Rail vehicles keep the white sigma: their cloud re-runs the dynamics itself.
         self.error_model = self.config.error_model and model_name not in RAIL_MODELS
         self._z_tail = np.zeros((0, len(self.channel_names)))
-        self._d4 = np.zeros((0, len(self.channel_names)))
-        self._d4_t = np.zeros(0)
+        self._d4 = _Rows(len(self.channel_names))
+        self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
+        z = self.channels_of(chunk)
+        return self.feed_ap(chunk, z, self.inverse.update(z) if chunk.n else None)
+
+    def channels_of(self, chunk: SensorChunk) -> np.ndarray:
+        """The chunk's channels as the inverse takes them: (samples, channels) in the model's order."""
         names = self.channel_names
         missing = [n for n in names if n not in chunk.channels]
         if missing:
             raise ValueError(f"chunk lacks channel(s) {', '.join(missing)} for model {chunk.vehicle_model}")
+        z = np.empty((chunk.n, len(names)))
+        for j, name in enumerate(names):
+            z[:, j] = chunk.channels[name]
+        return z
+
+    def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
+        """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
+        chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
         if chunk.n:
-            z = np.empty((chunk.n, len(names)))
-            for j, name in enumerate(names):
-                z[:, j] = chunk.channels[name]
-            ap = self.inverse.update(z)
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
             t = chunk.t
             if self.error_model:
                 self._add_differences(z, t)
             reliable = chunk.speed >= self.config.min_speed_mps  # moving
-            hard = min(self.inverse.reliable_from, int(math.ceil(self.config.hard_warmup_s / self.model.constants.dt)))
+            hard = self._hard_warmup
             warmup = hard - self.n_samples  # samples of this chunk still warming up
             if warmup > 0:
                 reliable[:warmup] = False
@@ -419,7 +533,7 @@ class PassProcessor:
             for i, grid in enumerate(self.grids):
                 grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m, self.min_index)
             self.n_samples += chunk.n
-            self.speeds.append(float(np.mean(chunk.speed)))
+            self.speeds.append(float(np.add.reduce(chunk.speed)) / chunk.n)  # np.mean's sum and division
         return self._emit(final=False)
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
@@ -432,16 +546,25 @@ class PassProcessor:
                         vehicle_model=self.model_name, sample_interval_s=self.model.constants.dt)
         return segments, done
 
+    def _mean_speed(self) -> float:
+        """The mean of the chunks' mean speeds so far (m/s; computed once per chunk count)."""
+        if self._speed_mean[0] != len(self.speeds):
+            self._speed_mean = (len(self.speeds), float(np.mean(self.speeds)) if self.speeds else 0.0)
+        return self._speed_mean[1]
+
     def _add_differences(self, z: np.ndarray, t: np.ndarray) -> None:
-        zz = np.concatenate([self._z_tail, z])
-        if zz.shape[0] >= 5:
-            d4 = fourth_differences(zz)
-            self._d4 = np.concatenate([self._d4, d4])
-            self._d4_t = np.concatenate([self._d4_t, t[t.size - d4.shape[0]:]])
-        self._z_tail = zz[-4:]
+        d4 = self._d4
+        d4.reserve(z.shape[0])
+        k = _fourth_differences_into(self._z_tail, z, d4.data, d4.hi)
+        d4.t[d4.hi : d4.hi + k] = t[t.size - k :]
+        d4.hi += k
+        self._z_tail = np.concatenate([self._z_tail, z])[-4:] if z.shape[0] < 4 else z[-4:]
 
     def _trim_differences(self) -> None:
-        """Drop the differences older than any segment still to come needs."""
+        """Drop the differences older than any segment still to come needs (once per next tile:
+        the start times it depends on are final)."""
+        if self._trimmed_for == self.next_tile:
+            return
         P = self.config.tile_points
         starts = []
         for g in self.grids:
@@ -451,20 +574,29 @@ class PassProcessor:
             if not 0 <= k < g.done:
                 return
             starts.append(g.t[k])
-        cut = int(np.searchsorted(self._d4_t, min(starts)))
-        if cut > 0:
-            self._d4, self._d4_t = self._d4[cut:], self._d4_t[cut:]
+        d4 = self._d4
+        d4.lo += int(np.searchsorted(d4.t[d4.lo : d4.hi], min(starts)))
+        self._trimmed_for = self.next_tile
 
     def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
         """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
         (edge.error_model), or None when there is too little to measure the noise from."""
-        lo, hi = np.searchsorted(self._d4_t, [t0, t1], side="left")
+        d4 = self._d4
+        lo, hi = np.searchsorted(d4.t[d4.lo : d4.hi], [t0, t1], side="left") + d4.lo
         if hi - lo < 64 or not t1 > t0:
             return None
-        sd = noise_sd_from_d4(self._d4[lo:hi])
+        sd = noise_sd_from_d4(d4.data[lo:hi])
         if not (np.all(np.isfinite(sd)) and np.any(sd > 0)):
             return None
         speed = (n_points - 1) * self.config.spacing_m / (t1 - t0)  # the segment's own chainage speed
+        cfg = self.config
+        if sd.size == 1 and sd[0] > 0:  # one channel: the unit fit, scaled (see unit_error_band)
+            sd1, band, white1, level = unit_error_band(self.model, speed, cfg.spacing_m, cfg.drift_points, axle,
+                                                       cfg.error_band_order, cfg.error_longest_m)
+            if sd[0] ** 2 * level <= sigma_white**2:
+                sd_m = float(sd[0]) * sd1
+                sd_m *= max(1.0, sigma_white / (sd_m * white1))  # as below
+                return encode_error_model(sd_m, band, sigma_white)
         omega, S = unit_spectra(self.model, speed, self.config.spacing_m, self.config.drift_points)
         spectrum = np.tensordot(sd * sd, S[:, axle - 1], axes=1)
         if not np.any(spectrum > 0):
@@ -538,7 +670,7 @@ class PassProcessor:
             out.append(ApSegment.make(
                 seg_vals, sigma, vehicle_id=self.vehicle_id, pass_id=self.pass_id, route_id=self.route_id,
                 tile=tile, axle=axle, start_index=a + int(first), spacing_m=self.config.spacing_m,
-                calib_version=self.calib_version, speed_mps=float(np.mean(self.speeds)) if self.speeds else 0.0,
+                calib_version=self.calib_version, speed_mps=self._mean_speed(),
                 t_first=float(t_seg[0]), t_last=float(t_seg[-1]), seq=self.seq, flags=flags,
                 error_model=error_model,
             ))

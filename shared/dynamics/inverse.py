@@ -709,3 +709,51 @@ class _BankGroup:
 
     def run(self, z: np.ndarray, y: np.ndarray) -> None:
         _run_blocks_bank(self.Ad, self.A2, self.A1, self.B, self.C, self.D, self.s, z, y)
+
+
+def update_streams(streams: list[InverseStream], z: np.ndarray) -> np.ndarray:
+    """One chunk of each of many :class:`InverseStream` in one compiled call per block structure:
+    ``z`` (n_samples, n_channels, n_streams) → AP (n_samples, n_contacts, n_streams), and each
+    stream's state advanced, exactly as ``streams[s].update(z[:, :, s])`` each (bit for bit: the
+    bank kernel does the single stream's operations in the same order). The streams must share a
+    vehicle model (channels and contacts); members may change from call to call (an edge's fleet
+    whose passes start and end), so the matrices are gathered per call.
+    """
+    z = np.ascontiguousarray(z, dtype=np.float64)
+    if not streams:
+        raise ValueError("update_streams: needs at least one stream")
+    system = streams[0].model.system
+    n_in, n_out = len(system.channels), system.n_contacts
+    if z.ndim != 3 or z.shape[1] != n_in or z.shape[2] != len(streams):
+        raise ValueError(f"expected (n_samples, {n_in}, {len(streams)}), got {z.shape}")
+    if any(len(s.model.system.channels) != n_in or s.model.system.n_contacts != n_out for s in streams):
+        raise ValueError("update_streams: all streams must share one vehicle model")
+    out = np.empty((z.shape[0], n_out, z.shape[2]))
+    if z.shape[0] == 0:
+        return out
+    started = []
+    for q, s in enumerate(streams):
+        if s.n_seen == 0:  # a stream's first chunk sets its initial state: run alone, as it would
+            out[:, :, q] = s.update(z[:, :, q])
+        else:
+            started.append(q)
+    groups: dict[tuple, list[int]] = {}
+    for q in started:
+        r = streams[q]._real
+        groups.setdefault((r.form, r.structure), []).append(q)
+    for idx in groups.values():
+        reals = [streams[q]._real for q in idx]
+
+        def stack(name):
+            return np.ascontiguousarray(np.stack([getattr(r, name) for r in reals], axis=-1))
+
+        w = np.ascontiguousarray(np.stack([streams[q]._s for q in idx], axis=-1))
+        zz = z if len(idx) == len(streams) else np.ascontiguousarray(z[:, :, idx])
+        y = out if len(idx) == len(streams) else np.empty((z.shape[0], n_out, len(idx)))
+        _run_blocks_bank(stack("Ad"), stack("A2"), stack("A1"), stack("B"), stack("C"), stack("D"), w, zz, y)
+        if y is not out:
+            out[:, :, idx] = y
+        for j, q in enumerate(idx):
+            streams[q]._s = w[:, j].copy()
+            streams[q].n_seen += z.shape[0]
+    return out
