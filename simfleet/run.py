@@ -245,8 +245,10 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
         # Without ``state`` a run starts from nothing: state left by an earlier run into this
         # directory is not this run's. The edge's spool is the run's alone either way: every pass it
         # held was acknowledged before the earlier run ended.
+        kept = None if state is None else Path(state).resolve()
         for stale in work.glob("*-state"):
-            shutil.rmtree(stale, ignore_errors=True)
+            if kept is None or not kept.is_relative_to(stale.resolve()):  # never the state asked for
+                shutil.rmtree(stale, ignore_errors=True)
         shutil.rmtree(work / "edge-spool", ignore_errors=True)
         state_dirs = _state_dirs(state, work, cloud_ids)
         clouds = []
