@@ -198,7 +198,7 @@ def test_a_carriage_off_its_class_lengths_calibrates_before_the_bridge(prior_bat
 def test_a_carriage_off_its_class_lengths_reads_the_bridge(prior_batches):
     """The 13 % loss read as the daemon reads it (every run registered, the healthy line pooled over
     both batches), and one batch's stiffness interval holding the truth. Measured (seed 3): D1/D2
-    42.0/57.8 %; stiffness 7.5 [0.41, 140] (true 1.01): the line's area is near zero."""
+    20.6/21.5 %; stiffness 1.61 [0.25, 10.3] (true 1.01)."""
     ((runs, fit, cls, bridge), truth), ((d_runs, d_fit, _, _), _) = prior_batches
     span = (bridge.start_chainage_m, bridge.span_m)
     h_aps = registered_runs(run_aps(runs, fit, cls.mean, "carriage"), *span)

@@ -706,6 +706,16 @@ def calibrate_batch(
         # against a chainage error anyway. The last holds them where the middle one left them
         # (centimetres): at 2 m the linear interpolation's kinks make the misfit rough in a shift
         # below a centimetre, and Gauss–Newton's shift steps are rejected over and over.
+        # The wheelbase is held in the first stage where the wheels' agreement put it
+        # (:func:`_wheelbase_from_wheels`): waves longer than the stage's shortest are long against
+        # it (2·Lb), so the stage hardly sees it, and with the other globals still at the class means
+        # the wheelbase takes up their misfit — a large batch's data outweigh its class prior and
+        # walk it out of its basin.
+        i_lb = L * n + n_i + LENGTH_FIT.index("Lb")
+        if fit_lengths and not last:
+            held_lb = i_stage == 0
+            P[i_lb] = 1.0 / (REST_SD if held_lb else s_g[n_i + LENGTH_FIT.index("Lb")]) ** 2
+            mu[i_lb] = x[i_lb] if held_lb else mu_g[n_i + LENGTH_FIT.index("Lb")]
         hold_shift = len(stages_m) > 1 and (i_stage == 0 or (last and len(stages_m) > 2))
         P[_I_SHIFT: L * n: L] = 1.0 / np.where(hold_shift | shift_held, REST_SD, position_sd_m) ** 2
         mu[_I_SHIFT: L * n: L] = x[_I_SHIFT: L * n: L] if hold_shift else 0.0
