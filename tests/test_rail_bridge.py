@@ -190,11 +190,11 @@ def test_a_carriage_off_its_class_lengths_calibrates_before_the_bridge(prior_bat
     assert max(abs(fit.globals_[k] / car[k] - 1) for k in ("mb", "Ib", "kp", "cp", "ks", "cs")) < 0.05
 
 
-@pytest.mark.xfail(strict=True, reason="open: the quick batches' 24 m calibration window does not identify each "
-                   "run's mass once the lengths and globals are free (per-run mv as far off as the class's spread), and "
-                   "the load regression's lever is that spread. The span's placement is not the cause: with the true "
-                   "speed scale put in it reads the same; with the true masses it reads within the bound. The 28-run "
-                   "batches of the full world read within a point")
+@pytest.mark.xfail(strict=True, reason="open: the load regression's lever is the runs' mass spread, and the per-run "
+                   "masses' errors from the quick batches' 24 m calibration window (lengths and globals free) are not "
+                   "small against it: with the true masses put in it reads within the bound. The span's placement is "
+                   "not the cause: with the true speed scale put in it reads the same. The 28-run batches of the full "
+                   "world read within a point")
 def test_a_carriage_off_its_class_lengths_reads_the_bridge(prior_batches):
     """The 13 % loss read as the daemon reads it (every run registered, the healthy line pooled over
     both batches), and one batch's stiffness interval holding the truth. Measured (seed 3): D1/D2
