@@ -700,12 +700,6 @@ def calibrate_batch(
                                                             mu_g[n_i:], speed_rel_sd, s_g[n_i:])
             mu[lengths_at] = x[lengths_at]
             P[lengths_at] = 1.0 / REST_SD**2
-        # The records' chainage shifts are fitted in the middle stages only. The first holds them
-        # where the logs put them: with the run properties still at the class means its shifts take
-        # up misfit (decimetre steps on exact chainages) and cost iterations, and its waves are long
-        # against a chainage error anyway. The last holds them where the middle one left them
-        # (centimetres): at 2 m the linear interpolation's kinks make the misfit rough in a shift
-        # below a centimetre, and Gauss–Newton's shift steps are rejected over and over.
         # The wheelbase is held in the first stage where the wheels' agreement put it
         # (:func:`_wheelbase_from_wheels`): waves longer than the stage's shortest are long against
         # it (2·Lb), so the stage hardly sees it, and with the other globals still at the class means
@@ -716,6 +710,12 @@ def calibrate_batch(
             held_lb = i_stage == 0
             P[i_lb] = 1.0 / (REST_SD if held_lb else s_g[n_i + LENGTH_FIT.index("Lb")]) ** 2
             mu[i_lb] = x[i_lb] if held_lb else mu_g[n_i + LENGTH_FIT.index("Lb")]
+        # The records' chainage shifts are fitted in the middle stages only. The first holds them
+        # where the logs put them: with the run properties still at the class means its shifts take
+        # up misfit (decimetre steps on exact chainages) and cost iterations, and its waves are long
+        # against a chainage error anyway. The last holds them where the middle one left them
+        # (centimetres): at 2 m the linear interpolation's kinks make the misfit rough in a shift
+        # below a centimetre, and Gauss–Newton's shift steps are rejected over and over.
         hold_shift = len(stages_m) > 1 and (i_stage == 0 or (last and len(stages_m) > 2))
         P[_I_SHIFT: L * n: L] = 1.0 / np.where(hold_shift | shift_held, REST_SD, position_sd_m) ** 2
         mu[_I_SHIFT: L * n: L] = x[_I_SHIFT: L * n: L] if hold_shift else 0.0
