@@ -16,6 +16,7 @@ from cloud.road.mean_profile import ProfileSnapshot
 from shared.track import RailIrregularity
 from shared.track_quality import d1_longitudinal_level, isolated_defects, segment_quality
 from simfleet.reproduce_rail import load_runs
+from simfleet.reproduce_rail_track import diagnose
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
 
@@ -107,7 +108,7 @@ def prior_batch(tmp_path_factory):
     generate(dataclasses.replace(SCENARIOS["rail-track-prior"], route_length_m=PRIOR_ROUTE_M), d, seed=1,
              passes=PRIOR_RUNS, workers=2, progress=False)
     runs, cls, _ = load_runs(d)
-    return json.loads((d / "truth.json").read_text()), calibrate_batch(runs, cls.mean, cls.std)
+    return json.loads((d / "truth.json").read_text()), calibrate_batch(runs, cls.mean, cls.std), d
 
 
 def test_fleet_d1_is_the_tracks_once_the_speed_scale_is_the_trues(prior_batch):
@@ -117,7 +118,7 @@ def test_fleet_d1_is_the_tracks_once_the_speed_scale_is_the_trues(prior_batch):
     (read from the truth: a diagnosis, not something the cloud can do) the same consensus is the
     track's D1 within the issue's 10 %, and its sd, the EN 13848 quality figure, which a stretch of
     a few per mille hardly moves, within 5 % as it stands."""
-    truth, fit = prior_batch
+    truth, fit, _ = prior_batch
     true_v = {p["pass_id"]: p["v"] for p in truth["passes"]}
     scale = float(np.mean([math.log(r.mean["v"] / true_v[r.pass_id]) for r in fit.runs]))
     # A record starts with the body at chainage 0 (the logs' too), so the calibrated chainage of a
@@ -130,3 +131,20 @@ def test_fleet_d1_is_the_tracks_once_the_speed_scale_is_the_trues(prior_batch):
     # The frame is what the error is: a scale off by several per mille costs several times the
     # rescaled error (seed 1's eight GNSS speeds average out to several per mille).
     assert abs(scale) > 0.002 and as_is > 2 * rescaled
+
+
+def test_the_diagnosis_separates_the_frame_from_the_estimate(prior_batch):
+    """``python -m simfleet.reproduce_rail_track`` on the same batch: the fleet mean keyed as the
+    cloud keys it carries the speed scale's stretch; with the true common scale, or every run's true
+    speed, it is the track's D1 as closely as with the carriage's true parameters too, and the
+    best single stretch it finds is the batch's scale error."""
+    truth, fit, d = prior_batch
+    (row,) = diagnose(d, [PRIOR_RUNS])
+    print(json.dumps(row))
+    floor = row["true parameters, true speeds"]["d1_error_pct"]
+    assert floor <= 10.0
+    for case in ("calibrated, common speed scale true", "calibrated parameters, true speeds"):
+        assert row[case]["d1_error_pct"] <= 10.0 and row[case]["d1_error_pct"] <= floor + 2.0
+    assert row["calibrated"]["d1_error_pct"] > 2 * row["calibrated, common speed scale true"]["d1_error_pct"]
+    # the stretch that maps the batch's chainage onto the true one undoes its speed scale (grid step 0.05 %)
+    assert row["calibrated"]["stretch_pct"] == pytest.approx(-row["speed_scale_error_pct"], abs=0.1)
