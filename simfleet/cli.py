@@ -106,6 +106,10 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--secure", nargs="?", const=True, default=False, metavar="DIR",
                    help="TLS with mutual authentication and access control: certificates made into the export's "
                         ".run/security, or those of security directory DIR (needed with --connect)")
+    p.add_argument("--state", type=Path, metavar="DIR",
+                   help="keep the cloud's durable state (journal + snapshots, as driveby cloud --state) in DIR: "
+                        "a later run with the same DIR continues from it (its passes, calibration, a rail "
+                        "bridge's healthy baseline); default: a fresh state per run")
 
 
 def _cmd_run(args) -> int:
@@ -114,7 +118,7 @@ def _cmd_run(args) -> int:
     try:
         res = run(Path(args.logs), Path(args.site), Path(args.export), Path(args.rrd) if args.rrd else None,
                   args.calibration, args.connect, args.net, args.viewer, rate=args.rate, align=args.align,
-                  shards=args.shards, secure=args.secure)
+                  shards=args.shards, secure=args.secure, state=args.state)
     except RunError as e:
         print(f"driveby run: {e}", file=sys.stderr)
         return 1

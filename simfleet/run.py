@@ -201,7 +201,7 @@ def _tls_args(sec: SecurityDir | None, name: str) -> list[str]:
 def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = None, calibration: str = "fleet",
         connect: str | None = None, net: str = "net", viewer: bool = False, progress: bool | None = None,
         rate: float | None = None, align: bool = True, shards: int = 1,
-        secure: bool | str | Path = False, cloud_args: tuple[str, ...] = ()) -> RunResult:
+        secure: bool | str | Path = False, cloud_args: tuple[str, ...] = (), state: Path | None = None) -> RunResult:
     """Replay ``logs_dir`` through edge and cloud daemons; ``shards`` > 1 splits the routes among that
     many cloud daemons behind two routers (as on separate machines) and merges their exports.
 
@@ -210,6 +210,10 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
     their own identity. ``True`` makes the certificates (see :func:`_security_dir`); a path names a
     security directory to use (required with ``connect``: the router's CA must sign them).
     ``cloud_args``: further options of every cloud daemon (``driveby cloud --help``).
+    ``state``: the clouds' durable state (``driveby cloud --state``) is kept there instead of in the
+    export's ``.run``, and not cleared at the start: a run with the same ``state`` continues from what
+    the earlier one left (its passes, calibration, a rail bridge's healthy baseline), and its export
+    covers both. One cloud keeps it in ``state`` itself; shards each in ``state/<cloud id>``.
     """
     t0 = time.monotonic()
     site, logs = load_inputs(Path(logs_dir), Path(site_path))
@@ -238,14 +242,19 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
             if shards > 1:  # a second router joined to the first: shard traffic crosses routers, as between machines
                 endpoints.append(router(2, endpoints[:1]))
         site_arg = ["--net", net, "--site", str(Path(site_path).resolve())]
-        # A run starts from nothing: state left by an earlier run into this directory is not this run's.
+        # Without ``state`` a run starts from nothing: state left by an earlier run into this
+        # directory is not this run's. The edge's spool is the run's alone either way: every pass it
+        # held was acknowledged before the earlier run ended.
+        kept = None if state is None else Path(state).resolve()
         for stale in work.glob("*-state"):
-            shutil.rmtree(stale, ignore_errors=True)
+            if kept is None or not kept.is_relative_to(stale.resolve()):  # never the state asked for
+                shutil.rmtree(stale, ignore_errors=True)
         shutil.rmtree(work / "edge-spool", ignore_errors=True)
+        state_dirs = _state_dirs(state, work, cloud_ids)
         clouds = []
         for i, cid in enumerate(cloud_ids):
             args = ["--connect", endpoints[i % len(endpoints)], *site_arg, "--id", cid, "--calibration", calibration,
-                    "--state", str(work / f"{cid}-state"), *_tls_args(sec, cid)]
+                    "--state", str(state_dirs[cid]), *_tls_args(sec, cid)]
             args += ["--align"] if align else ["--no-align"]
             args += list(cloud_args)
             if shards > 1:
@@ -264,6 +273,21 @@ def run(logs_dir: Path, site_path: Path, export_dir: Path, rrd: Path | None = No
             return _drive(conf, net, logs, procs, work, export_dir, progress, rate, t0, cloud_ids)
         finally:
             _stop(procs)
+
+
+def _state_dirs(state: Path | None, work: Path, cloud_ids: list[str]) -> dict[str, Path]:
+    """Each cloud's ``--state`` directory: under the run's work directory, or the caller's ``state``
+    (created here, so that a path that cannot be one fails with one line before any daemon starts)."""
+    if state is None:
+        return {cid: work / f"{cid}-state" for cid in cloud_ids}
+    state = Path(state).resolve()
+    dirs = {cloud_ids[0]: state} if len(cloud_ids) == 1 else {cid: state / cid for cid in cloud_ids}
+    try:
+        for d in dirs.values():
+            d.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RunError(f"--state {state}: cannot create the directory: {e.strerror or e}") from e
+    return dirs
 
 
 def _merge_exports(parts: list[Path], export_dir: Path) -> list[str]:

@@ -190,14 +190,15 @@ def test_a_carriage_off_its_class_lengths_calibrates_before_the_bridge(prior_bat
     assert max(abs(fit.globals_[k] / car[k] - 1) for k in ("mb", "Ib", "kp", "cp", "ks", "cs")) < 0.05
 
 
-@pytest.mark.xfail(strict=True, reason="open: with the lengths calibrated (speeds +0.65 %, the GNSS mean's: the "
-                   "span ~30 cm off in chainage; per-run masses within 15 %) the quick batches' load regression is "
-                   "no deflection line; with the lengths held at the truth (speeds exact, masses within 8 %) the "
-                   "same batches read 15.4/15.7 %. The 28-run batches of the full world read within a point")
+@pytest.mark.xfail(strict=True, reason="open: the load regression's lever is the runs' mass spread, and the per-run "
+                   "masses' errors from the quick batches' 24 m calibration window (lengths and globals free) are not "
+                   "small against it: with the true masses put in it reads within the bound. The span's placement is "
+                   "not the cause: with the true speed scale put in it reads the same. The 28-run batches of the full "
+                   "world read within a point")
 def test_a_carriage_off_its_class_lengths_reads_the_bridge(prior_batches):
     """The 13 % loss read as the daemon reads it (every run registered, the healthy line pooled over
     both batches), and one batch's stiffness interval holding the truth. Measured (seed 3): D1/D2
-    42.0/57.8 %; stiffness 7.5 [0.41, 140] (true 1.01): the line's area is near zero."""
+    20.6/21.5 %; stiffness 1.61 [0.25, 10.3] (true 1.01)."""
     ((runs, fit, cls, bridge), truth), ((d_runs, d_fit, _, _), _) = prior_batches
     span = (bridge.start_chainage_m, bridge.span_m)
     h_aps = registered_runs(run_aps(runs, fit, cls.mean, "carriage"), *span)

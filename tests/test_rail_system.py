@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -24,7 +26,7 @@ from cloud.rail.records import RailRun
 from cloud.reference.cross_entropy import population_aps
 from cloud.view import View
 from edge.node import Edge
-from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log
+from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log, write_drive_log
 from shared.registry import load_site
 from shared.schema import decode_alarm
 from shared.track_quality import d1_longitudinal_level
@@ -37,6 +39,10 @@ from simfleet.sim import generate
 N_RUNS = 12
 BRIDGE_RUNS = 6  # per batch: a load regression over fewer runs' masses is often not a deflection line
 ROUTE_M = 100.0  # the shortest with a D1 sd (a quarter of a 200 m segment past the filter's edges)
+#: The blind test's state 2 against state 7: the states differ by the global loss alone, so D1/D2
+#: of the damaged batch against the healthy one are this exactly (simfleet.rail).
+BRIDGE_LOSS_PCT = 13.0
+CLI_TIMEOUT_S = 300.0  # one `driveby run` of six runs; a cold numba cache compiles the rail kernels first
 
 
 @pytest.fixture(scope="module")
@@ -178,7 +184,7 @@ def bridge_runs(tmp_path_factory):
             log = read_drive_log(path)
             meta = dataclasses.replace(log.meta, pass_id=f"{tag}-{log.meta.pass_id}")
             logs.append(dataclasses.replace(log, meta=meta))
-    return logs, load_site(tmp / "a" / "site.toml")
+    return logs, load_site(tmp / "a" / "site.toml"), tmp / "a" / "site.toml"
 
 
 def _session(site, logs, state, view=None):
@@ -211,7 +217,7 @@ def test_bridge_baseline_persists_and_a_later_batch_is_read_against_it(bridge_ru
     batch alone gives the span's stiffness and sets the healthy baseline, which the state keeps; the
     next session's runs are read against it (D1/D2, the alarm state). The indicators' accuracy needs
     larger batches: measured on the full worlds in the report."""
-    logs, site = bridge_runs
+    logs, site, _ = bridge_runs
     state = tmp_path / "state"
     healthy = [lg for lg in logs if lg.meta.pass_id.startswith("a-")]
     damaged = [lg for lg in logs if lg.meta.pass_id.startswith("b-")]
@@ -260,3 +266,36 @@ def test_bridge_baseline_persists_and_a_later_batch_is_read_against_it(bridge_ru
     print(f"D1 {row['D1_pct']:.1f} %, D2 {row['D2_pct']:.1f} %; MR-IL corr {np.corrcoef(J.J, bs.latest.J)[0, 1]:.4f}, "
           f"mid-span ratio {bs.latest.midspan() / J.midspan():.3f}")
     assert np.corrcoef(J.J, bs.latest.J)[0, 1] > 0.98
+
+
+def test_a_second_driveby_run_on_the_same_state_is_read_against_the_first(bridge_runs, tmp_path):
+    """``driveby run --state DIR`` as a user runs it, two OS processes: the healthy batch, then the
+    13 %-damaged batch against the same state. The second run continues from the first's cloud state
+    (its runs, the bridge's healthy baseline), reads D1/D2 against it and alarms."""
+    logs, _, site = bridge_runs
+    state = tmp_path / "state"
+    exports = {}
+    for tag in ("a", "b"):
+        logs_dir = tmp_path / f"logs-{tag}"
+        logs_dir.mkdir()
+        for lg in logs:
+            if lg.meta.pass_id.startswith(f"{tag}-"):
+                write_drive_log(logs_dir / f"{lg.meta.pass_id}.parquet", lg)
+        exports[tag] = tmp_path / f"export-{tag}"
+        proc = subprocess.run([sys.executable, "-m", "simfleet", "run", "--logs", str(logs_dir), "--site",
+                               str(site), "--export", str(exports[tag]), "--state", str(state)],
+                              capture_output=True, text=True, timeout=CLI_TIMEOUT_S, stdin=subprocess.DEVNULL)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert f"{BRIDGE_RUNS}/{BRIDGE_RUNS} passes processed" in proc.stdout
+    first = pq.read_table(exports["a"] / "bridge_summary.parquet").to_pylist()
+    assert len(first) == 1 and first[0]["n_passes"] == BRIDGE_RUNS and np.isnan(first[0]["D1_pct"])
+    assert not first[0]["damaged"]
+    # The second export holds both runs' passes (the state's and its own) and reads the damaged batch.
+    runs = {r["pass_id"] for r in pq.read_table(exports["b"] / "vehicles.parquet").to_pylist() if r["pass_id"]}
+    assert runs == {lg.meta.pass_id for lg in logs}
+    (row,) = pq.read_table(exports["b"] / "bridge_summary.parquet").to_pylist()
+    print(f"second run: D1 {row['D1_pct']:.2f} %, D2 {row['D2_pct']:.2f} % (truth {BRIDGE_LOSS_PCT} %)")
+    assert row["n_passes"] == BRIDGE_RUNS and row["damaged"]
+    # The issue's goal, within 3 points; a six-run batch reaches it on most seeds, not all (its load
+    # regression over six masses is at times no deflection line: no reading), so the seed is fixed.
+    assert abs(row["D1_pct"] - BRIDGE_LOSS_PCT) <= 3.0 and abs(row["D2_pct"] - BRIDGE_LOSS_PCT) <= 3.0

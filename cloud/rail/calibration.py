@@ -700,6 +700,16 @@ def calibrate_batch(
                                                             mu_g[n_i:], speed_rel_sd, s_g[n_i:])
             mu[lengths_at] = x[lengths_at]
             P[lengths_at] = 1.0 / REST_SD**2
+        # The wheelbase is held in the first stage where the wheels' agreement put it
+        # (:func:`_wheelbase_from_wheels`): waves longer than the stage's shortest are long against
+        # it (2·Lb), so the stage hardly sees it, and with the other globals still at the class means
+        # the wheelbase takes up their misfit — a large batch's data outweigh its class prior and
+        # walk it out of its basin.
+        i_lb = L * n + n_i + LENGTH_FIT.index("Lb")
+        if fit_lengths and not last:
+            held_lb = i_stage == 0
+            P[i_lb] = 1.0 / (REST_SD if held_lb else s_g[n_i + LENGTH_FIT.index("Lb")]) ** 2
+            mu[i_lb] = x[i_lb] if held_lb else mu_g[n_i + LENGTH_FIT.index("Lb")]
         # The records' chainage shifts are fitted in the middle stages only. The first holds them
         # where the logs put them: with the run properties still at the class means its shifts take
         # up misfit (decimetre steps on exact chainages) and cost iterations, and its waves are long
