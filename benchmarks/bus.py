@@ -40,6 +40,14 @@ One edge daemon serves every vehicle; ``DRIVEBY_BENCH_EDGES=N`` runs N, each wit
 ``DRIVEBY_BENCH_ONLY=realtime:100`` (a comma list of ``fullspeed`` / ``realtime``, each with an
 optional ``:N`` vehicles) measures only those replayed-vehicle runs, for a quick before/after of
 the edge; its warm-up then replays every base log once, as the full run's earlier parts would.
+``DRIVEBY_BENCH_ONLY=synthetic`` measures only the synthetic runs and the segment hop (the cloud's
+ingest, no edge work).
+
+The physical floor, measured in the same run (``bus.kernel_us_per_segment``): the estimators'
+own update of one synthetic segment (the profile posterior's banded information and the
+consensus sums, the compiled kernels every accepted segment runs through), timed in a tight loop
+in this process. Each synthetic result carries ``ratio_to.kernel``: the cloud's CPU per segment
+over that floor, the overhead a loaded machine cannot fake (both slow down together).
 """
 
 from __future__ import annotations
@@ -64,12 +72,17 @@ import zenoh
 from cloud.daemon.node import TRACE
 from shared import keys
 from shared.drivelog import DriveLog, list_drive_logs, read_drive_log
+from shared.registry import Site, load_site
 from shared.schema import ApBatch, ApSegment, PassDone, decode_ack
 from shared.transport import run_router, zenoh_config
 from simfleet.fleet import interleave
 from simfleet.replay import chunks_of
-from simfleet.scenarios import SCENARIOS
-from simfleet.sim import generate
+from simfleet.scenarios import SCENARIOS, fleet_class
+from simfleet.sim import generate, write_site
+
+from cloud.daemon.settings import CloudSettings
+from cloud.road.gmrf_profile import GmrfProfile
+from cloud.road.mean_profile import MeanProfile
 
 NET = "bench"
 CLOUD_ID, EDGE_ID = "bc", "be"
@@ -89,6 +102,8 @@ PUBLISHERS = 2
 SYNTHETIC_VEHICLES = 50  # per publisher
 STARTUP_TIMEOUT_S = 120.0  # a cold numba cache compiles on the daemons' first start
 IDLE_TIMEOUT_S = 60.0  # no acknowledgement for this long: something is wrong
+KERNEL_SEGMENTS = 2000  # segments timed for the kernel floor
+KERNEL_WORKER = 1000  # the synthetic worker number of the floor's segments (none of the bus's)
 
 
 
@@ -244,19 +259,25 @@ def stop_daemons(procs: list[subprocess.Popen]) -> None:
 # -- synthetic edges --------------------------------------------------------------------------------
 
 
-def synthetic_messages(worker: int, passes: int, tiles: int, batch: bool = False) -> Iterator[tuple[str, bytes]]:
-    """Pre-made AP segments (``tiles`` per pass; in one ``ap_batch`` if ``batch``) and end-of-pass
-    markers of ``passes`` passes."""
+def synthetic_segments(worker: int, passes: int, tiles: int) -> Iterator[list[ApSegment]]:
+    """The AP segments (``tiles`` per pass, 1000-point 50 m tiles) of ``passes`` synthetic passes."""
     rng = np.random.default_rng(worker)
     sigma = np.full(TILE_POINTS, 2e-4)
     for k in range(passes):
         vehicle = f"syn{worker}-{k % SYNTHETIC_VEHICLES:03d}"
         pass_id = f"syn{worker}-p{k:05d}"
-        segments = [ApSegment.make(rng.normal(0.0, 2e-3, TILE_POINTS), sigma, vehicle_id=vehicle, pass_id=pass_id,
-                                   route_id=ROUTE, tile=tile, axle=1, start_index=tile * TILE_POINTS,
-                                   spacing_m=0.05, calib_version=0, speed_mps=18.0, t_first=2.5 * tile,
-                                   t_last=2.5 * tile + 2.5, seq=tile, n_segments_in_pass=tiles)
-                    for tile in range(tiles)]
+        yield [ApSegment.make(rng.normal(0.0, 2e-3, TILE_POINTS), sigma, vehicle_id=vehicle, pass_id=pass_id,
+                              route_id=ROUTE, tile=tile, axle=1, start_index=tile * TILE_POINTS,
+                              spacing_m=0.05, calib_version=0, speed_mps=18.0, t_first=2.5 * tile,
+                              t_last=2.5 * tile + 2.5, seq=tile, n_segments_in_pass=tiles)
+               for tile in range(tiles)]
+
+
+def synthetic_messages(worker: int, passes: int, tiles: int, batch: bool = False) -> Iterator[tuple[str, bytes]]:
+    """Pre-made AP segments (``tiles`` per pass; in one ``ap_batch`` if ``batch``) and end-of-pass
+    markers of ``passes`` passes."""
+    for segments in synthetic_segments(worker, passes, tiles):
+        vehicle, pass_id = segments[0].vehicle_id, segments[0].pass_id
         if batch:
             yield keys.ap_key(NET, ROUTE, 0, vehicle), ApBatch(tuple(segments)).encode()
         else:
@@ -452,11 +473,13 @@ def bench_pipeline(dep: Deployment, logs: list[DriveLog], realtime: bool, n_vehi
 
 
 def _only_runs(text: str) -> list[tuple[bool, int]] | None:
-    """``DRIVEBY_BENCH_ONLY`` → the (realtime, vehicles) runs it names; None when unset."""
+    """``DRIVEBY_BENCH_ONLY`` → the (realtime, vehicles) runs it names (empty for ``synthetic``); None when unset."""
     if not text.strip():
         return None
     runs = []
     for part in text.split(","):
+        if part.strip() == "synthetic":
+            continue
         mode, _, n = part.strip().partition(":")
         if mode not in ("fullspeed", "realtime") or not (n == "" or (n.isdigit() and int(n) > 0)):
             raise ValueError(f"DRIVEBY_BENCH_ONLY: expected fullspeed|realtime[:N], got {part.strip()!r}")
@@ -464,23 +487,61 @@ def _only_runs(text: str) -> list[tuple[bool, int]] | None:
     return runs
 
 
+def kernel_floor(site: Site, tiles: int, n: int = KERNEL_SEGMENTS) -> Iterator[dict]:
+    """The estimators' own update of one synthetic segment (µs of this thread's CPU): ``n`` distinct
+    segments like the synthetic edges' into the cloud's two road estimators, each update timed alone."""
+    routes = {r.id: r.length_m for r in site.routes}
+    settings = CloudSettings()
+    profile = GmrfProfile(routes, settings.spacing_m, drift_knot_m=settings.drift_knot_m)
+    consensus = MeanProfile(routes, settings.spacing_m)
+    segments = [seg for segs in synthetic_segments(KERNEL_WORKER, n // tiles + 1, tiles) for seg in segs][:n]
+    warm = segments[0]
+    for est in (profile, consensus):  # compiled (or loaded from the cache) before the clock runs
+        est.update(warm)
+        est.retract(warm)
+    t0 = time.thread_time()
+    for seg in segments:
+        profile.update(seg)
+        consensus.update(seg)
+    us = (time.thread_time() - t0) / len(segments) * 1e6
+    yield {"name": "bus.kernel_us_per_segment", "value": us, "unit": "us/segment", "segments": len(segments),
+           "what": "GmrfProfile.update + MeanProfile.update of one 1000-point segment, this process's thread CPU"}
+
+
 def run() -> Iterator[dict]:
     """Simulate a few passes, start router, cloud and edge, and measure (see the module docstring)."""
+    only = _only_runs(ONLY)
+    synthetic = only is None or "synthetic" in {p.strip() for p in ONLY.split(",")}
     with tempfile.TemporaryDirectory(prefix="driveby-bus-") as tmp:
         work = Path(tmp)
-        generate(SCENARIOS["road-qc"], work, seed=11, passes=BASE_LOGS, workers=min(BASE_LOGS, os.cpu_count() or 1),
-                 progress=False)
-        logs = [read_drive_log(p) for p in list_drive_logs(work / "logs")]
-        tiles = int(SCENARIOS["road-qc"].route_length_m // (TILE_POINTS * 0.05))
+        scenario = SCENARIOS["road-qc"]
+        if only == []:  # the synthetic runs alone: the site is all they need
+            write_site(scenario, work / "site.toml", *fleet_class(scenario))
+            logs = []
+        else:
+            generate(scenario, work, seed=11, passes=BASE_LOGS, workers=min(BASE_LOGS, os.cpu_count() or 1),
+                     progress=False)
+            logs = [read_drive_log(p) for p in list_drive_logs(work / "logs")]
+        tiles = int(scenario.route_length_m // (TILE_POINTS * 0.05))
+        floor = None
+        if synthetic:
+            (floor,) = kernel_floor(load_site(work / "site.toml"), tiles)
+            yield floor
         with run_router() as endpoint:
             dep = Deployment(endpoint, work / "site.toml", work)
             try:
                 dep.wait_up()
-                only = _only_runs(ONLY)
-                if only is None:
-                    yield from bench_synthetic(dep, endpoint, tiles, work)
-                    yield from bench_synthetic(dep, endpoint, tiles, work, batch=False)
+                if synthetic:
+                    for batch in (True, False):
+                        for result in bench_synthetic(dep, endpoint, tiles, work, batch=batch):
+                            for key in ("cloud_cpu_us_per_segment", "cloud_ingest_cpu_us_per_segment"):
+                                if result.get(key) is not None:
+                                    result["ratio_to"][key.replace("_us_per_segment", "") + "_over_kernel"] = \
+                                        result[key] / floor["value"]
+                            yield result
                     yield from bench_segment_hop(dep, tiles)
+                if only == []:
+                    return
                 # warm-up (numba, the edge's caches); alone, over every base log, as the skipped parts would
                 warm = 2 if only is None else len(logs)
                 yield from bench_pipeline(dep, logs, realtime=False, n_vehicles=warm, report=False)

@@ -1085,10 +1085,101 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
 
 def _ap_segments(r: _Row) -> list[ApSegment]:
     """Every row of an ``ap_segment`` or ``ap_batch`` batch as a validated :class:`ApSegment`."""
+    fast = _ap_segments_checked(r)
+    if fast is not None:
+        return fast
     columns = [[_AP_OPTIONAL[name]] * r.n_rows if name in _AP_OPTIONAL and name not in r.names else
                getattr(r, method)(name, value_type) if value_type is not None else getattr(r, method)(name)
                for name, (method, value_type) in zip(_AP_NAMES, _AP_READERS)]
     return [ApSegment(*row) for row in zip(*columns)]  # (the columns are in the fields' order)
+
+
+_AP_TYPES = dict(_AP_COLUMNS)
+_AP_INT_RANGES = {"tile": (0, MAX_INT32), "axle": (1, 16), "start_index": (-MAX_INDEX, MAX_INDEX),
+                  "calib_version": (0, MAX_INT32), "seq": (0, MAX_INT32), "n_segments_in_pass": (-1, MAX_INT32),
+                  "flags": (0, MAX_INT32)}
+# (lo, hi, lo_open) of every float field, as ApSegment.__post_init__ checks them
+_AP_FLOAT_RANGES = {"spacing_m": (0.0, 100.0, True), "scale_m": (0.0, 1.0, True),
+                    "offset_m": (-MAX_ABS_AP_M, MAX_ABS_AP_M, False), "sigma_ref_m": (0.0, MAX_ABS_AP_M, True),
+                    "speed_mps": (0.0, MAX_SPEED_MPS, False), "t_first": (-math.inf, math.inf, False),
+                    "t_last": (-math.inf, math.inf, False)}
+_AP_SCALARS = tuple(name for name, t in _AP_COLUMNS if not pa.types.is_list(t))
+
+
+def _ap_segments_checked(r: _Row) -> list[ApSegment] | None:
+    """The rows as :class:`ApSegment` with every field checked column-wise, or None if the columns
+    are not exactly the writer's types or any row breaks a rule (the caller then builds each row
+    through the constructor, which says which rule).
+
+    The rules are :meth:`ApSegment.__post_init__`'s, applied to whole columns at once, so a row
+    passes here exactly when the constructor accepts it, and the segment built is the one the
+    constructor would build (Python ints and floats, read-only int16 arrays, the error model
+    checked by the same function). A batch of segments then costs a few numpy calls, not a
+    constructor's checks per field per segment.
+    """
+    cols = r.columns
+    n = r.n_rows
+    for name, t in _AP_COLUMNS:
+        col = cols.get(name)
+        if col is None:
+            if name in _AP_OPTIONAL:
+                continue
+            return None
+        if not col.type.equals(t) or col.null_count:
+            return None
+    # Scalars as Python values (what the segment holds), each column checked against its bounds at once.
+    fields = {name: cols[name].to_pylist() for name in _AP_SCALARS}
+    for name, (lo, hi) in _AP_INT_RANGES.items():
+        v = fields[name]
+        if min(v) < lo or max(v) > hi:
+            return None
+    for name, (lo, hi, lo_open) in _AP_FLOAT_RANGES.items():
+        v = fields[name]
+        if not all(map(math.isfinite, v)) or min(v) < lo or max(v) > hi or (lo_open and lo in v):
+            return None
+    if any(b < a for a, b in zip(fields["t_first"], fields["t_last"])) or \
+            any(0 <= n_in <= seq for seq, n_in in zip(fields["seq"], fields["n_segments_in_pass"])):
+        return None
+    arrays = {}
+    for name in ("values_q", "sigma_q"):
+        col = cols[name]
+        if col.values.null_count:
+            return None
+        offsets = col.offsets.to_numpy()
+        flat = col.values.to_numpy()[offsets[0] : offsets[-1]].copy()  # one copy per column, rows are views of it
+        flat.setflags(write=False)
+        arrays[name] = (flat, offsets - offsets[0])
+    (values, v_off), (sigma, s_off) = arrays["values_q"], arrays["sigma_q"]
+    sizes = np.diff(v_off)
+    if not np.array_equal(v_off, s_off) or sizes.min() < 1 or sizes.max() > MAX_SAMPLES:
+        return None
+    if sigma.size and sigma.max() > 0:
+        return None
+    for name in ("vehicle_id", "route_id"):
+        if not all(map(is_valid_id, fields[name])):
+            return None
+    for p in fields["pass_id"]:
+        if not p or len(p) > MAX_TEXT or not p.isprintable() or "\x00" in p:
+            return None
+    models = [ERROR_MODEL_NONE] * n
+    em_col = cols.get("error_model")
+    if em_col is not None and len(em_col.values):
+        if em_col.values.null_count:
+            return None
+        try:
+            models = [_error_model(m) for m in r.arrays("error_model", pa.float64())]
+        except InvalidMessage:
+            return None
+    bounds = v_off.tolist()
+    fields.update(values_q=[values[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])],
+                  sigma_q=[sigma[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])], error_model=models)
+    new = object.__new__
+    out = []
+    for row in zip(*(fields[name] for name in _AP_NAMES)):
+        seg = new(ApSegment)
+        seg.__dict__.update(zip(_AP_NAMES, row))  # (in the fields' order, as the constructor sets them)
+        out.append(seg)
+    return out
 
 
 def _build_ap_segment(r: _Row) -> ApSegment:
