@@ -41,7 +41,6 @@ log = logging.getLogger("driveby.cloud")
 #: cloud records (sent, applied) for each such segment it accepts and answers ``control/<id>/latency``.
 TRACE = struct.Struct("<d")
 TRACE_RECORDS = 100_000
-BLOCK_WAIT_BEFORE_CLOSE_US = -1
 
 
 class LatencyTrace:
@@ -304,8 +303,6 @@ def main(argv: list[str] | None = None) -> int:
         keys.check_id(args.net, "net")
         args.id = keys.check_id(args.id or default_id("cloud"), "id")
         conf = config_from_args(args)
-        conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
-                          json.dumps(BLOCK_WAIT_BEFORE_CLOSE_US))
         if args.max_resident_segments < 1:
             raise ValueError(f"--max-resident-segments: expected >= 1, got {args.max_resident_segments}")
         if args.max_resident_passes < MIN_RESIDENT_PASSES:
