@@ -165,59 +165,20 @@ class Aggregator:
         self.rejected: collections.Counter[str] = collections.Counter()
         self.accepted = 0
         self.updates = 0  # estimator updates applied (for views: "something changed")
-        self._pending: list[ApSegment] | None = None  # updates of the current run (apply_many), in order
         self._grids: dict[tuple[str, float], bool] = {}  # (route, spacing) → every estimator accepts it
 
     # -- input ---------------------------------------------------------------------------------
     def on_segment(self, payload: bytes, key_vehicle: str | None = None) -> list[Ack]:
-        """An AP payload: one segment or a batch of them (``ap_batch``), applied as :meth:`apply_many`."""
+        """An AP payload: one segment or a batch of them (``ap_batch``, decoded column-wise once), each
+        applied on its own, in order."""
         try:
             segments = decode_ap(payload)
         except DecodeError as e:
             return self._reject(e.reason, str(e))
-        return self.apply_many(segments, key_vehicle)
-
-    def apply_many(self, segments, key_vehicle: str | None = None) -> list[Ack]:
-        """Each segment as :meth:`apply` takes it, in order, with the estimators' updates handed over
-        in runs (``update_many`` where an estimator has it): a run ends where anything would read or
-        retract what they hold, so every estimator sees the same operations in the same order as
-        segment by segment, and holds the same bits."""
         acks = []
-        if self._pending is not None:  # (already inside a run)
-            for seg in segments:
-                acks.extend(self.apply(seg, key_vehicle))
-            return acks
-        self._pending = []
-        try:
-            for seg in segments:
-                acks.extend(self.apply(seg, key_vehicle))
-        finally:
-            self._flush()
-            self._pending = None
+        for seg in segments:
+            acks.extend(self.apply(seg, key_vehicle))
         return acks
-
-    def _update(self, seg: ApSegment) -> None:
-        """The estimators take ``seg`` (now, or at the end of the current run)."""
-        if self._pending is not None:
-            self._pending.append(seg)
-            return
-        for est in self.estimators:
-            est.update(seg)
-
-    def _flush(self) -> None:
-        """The run of updates so far, to every estimator (before anything reads or retracts)."""
-        pending = self._pending
-        if not pending:
-            return
-        segs = list(pending)
-        pending.clear()
-        for est in self.estimators:
-            many = getattr(est, "update_many", None)
-            if many is not None:
-                many(segs)
-            else:
-                for seg in segs:
-                    est.update(seg)
 
     def apply(self, seg: ApSegment, key_vehicle: str | None = None) -> list[Ack]:
         """Check a decoded segment and fuse it (or count why not); returns the acks it completes."""
@@ -246,7 +207,8 @@ class Aggregator:
         held = on_route(seg)
         if held is not None:
             self.held[slot] = held
-            self._update(held)
+            for est in self.estimators:
+                est.update(held)
         self.accepted += 1
         self.updates += 1
         ps = self._pass_of(seg)
@@ -341,7 +303,6 @@ class Aggregator:
         return []
 
     def _release(self, slot: tuple) -> None:
-        self._flush()  # the estimators hold every update before one is retracted
         held = self.held.pop(slot, None)
         if held is not None:
             for est in self.estimators:

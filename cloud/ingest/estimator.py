@@ -12,8 +12,7 @@ class Estimator(Protocol):
     (a superseded segment), ``snapshot`` returns the current estimate as plain data.
 
     Optional: ``accepts(segment)``, whether the estimator takes a segment, a function of its route
-    and grid spacing alone (the aggregator remembers the answer per pair); ``update_many(segments)``,
-    ``update`` of each in order, bit for bit (the aggregator hands over a batch's updates in runs).
+    and grid spacing alone (the aggregator remembers the answer per pair).
     """
 
     def update(self, segment: ApSegment) -> None: ...

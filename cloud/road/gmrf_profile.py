@@ -64,7 +64,6 @@ from shared.schema import SIGMA_SCALE, ApSegment
 from cloud.road.banded import draw_into, selected_inverse
 from cloud.road.mean_profile import ProfileSnapshot
 from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
-from cloud.road.segment_runs import by_route, pack
 
 log = logging.getLogger(__name__)
 
@@ -252,23 +251,6 @@ def _accumulate_band(q, b, cover, passes, lo, values_q, scale, offset, sigma_q, 
             passes[i] += step
 
 
-@kernel
-def _accumulate_run(q, b, cover, passes, los, starts, values_q, scales, offsets, sigma_q, sigma_refs, sigma_scale,
-                    rho, error_models, em_starts, signs, is_pass):
-    """:func:`_accumulate` (or :func:`_accumulate_band`, for a segment with its own error model) of
-    each segment of a packed run (:class:`cloud.road.segment_runs.Run`), in order: the same calls
-    segment by segment, one dispatch for the run."""
-    for k in range(los.size):
-        a, e = starts[k], starts[k + 1]
-        if em_starts[k + 1] > em_starts[k]:
-            _accumulate_band(q, b, cover, passes, los[k], values_q[a:e], scales[k], offsets[k], sigma_q[a:e],
-                             sigma_refs[k], sigma_scale, error_models[em_starts[k] : em_starts[k + 1]], signs[k],
-                             is_pass[k])
-        else:
-            _accumulate(q, b, cover, passes, los[k], values_q[a:e], scales[k], offsets[k], sigma_q[a:e],
-                        sigma_refs[k], sigma_scale, rho, signs[k], is_pass[k])
-
-
 # -- state ---------------------------------------------------------------------------------------
 
 
@@ -395,42 +377,6 @@ class GmrfProfile:
             self.segments[key] = seg
         else:
             self.segments.pop(key, None)
-
-    def update_many(self, segs) -> None:
-        """:meth:`update` of each segment, in order, with one kernel call per route
-        (:mod:`cloud.road.segment_runs`): the same operations in the same order, the same bits."""
-        if len(segs) == 1:
-            self.update(segs[0])
-            return
-        ops = []
-        for seg in segs:
-            key = seg.identity
-            old = self.segments.get(key)
-            if old is not None:
-                ops.append((old, -1.0, self._points(old)))
-            m = self._points(seg)
-            if m > 0:
-                ops.append((seg, +1.0, m))
-                self.segments[key] = seg
-            else:
-                self.segments.pop(key, None)
-        for rid, run in by_route(ops).items():
-            route = self.routes[rid]
-            rows = max(seg.error_model.size for seg, _, _ in run) - 1
-            if rows > route.q.shape[0]:  # widened before the run (zero rows: nothing summed changes)
-                route.q = np.concatenate([route.q, np.zeros((rows - route.q.shape[0], route.q.shape[1]))])
-            r = pack(run)
-            _accumulate_run(route.q, route.b, route.cover, route.passes, r.los, r.starts, r.values_q, r.scales,
-                            r.offsets, r.sigma_q, r.sigma_refs, SIGMA_SCALE, self.rho, r.error_models, r.em_starts,
-                            r.signs, r.is_pass)
-            route.posterior = None
-
-    def _points(self, seg: ApSegment) -> int:
-        """How many of the segment's points :meth:`_apply` adds (0: none, off every route)."""
-        route = self.routes.get(seg.route_id)
-        if route is None:
-            return 0
-        return max(0, min(seg.end_index, route.cover.size) - seg.start_index)
 
     def retract(self, seg: ApSegment) -> None:
         """Subtract exactly what :meth:`update` added for this segment's identity."""

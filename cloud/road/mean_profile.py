@@ -16,8 +16,6 @@ import numpy as np
 from shared.jit import kernel
 from shared.schema import SIGMA_SCALE, ApSegment
 
-from cloud.road.segment_runs import by_route, pack
-
 
 @dataclasses.dataclass(frozen=True)
 class ProfileSnapshot:
@@ -45,16 +43,6 @@ def _accumulate(sw, swy, swyy, count, lo, values_q, scale, offset, sigma_q, sigm
         swyy[lo + i] += wy * y
         if is_pass:
             count[lo + i] += step
-
-
-@kernel
-def _accumulate_run(sw, swy, swyy, count, los, starts, values_q, scales, offsets, sigma_q, sigma_refs, sigma_scale,
-                    signs, is_pass):
-    """:func:`_accumulate` of each segment of a packed run (:class:`cloud.road.segment_runs.Run`), in order."""
-    for k in range(los.size):
-        a, e = starts[k], starts[k + 1]
-        _accumulate(sw, swy, swyy, count, los[k], values_q[a:e], scales[k], offsets[k], sigma_q[a:e], sigma_refs[k],
-                    sigma_scale, signs[k], is_pass[k])
 
 
 class _RouteSums:
@@ -90,22 +78,6 @@ class MeanProfile:
 
     def update(self, seg: ApSegment) -> None:
         self._apply(seg, +1.0)
-
-    def update_many(self, segs) -> None:
-        """:meth:`update` of each segment, in order, with one kernel call per route (the same bits)."""
-        if len(segs) == 1:
-            self.update(segs[0])
-            return
-        ops = []
-        for seg in segs:
-            sums, lo, hi = self._slice(seg)
-            if hi > lo:
-                ops.append((seg, +1.0, hi - lo))
-        for rid, run in by_route(ops).items():
-            sums = self.routes[rid]
-            r = pack(run)
-            _accumulate_run(sums.sw, sums.swy, sums.swyy, sums.count, r.los, r.starts, r.values_q, r.scales,
-                            r.offsets, r.sigma_q, r.sigma_refs, SIGMA_SCALE, r.signs, r.is_pass)
 
     def retract(self, seg: ApSegment) -> None:
         self._apply(seg, -1.0)
