@@ -1015,8 +1015,11 @@ class ApSegment(_Message):
         return (self.vehicle_id, self.pass_id, self.route_id, self.tile, self.axle, self.calib_version)
 
     def encode(self) -> bytes:
-        """Arrow IPC payload of this segment."""
-        return _encode(self.KIND, _ap_columns([self]))
+        """Arrow IPC payload of this segment: the one it was decoded from, if it came alone in a
+        payload of exactly the writer's columns (it decodes to this segment; re-encoding, most of
+        what spilling a segment to disk costs, is not needed), else encoded now."""
+        wire = self.__dict__.get("_wire")
+        return wire if wire is not None else _encode(self.KIND, _ap_columns([self]))
 
 
 # The wire columns of an AP segment, in order (an ap_batch has the same columns, one row per segment).
@@ -1146,8 +1149,12 @@ def _ap_segments_checked(r: _Row) -> list[ApSegment] | None:
         if col.values.null_count:
             return None
         offsets = col.offsets.to_numpy()
-        flat = col.values.to_numpy()[offsets[0] : offsets[-1]].copy()  # one copy per column, rows are views of it
-        flat.setflags(write=False)
+        # Views of the payload's buffer (read-only, zero-copy): a segment keeps the payload it came
+        # in alive, about the size of its two arrays, and copies nothing.
+        flat = col.values.to_numpy()[offsets[0] : offsets[-1]]
+        if flat.flags.writeable:
+            flat = flat.copy()
+            flat.setflags(write=False)
         arrays[name] = (flat, offsets - offsets[0])
     (values, v_off), (sigma, s_off) = arrays["values_q"], arrays["sigma_q"]
     sizes = np.diff(v_off)
@@ -1250,6 +1257,11 @@ def decode_ap(payload: bytes) -> list[ApSegment]:
     subscriber to AP keys calls. Raises :class:`DecodeError` (``wrong_kind`` for other kinds)."""
     kind, version, batch = _read_batch(payload)
     if kind == ApSegment.KIND:
+        if version == SCHEMA_VERSION and type(payload) is bytes:
+            fast = _ap_segments_checked(_Row(batch))
+            if fast is not None:
+                fast[0].__dict__["_wire"] = payload  # exactly the writer's columns (see ApSegment.encode)
+                return fast
         return [_build(kind, version, batch, _build_ap_segment)]
     if kind == ApBatch.KIND:
         return list(_build(kind, version, batch, _build_ap_batch).segments)

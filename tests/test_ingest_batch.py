@@ -143,3 +143,15 @@ def test_cloud_exports_equal_bit_for_bit(tmp_path):
     assert exports["single"].keys() == exports["batch"].keys() >= {"profile.parquet", "roughness.parquet"}
     for name, table in exports["single"].items():
         assert table.equals(exports["batch"][name]), name
+
+
+def test_a_decoded_segment_encodes_as_the_payload_it_came_in():
+    """Spilling a segment to disk stores its encoding: one that came alone keeps its payload, and a
+    changed copy (dataclasses.replace, e.g. chainage alignment) is encoded afresh."""
+    seg = _segment(np.random.default_rng(8), n=300)
+    payload = seg.encode()
+    (back,) = decode_ap(payload)
+    assert back == seg and back.encode() is payload
+    moved = dataclasses.replace(back, start_index=back.start_index + 7)
+    assert moved.encode() != payload and decode_ap(moved.encode()) == [moved]
+    assert all(s.encode() == t.encode() for s, t in zip(decode_ap(ApBatch((seg, moved)).encode()), (seg, moved)))
