@@ -18,6 +18,7 @@ import pytest
 from cloud.daemon.core import Cloud
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.aggregator import Aggregator
+from cloud.ingest.wire import encode_segment
 from cloud.road.gmrf_profile import GmrfProfile
 from cloud.road.mean_profile import MeanProfile
 from shared import keys
@@ -155,3 +156,21 @@ def test_a_decoded_segment_encodes_as_the_payload_it_came_in():
     moved = dataclasses.replace(back, start_index=back.start_index + 7)
     assert moved.encode() != payload and decode_ap(moved.encode()) == [moved]
     assert all(s.encode() == t.encode() for s, t in zip(decode_ap(ApBatch((seg, moved)).encode()), (seg, moved)))
+
+
+def test_spill_encoding_is_the_encoders_byte_for_byte():
+    """The template encoder (cloud.ingest.wire) against Arrow's, over layouts: lengths, error models,
+    multi-byte text, negative start, one-point segments; from a batch (no payload of its own)."""
+    rng = np.random.default_rng(9)
+    for k in range(120):
+        m = 1 if k % 11 == 0 else int(rng.integers(2, 1200))
+        em = None if k % 3 else np.array([1.1, 2.0, -0.5, 0.1, 0.02])[: 2 + k % 4]
+        seg = ApSegment.make(rng.normal(0, 1e-3 * (1 + k % 5), m), rng.uniform(1e-4, 1e-3, m), vehicle_id=f"v-{k % 4}",
+                             pass_id=["p", "pässe", "pass 2"][k % 3] + str(k % 7), route_id="R1",
+                             tile=int(rng.integers(0, 1 << 20)), axle=1 + k % 3, start_index=int(rng.integers(-99, 1 << 30)),
+                             spacing_m=0.05, calib_version=k % 9, speed_mps=float(rng.uniform(1, 40)), t_first=float(k),
+                             t_last=float(k) + 2.0, seq=k % 4, n_segments_in_pass=[-1, 4][k % 2], flags=k % 2,
+                             error_model=em)
+        for s in (seg, decode_ap(ApBatch((seg, seg)).encode())[1]):
+            assert encode_segment(s) == s.encode()
+            assert decode_ap(encode_segment(s)) == [seg]
