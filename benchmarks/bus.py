@@ -273,18 +273,19 @@ def synthetic_segments(worker: int, passes: int, tiles: int) -> Iterator[list[Ap
                for tile in range(tiles)]
 
 
-def synthetic_messages(worker: int, passes: int, tiles: int, batch: bool = False) -> Iterator[tuple[str, bytes]]:
+def synthetic_messages(worker: int, passes: int, tiles: int, batch: bool = False,
+                       net: str = NET) -> Iterator[tuple[str, bytes]]:
     """Pre-made AP segments (``tiles`` per pass; in one ``ap_batch`` if ``batch``) and end-of-pass
     markers of ``passes`` passes."""
     for segments in synthetic_segments(worker, passes, tiles):
         vehicle, pass_id = segments[0].vehicle_id, segments[0].pass_id
         if batch:
-            yield keys.ap_key(NET, ROUTE, 0, vehicle), ApBatch(tuple(segments)).encode()
+            yield keys.ap_key(net, ROUTE, 0, vehicle), ApBatch(tuple(segments)).encode()
         else:
             for seg in segments:
-                yield keys.ap_key(NET, ROUTE, seg.tile, vehicle), seg.encode()
+                yield keys.ap_key(net, ROUTE, seg.tile, vehicle), seg.encode()
         done = PassDone(vehicle_id=vehicle, pass_id=pass_id, route_id=ROUTE, calib_version=0, n_segments=tiles)
-        yield keys.done_key(NET, vehicle), done.encode()
+        yield keys.done_key(net, vehicle), done.encode()
 
 
 def synthetic_passes(worker: int, passes: int) -> set[tuple[str, str]]:
@@ -299,8 +300,9 @@ def _publisher_main(argv: list[str]) -> int:
     p.add_argument("--passes", type=int, required=True)
     p.add_argument("--tiles", type=int, required=True)
     p.add_argument("--batch", action="store_true", help="one ap_batch per pass instead of one message per segment")
+    p.add_argument("--net", default=NET, help=f"network name in the key space (default {NET})")
     args = p.parse_args(argv)
-    messages = list(synthetic_messages(args.worker, args.passes, args.tiles, args.batch))
+    messages = list(synthetic_messages(args.worker, args.passes, args.tiles, args.batch, args.net))
     with zenoh.open(zenoh_config("client", connect=[args.connect])) as session:
         print("ready", flush=True)
         if sys.stdin.readline().strip() != "go":
