@@ -18,12 +18,12 @@ import pytest
 from cloud.daemon.core import Cloud
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.aggregator import Aggregator
-from cloud.ingest.wire import encode_segment
+from cloud.ingest.wire import encode_flat, encode_segment
 from cloud.road.gmrf_profile import GmrfProfile
 from cloud.road.mean_profile import MeanProfile
 from shared import keys
 from shared.registry import parse_site
-from shared.schema import ApBatch, ApSegment, DecodeError, PassDone, decode_ap
+from shared.schema import Ack, ApBatch, ApSegment, DecodeError, PassDone, decode_ack, decode_ap
 
 ROUTE_M = 200.0
 SPACING = 0.05
@@ -174,3 +174,10 @@ def test_spill_encoding_is_the_encoders_byte_for_byte():
         for s in (seg, decode_ap(ApBatch((seg, seg)).encode())[1]):
             assert encode_segment(s) == s.encode()
             assert decode_ap(encode_segment(s)) == [seg]
+
+
+def test_ack_encoding_is_the_encoders_byte_for_byte():
+    for k in range(40):
+        ack = Ack(pass_id=["p", "pässe", "a pass"][k % 3] + "x" * (k % 9), vehicle_id=f"veh-{k}",
+                  n_segments_accepted=k * 7919 % 1000, calib_version=k % 5)
+        assert encode_flat(ack) == ack.encode() and decode_ack(encode_flat(ack)) == ack

@@ -1,12 +1,14 @@
-"""An AP segment's wire payload written into a template of its layout: what spilling costs.
+"""A message's wire payload written into a template of its layout: what spilling and acks cost.
 
-``ApSegment.encode`` builds Arrow arrays and a record batch per call (~100 µs), and a cloud at its
-resident bound spills (encodes) a segment for each one it takes in. Arrow's IPC bytes of a
-one-segment batch depend on the segment's values only through the buffers' contents: the
-metadata (buffer offsets and lengths, padding) is fixed by the layout (points, text lengths,
-error-model size). So the first segment of a layout is encoded by Arrow and the positions of its
-value buffers in the payload are read back; every later segment of that layout is its bytes
-written at those positions into a copy of the template, byte for byte what Arrow writes.
+``encode()`` builds Arrow arrays and a record batch per call (~100 µs for an AP segment, ~25 µs for
+an ack), and a cloud at its resident bound spills (encodes) a segment for each one it takes in and
+publishes an ack per pass. Arrow's IPC bytes of a one-row message whose columns are its fields
+(texts, int64 and float64 scalars, ``list`` arrays: :class:`ApSegment`, :class:`Ack`) depend on
+the values only through the buffers' contents: the metadata (buffer offsets and lengths, padding)
+is fixed by the layout (text lengths in bytes, array sizes). So the first message of a layout is
+encoded by Arrow and the positions of its value buffers in the payload are read back; every later
+message of that layout is its bytes written at those positions into a copy of the template, byte
+for byte what Arrow writes.
 """
 
 from __future__ import annotations
@@ -17,27 +19,31 @@ import struct
 import numpy as np
 import pyarrow as pa
 
-from shared.schema import ApSegment
-
-_ARRAYS = ("values_q", "sigma_q", "error_model")
-_TEXTS = ("vehicle_id", "pass_id", "route_id")
-_FIELDS = tuple(f.name for f in dataclasses.fields(ApSegment))
-
-
-def _layout(seg: ApSegment) -> tuple:
-    return (seg.values_q.size, seg.error_model.size,
-            *(len(getattr(seg, name).encode()) for name in _TEXTS))
+_INT64, _FLOAT64 = struct.Struct("<q"), struct.Struct("<d")
+_MAX_LAYOUTS = 512
+_templates: dict[tuple, tuple[bytes, tuple]] = {}  # layout → template (a memo of this process, not configuration)
+_fields: dict[type, tuple[str, ...]] = {}
 
 
-def _template(layout: tuple, payload: bytes) -> tuple[bytes, tuple]:
-    """The payload of a segment of ``layout`` and, per field, ``(position, struct or None)`` of its
-    value bytes in it (``None``: raw bytes of a text or an array)."""
+def _layout(msg, names: tuple[str, ...]) -> tuple:
+    out = [type(msg)]
+    for name in names:
+        v = getattr(msg, name)
+        if isinstance(v, str):
+            out.append(len(v.encode()))
+        elif isinstance(v, np.ndarray):
+            out.append(v.size)
+    return tuple(out)
+
+
+def _template(payload: bytes, names: tuple[str, ...]) -> tuple:
+    """Per field ``(name, position, struct)`` of its value bytes in ``payload`` (struct None: the
+    raw bytes of a text or an array)."""
     buf = pa.py_buffer(payload)
-    reader = pa.ipc.open_stream(buf)
-    batch = reader.read_next_batch()
+    batch = pa.ipc.open_stream(buf).read_next_batch()
     base = buf.address
     places = []
-    for name in _FIELDS:
+    for name in names:
         col = batch.column(name)
         t = col.type
         if pa.types.is_list(t):
@@ -45,40 +51,43 @@ def _template(layout: tuple, payload: bytes) -> tuple[bytes, tuple]:
             places.append((name, None if data is None else data.address - base, None))
         elif pa.types.is_string(t):
             places.append((name, col.buffers()[2].address - base, None))
+        elif pa.types.is_int64(t) or pa.types.is_float64(t):
+            places.append((name, col.buffers()[1].address - base, _INT64 if pa.types.is_int64(t) else _FLOAT64))
         else:
-            fmt = struct.Struct("<q" if pa.types.is_int64(t) else "<d")
-            places.append((name, col.buffers()[1].address - base, fmt))
-    return payload, tuple(places)
+            raise TypeError(f"{name}: {t} is not a field this encoder writes")
+    return tuple(places)
 
 
-_cache: dict[tuple, tuple[bytes, tuple]] = {}  # layout → template (a memo of this process, not configuration)
-_MAX_LAYOUTS = 256
-
-
-def encode_segment(seg: ApSegment) -> bytes:
-    """``seg.encode()``, byte for byte, from the template of its layout."""
-    wire = seg.__dict__.get("_wire")  # (it came alone in a payload: that one)
+def encode_flat(msg) -> bytes:
+    """``msg.encode()``, byte for byte, from the template of its layout (a message whose wire
+    columns are its fields, of the types above)."""
+    wire = msg.__dict__.get("_wire")  # (a segment that came alone in a payload: that one)
     if wire is not None:
         return wire
-    layout = _layout(seg)
-    hit = _cache.get(layout)
+    names = _fields.get(type(msg))
+    if names is None:
+        names = _fields[type(msg)] = tuple(f.name for f in dataclasses.fields(msg))
+    layout = _layout(msg, names)
+    hit = _templates.get(layout)
     if hit is None:
-        if len(_cache) >= _MAX_LAYOUTS:
-            _cache.clear()
-        payload = seg.encode()
-        hit = _cache[layout] = _template(layout, payload)
+        if len(_templates) >= _MAX_LAYOUTS:
+            _templates.clear()
+        payload = msg.encode()
+        _templates[layout] = (payload, _template(payload, names))
         return payload
     template, places = hit
     out = bytearray(template)
     for name, pos, fmt in places:
-        value = getattr(seg, name)
+        value = getattr(msg, name)
         if fmt is not None:
             fmt.pack_into(out, pos, value)
-        elif name in _ARRAYS:
-            if value.size:
-                raw = np.ascontiguousarray(value).tobytes()
-                out[pos : pos + len(raw)] = raw
-        else:
+        elif isinstance(value, str):
             raw = value.encode()
             out[pos : pos + len(raw)] = raw
+        elif value.size:
+            raw = np.ascontiguousarray(value).tobytes()
+            out[pos : pos + len(raw)] = raw
     return bytes(out)
+
+
+encode_segment = encode_flat  # an AP segment's payload (what the segment store spills)
