@@ -181,3 +181,29 @@ def test_ack_encoding_is_the_encoders_byte_for_byte():
         ack = Ack(pass_id=["p", "pässe", "a pass"][k % 3] + "x" * (k % 9), vehicle_id=f"veh-{k}",
                   n_segments_accepted=k * 7919 % 1000, calib_version=k % 5)
         assert encode_flat(ack) == ack.encode() and decode_ack(encode_flat(ack)) == ack
+
+
+def test_a_known_layout_with_corrupt_buffers_is_refused():
+    """Payloads of a layout seen before are read from their bytes (shared.schema): what pyarrow's
+    full validation checks in the buffers' contents is checked there too, so a payload whose
+    metadata repeats a valid one's but whose offsets or text are corrupt is still refused."""
+    rng = np.random.default_rng(10)
+    segs = tuple(_segment(rng, tile=k, start=300 * k, pass_id="pass-ab") for k in range(3))
+    payload = ApBatch(segs).encode()
+    assert decode_ap(payload) == list(segs) and decode_ap(payload) == list(segs)  # (the second: from the layout)
+    text = payload.index(b"pass-abpass-ab")
+    bad_utf8 = payload[:text] + b"\xff" + payload[text + 1 :]  # same length, not UTF-8
+    values = np.frombuffer(payload, np.uint8)
+    for corrupt in (bad_utf8, _with_int32(payload, b"pass-ab", 7, 99), _with_int32(payload, b"pass-ab", 7, -1)):
+        with pytest.raises(DecodeError):
+            decode_ap(corrupt)
+    assert values.size == len(payload)
+
+
+def _with_int32(payload: bytes, text: bytes, old: int, new: int) -> bytes:
+    """``payload`` with the first int32 offset equal to ``old`` found before ``text``'s data replaced by ``new``
+    (the offsets buffer of that string column precedes its data)."""
+    end = payload.index(text)
+    pos = payload.rfind(np.int32(old).tobytes(), 0, end)
+    assert pos >= 0
+    return payload[:pos] + np.int32(new).tobytes() + payload[pos + 4 :]
