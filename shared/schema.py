@@ -41,7 +41,7 @@ import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import Any, ClassVar, NamedTuple, NoReturn
+from typing import Any, ClassVar, NoReturn
 
 import numpy as np
 import pyarrow as pa
@@ -1015,11 +1015,8 @@ class ApSegment(_Message):
         return (self.vehicle_id, self.pass_id, self.route_id, self.tile, self.axle, self.calib_version)
 
     def encode(self) -> bytes:
-        """Arrow IPC payload of this segment: the one it was decoded from, if it came alone in a
-        payload of exactly the writer's columns (it decodes to this segment; re-encoding, most of
-        what spilling a segment to disk costs, is not needed), else encoded now."""
-        wire = self.__dict__.get("_wire")
-        return wire if wire is not None else _encode(self.KIND, _ap_columns([self]))
+        """Arrow IPC payload of this segment."""
+        return _encode(self.KIND, _ap_columns([self]))
 
 
 # The wire columns of an AP segment, in order (an ap_batch has the same columns, one row per segment).
@@ -1088,232 +1085,10 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
 
 def _ap_segments(r: _Row) -> list[ApSegment]:
     """Every row of an ``ap_segment`` or ``ap_batch`` batch as a validated :class:`ApSegment`."""
-    fast = _ap_segments_checked(r)
-    if fast is not None:
-        return fast
     columns = [[_AP_OPTIONAL[name]] * r.n_rows if name in _AP_OPTIONAL and name not in r.names else
                getattr(r, method)(name, value_type) if value_type is not None else getattr(r, method)(name)
                for name, (method, value_type) in zip(_AP_NAMES, _AP_READERS)]
     return [ApSegment(*row) for row in zip(*columns)]  # (the columns are in the fields' order)
-
-
-_AP_TYPES = dict(_AP_COLUMNS)
-_AP_INT_RANGES = {"tile": (0, MAX_INT32), "axle": (1, 16), "start_index": (-MAX_INDEX, MAX_INDEX),
-                  "calib_version": (0, MAX_INT32), "seq": (0, MAX_INT32), "n_segments_in_pass": (-1, MAX_INT32),
-                  "flags": (0, MAX_INT32)}
-# (lo, hi, lo_open) of every float field, as ApSegment.__post_init__ checks them
-_AP_FLOAT_RANGES = {"spacing_m": (0.0, 100.0, True), "scale_m": (0.0, 1.0, True),
-                    "offset_m": (-MAX_ABS_AP_M, MAX_ABS_AP_M, False), "sigma_ref_m": (0.0, MAX_ABS_AP_M, True),
-                    "speed_mps": (0.0, MAX_SPEED_MPS, False), "t_first": (-math.inf, math.inf, False),
-                    "t_last": (-math.inf, math.inf, False)}
-_AP_SCALARS = tuple(name for name, t in _AP_COLUMNS if not pa.types.is_list(t))
-
-
-def _ap_segments_checked(r: _Row) -> list[ApSegment] | None:
-    """The rows as :class:`ApSegment` with every field checked column-wise, or None if the columns
-    are not exactly the writer's types or any row breaks a rule (the caller then builds each row
-    through the constructor, which says which rule): :func:`_ap_rows` of the batch's columns."""
-    cols = r.columns
-    for name, t in _AP_COLUMNS:
-        col = cols.get(name)
-        if col is None:
-            if name in _AP_OPTIONAL:
-                continue
-            return None
-        if not col.type.equals(t) or col.null_count:
-            return None
-    scalars = {name: cols[name].to_pylist() for name in _AP_SCALARS}
-    lists = {}
-    for name in _AP_LISTS:
-        col = cols.get(name)
-        if col is None:  # (an optional column: every row empty)
-            lists[name] = (_NO_FLOAT64, np.zeros(r.n_rows + 1, dtype=np.int32))
-            continue
-        if col.values.null_count:
-            return None
-        offsets = col.offsets.to_numpy()
-        # Views of the payload's buffer (read-only, zero-copy): a segment keeps the payload it came
-        # in alive, about the size of its two arrays, and copies nothing.
-        flat = col.values.to_numpy()[offsets[0] : offsets[-1]]
-        if flat.flags.writeable:
-            flat = flat.copy()
-            flat.setflags(write=False)
-        lists[name] = (flat, offsets - offsets[0])
-    return _ap_rows(r.n_rows, scalars, lists)
-
-
-_NO_FLOAT64 = np.zeros(0)
-_NO_FLOAT64.setflags(write=False)
-_AP_LISTS = ("values_q", "sigma_q", "error_model")
-
-
-def _ap_rows(n: int, fields: dict, lists: dict) -> list[ApSegment] | None:
-    """``n`` segments from their columns: ``fields`` the scalars (a list of Python values per
-    field), ``lists`` each list field's ``(flat values, row offsets from 0)``; None if any row breaks
-    a rule of :meth:`ApSegment.__post_init__`.
-
-    The rules are the constructor's, applied to whole columns at once, so a row passes here exactly
-    when the constructor accepts it, and the segment built is the one the constructor would build
-    (Python ints and floats, read-only int16 arrays, the error model checked by the same function).
-    A batch of segments then costs a few calls per column, not a constructor's checks per field per
-    segment.
-    """
-    for name, (lo, hi) in _AP_INT_RANGES.items():
-        v = fields[name]
-        if min(v) < lo or max(v) > hi:
-            return None
-    for name, (lo, hi, lo_open) in _AP_FLOAT_RANGES.items():
-        v = fields[name]
-        if not all(map(math.isfinite, v)) or min(v) < lo or max(v) > hi or (lo_open and lo in v):
-            return None
-    if any(b < a for a, b in zip(fields["t_first"], fields["t_last"])) or \
-            any(0 <= n_in <= seq for seq, n_in in zip(fields["seq"], fields["n_segments_in_pass"])):
-        return None
-    (values, v_off), (sigma, s_off), (models_flat, m_off) = (lists[name] for name in _AP_LISTS)
-    sizes = np.diff(v_off)
-    if not np.array_equal(v_off, s_off) or sizes.min() < 1 or sizes.max() > MAX_SAMPLES:
-        return None
-    if sigma.size and sigma.max() > 0:
-        return None
-    for name in ("vehicle_id", "route_id"):
-        if not all(map(is_valid_id, fields[name])):
-            return None
-    for p in fields["pass_id"]:
-        if not p or len(p) > MAX_TEXT or not p.isprintable() or "\x00" in p:
-            return None
-    models = [ERROR_MODEL_NONE] * n
-    if models_flat.size:
-        bounds = m_off.tolist()
-        try:
-            models = [_error_model(models_flat[lo:hi]) for lo, hi in zip(bounds[:-1], bounds[1:])]
-        except InvalidMessage:
-            return None
-    bounds = v_off.tolist()
-    fields = {**fields, "values_q": [values[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])],
-              "sigma_q": [sigma[lo:hi] for lo, hi in zip(bounds[:-1], bounds[1:])], "error_model": models}
-    new = object.__new__
-    out = []
-    for row in zip(*(fields[name] for name in _AP_NAMES)):
-        seg = new(ApSegment)
-        seg.__dict__.update(zip(_AP_NAMES, row))  # (in the fields' order, as the constructor sets them)
-        out.append(seg)
-    return out
-
-
-# -- AP payloads of a known layout, read from their bytes --------------------------------------------
-#
-# Decoding through pyarrow costs a wrapper object per column and per buffer (~100 µs per payload
-# whatever its rows). A payload's framing and its batch metadata (row count, every buffer's offset
-# and length, null counts) repeat byte for byte across payloads of one layout: the first payload of
-# a layout is decoded and validated by pyarrow, its columns checked to be exactly the writer's, and
-# where each column's buffers lie in the payload is kept (keyed on the schema and metadata bytes).
-# A later payload with the same bytes there has its buffers where that one had them, of the same
-# lengths, without nulls: what remains to check is what pyarrow's full validation checks in buffer
-# contents (offsets non-decreasing within their data, UTF-8), done here before anything is read.
-
-
-class _Layout(NamedTuple):
-    kind: str  # ap_segment or ap_batch
-    n: int  # rows
-    end: int  # where the batch message ends (the end-of-stream marker follows)
-    scalars: tuple  # (name, struct of the column's n values, position)
-    texts: tuple  # (name, position of the n + 1 int32 offsets, position of the data, data length)
-    lists: tuple  # (name, offsets position, values position, values length, numpy dtype)
-
-
-_MAX_LAYOUTS = 256
-_ap_layouts: dict[tuple[bytes, bytes], _Layout | None] = {}  # a memo of this process, not configuration
-
-
-def _learn_layout(payload: bytes, key: tuple[bytes, bytes], end: int) -> _Layout | None:
-    """The layout of ``payload`` (decoded and validated by pyarrow), or None if it is not exactly the
-    writer's AP columns without nulls."""
-    try:
-        kind, version, batch = _read_batch(payload)
-    except DecodeError:
-        return None
-    if kind not in (ApSegment.KIND, ApBatch.KIND) or version != SCHEMA_VERSION:
-        return None
-    cols = dict(zip(batch.schema.names, batch.columns))
-    if len(cols) != len(_AP_COLUMNS):
-        return None
-    base = pa.py_buffer(payload).address
-    n = batch.num_rows
-    scalars, texts, lists = [], [], []
-    for name, t in _AP_COLUMNS:
-        col = cols.get(name)
-        if col is None or not col.type.equals(t) or col.null_count:
-            return None
-        bufs = col.buffers()
-        if pa.types.is_list(t):
-            child = col.values
-            if child.null_count or col.offset or child.offset:
-                return None
-            data = child.buffers()[1]
-            lists.append((name, bufs[1].address - base, 0 if data is None else data.address - base, len(child),
-                          np.dtype(_NUMPY_OF[t.value_type])))
-        elif pa.types.is_string(t):
-            if col.offset:
-                return None
-            texts.append((name, bufs[1].address - base, bufs[2].address - base if bufs[2] is not None else 0,
-                          bufs[2].size if bufs[2] is not None else 0))
-        else:
-            if col.offset:
-                return None
-            scalars.append((name, struct.Struct(f"<{n}{'q' if t == pa.int64() else 'd'}"), bufs[1].address - base))
-    return _Layout(kind, n, end, tuple(scalars), tuple(texts), tuple(lists))
-
-
-def _ap_known_layout(payload) -> tuple[str, list[ApSegment]] | None:
-    """The kind and segments of an AP payload of a layout seen before (see above), read from its
-    bytes; None for anything else (the general path decodes it, or says why not)."""
-    if type(payload) is not bytes or not 24 <= len(payload) <= MAX_PAYLOAD_BYTES:
-        return None
-    try:
-        if _fb(_U32, payload, 0) != _CONTINUATION:
-            return None
-        schema_end = 8 + _fb(_U32, payload, 4)
-        if schema_end + 16 > len(payload) or _fb(_U32, payload, schema_end) != _CONTINUATION:
-            return None
-        start = schema_end + 8
-        meta_end = start + _fb(_U32, payload, schema_end + 4)
-        key = (payload[:schema_end], payload[start:meta_end])
-        layout = _ap_layouts.get(key, _MISSING_LAYOUT)
-        if layout is _MISSING_LAYOUT:
-            if len(key[1]) > _MAX_CACHED_BATCH_META_BYTES or schema_end > _MAX_CACHED_SCHEMA_BYTES:
-                return None
-            body_length = _batch_body_length(key[1])
-            if body_length is None:
-                return None
-            if len(_ap_layouts) >= _MAX_LAYOUTS:
-                _ap_layouts.clear()
-            layout = _ap_layouts[key] = _learn_layout(payload, key, meta_end + body_length)
-        if layout is None or layout.end + len(_END_OF_STREAM) != len(payload) or \
-                payload[layout.end :] != _END_OF_STREAM:
-            return None
-        n = layout.n
-        fields = {name: list(fmt.unpack_from(payload, pos)) for name, fmt, pos in layout.scalars}
-        offsets_fmt = struct.Struct(f"<{n + 1}i")
-        for name, pos, data_pos, size in layout.texts:
-            off = offsets_fmt.unpack_from(payload, pos)
-            if off[0] != 0 or off[-1] > size or any(b < a for a, b in zip(off, off[1:])):
-                return None
-            data = payload[data_pos : data_pos + off[-1]]
-            fields[name] = [data[a:b].decode() for a, b in zip(off, off[1:])]  # (strict UTF-8: else ValueError)
-        lists = {}
-        for name, pos, values_pos, count, dtype in layout.lists:
-            off = np.frombuffer(payload, np.int32, n + 1, pos)
-            if off[0] != 0 or off[-1] > count or (n > 0 and (np.diff(off) < 0).any()):
-                return None
-            flat = np.frombuffer(payload, dtype, int(off[-1]), values_pos) if off[-1] else np.zeros(0, dtype)
-            lists[name] = (flat, off)
-    except (ValueError, struct.error):  # an offset out of range, text that is not UTF-8: the general path
-        return None
-    segments = _ap_rows(n, fields, lists)
-    return None if segments is None else (layout.kind, segments)
-
-
-_MISSING_LAYOUT = object()
 
 
 def _build_ap_segment(r: _Row) -> ApSegment:
@@ -1382,24 +1157,8 @@ def decode_ap_batch(payload: bytes) -> ApBatch:
 def decode_ap(payload: bytes) -> list[ApSegment]:
     """The segments of an AP payload of either kind (``ap_segment`` or ``ap_batch``); what a
     subscriber to AP keys calls. Raises :class:`DecodeError` (``wrong_kind`` for other kinds)."""
-    known = _ap_known_layout(payload)
-    if known is not None:
-        kind, segments = known
-        if kind == ApSegment.KIND:
-            segments[0].__dict__["_wire"] = payload  # (see ApSegment.encode)
-        else:
-            try:
-                ApBatch(tuple(segments))  # (its own rules: one vehicle, one route)
-            except InvalidMessage as e:
-                raise DecodeError(e.reason, e.detail) from None
-        return segments
     kind, version, batch = _read_batch(payload)
     if kind == ApSegment.KIND:
-        if version == SCHEMA_VERSION and type(payload) is bytes:
-            fast = _ap_segments_checked(_Row(batch))
-            if fast is not None:
-                fast[0].__dict__["_wire"] = payload  # exactly the writer's columns (see ApSegment.encode)
-                return fast
         return [_build(kind, version, batch, _build_ap_segment)]
     if kind == ApBatch.KIND:
         return list(_build(kind, version, batch, _build_ap_batch).segments)

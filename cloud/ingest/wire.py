@@ -61,9 +61,6 @@ def _template(payload: bytes, names: tuple[str, ...]) -> tuple:
 def encode_flat(msg) -> bytes:
     """``msg.encode()``, byte for byte, from the template of its layout (a message whose wire
     columns are its fields, of the types above)."""
-    wire = msg.__dict__.get("_wire")  # (a segment that came alone in a payload: that one)
-    if wire is not None:
-        return wire
     names = _fields.get(type(msg))
     if names is None:
         names = _fields[type(msg)] = tuple(f.name for f in dataclasses.fields(msg))
