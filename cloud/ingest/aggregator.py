@@ -169,8 +169,7 @@ class Aggregator:
 
     # -- input ---------------------------------------------------------------------------------
     def on_segment(self, payload: bytes, key_vehicle: str | None = None) -> list[Ack]:
-        """An AP payload: one segment or a batch of them (``ap_batch``, decoded column-wise once), each
-        applied on its own, in order."""
+        """An AP payload: one segment or a batch of them (``ap_batch``), each applied on its own."""
         try:
             segments = decode_ap(payload)
         except DecodeError as e:

@@ -1,7 +1,7 @@
 """A message's wire payload written into a template of its layout: what spilling and acks cost.
 
-``encode()`` builds Arrow arrays and a record batch per call (~100 µs for an AP segment, ~25 µs for
-an ack), and a cloud at its resident bound spills (encodes) a segment for each one it takes in and
+``encode()`` builds Arrow arrays and a record batch per call, many times the cost of the bytes it
+writes, and a cloud at its resident bound spills (encodes) a segment for each one it takes in and
 publishes an ack per pass. Arrow's IPC bytes of a one-row message whose columns are its fields
 (texts, int64 and float64 scalars, ``list`` arrays: :class:`ApSegment`, :class:`Ack`) depend on
 the values only through the buffers' contents: the metadata (buffer offsets and lengths, padding)
