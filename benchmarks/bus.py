@@ -46,8 +46,10 @@ ingest, no edge work).
 The physical floor, measured in the same run (``bus.kernel_us_per_segment``): the estimators'
 own update of one synthetic segment (the profile posterior's banded information and the
 consensus sums, the compiled kernels every accepted segment runs through), timed in a tight loop
-in this process. Each synthetic result carries ``ratio_to.kernel``: the cloud's CPU per segment
-over that floor, the overhead a loaded machine cannot fake (both slow down together).
+in this process. Each synthetic result carries ``ratio_to.cloud_cpu_over_kernel`` (the cloud
+process's CPU per segment over that floor) and ``ratio_to.cloud_ingest_cpu_over_kernel`` (its
+message callbacks' CPU over it): the overhead around the kernels, which a loaded machine disturbs
+less than the rates (both slow down together).
 """
 
 from __future__ import annotations
@@ -138,8 +140,8 @@ class Deployment:
         common = ["--connect", endpoint, "--net", NET, "--site", str(site)]
         # The cloud trusts the edges' calibration: fleet self-calibration would re-publish passes mid-run
         # and measure itself, not the bus. The edge cold-starts every vehicle from the class mean. Nor does
-        # it align passes in chainage: a sweep between two runs is idle work over every pass held (one
-        # sweep over 2 500 passes holds the cloud ~20 s), which the next run would wait for.
+        # it align passes in chainage: a sweep between two runs is idle work over every pass held, longer
+        # than zenoh's limit on a blocked link once thousands are held, which the next run would wait for.
         self.procs = {"cloud": spawn_daemon([sys.executable, "-m", "cloud", *common, "--id", CLOUD_ID,
                                        "--calibration", "nominal", "--no-align"], workdir / "cloud.log")}
         self.edge_ids = [EDGE_ID if edges == 1 else f"{EDGE_ID}{i}" for i in range(edges)]
@@ -497,7 +499,7 @@ def _only_runs(text: str) -> list[tuple[bool, int]] | None:
 
 def kernel_floor(site: Site, tiles: int, n: int = KERNEL_SEGMENTS) -> Iterator[dict]:
     """The estimators' own update of one synthetic segment (µs of this thread's CPU): ``n`` distinct
-    segments like the synthetic edges' into the cloud's two road estimators, each update timed alone."""
+    segments like the synthetic edges' into the cloud's two road estimators, in one timed loop."""
     routes = {r.id: r.length_m for r in site.routes}
     settings = CloudSettings()
     profile = GmrfProfile(routes, settings.spacing_m, drift_knot_m=settings.drift_knot_m)
