@@ -85,11 +85,20 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
     """Apply each message on the zenoh thread that delivers it, one at a time under a lock.
 
     No queue between the subscription and the aggregator: a hand-off per message cost as much as
-    decoding it. While a message is being applied zenoh holds back the next one, so a busy cloud
-    slows its publishers (they publish with ``CongestionControl.BLOCK``) instead of buffering
-    without bound. Queries are answered under the same lock, from state that has applied every
+    decoding it. Queries are answered under the same lock, from state that has applied every
     message delivered so far. The calling thread publishes a held-back status and runs the core's
     idle work once the bus has been quiet for ``quiet_s`` (the cloud's settings).
+
+    Back-pressure, chosen: when the cloud falls behind, nothing is buffered without bound and
+    nothing is dropped. While a message is applied zenoh holds back the next one; the cloud's queue
+    at the router (a few 64 kB batches) and the TCP buffers fill; the router stops reading the
+    edges' links; an edge's ``put`` (``CongestionControl.BLOCK``) waits, and so does the edge's
+    loop, whose input then waits in the same way upstream. What the edge has sent stays in its
+    outbox until acknowledged. Zenoh bounds one wait: a link blocked for longer than its
+    ``wait_before_close`` (5 s) is closed. The cloud then reconnects, its liveliness token comes
+    back and every edge resends what it has not had acknowledged (duplicates are idempotent), so
+    even then nothing is lost, at the price of a resend; so work that holds the lock (the quiet-bus
+    work below) must be bounded well under those 5 s.
     """
     settings, node_id, shard = cloud.settings, cloud.node_id, cloud.settings.shard
     lock = threading.Lock()

@@ -165,6 +165,7 @@ class Aggregator:
         self.rejected: collections.Counter[str] = collections.Counter()
         self.accepted = 0
         self.updates = 0  # estimator updates applied (for views: "something changed")
+        self._grids: dict[tuple[str, float], bool] = {}  # (route, spacing) → every estimator accepts it
 
     # -- input ---------------------------------------------------------------------------------
     def on_segment(self, payload: bytes, key_vehicle: str | None = None) -> list[Ack]:
@@ -279,12 +280,21 @@ class Aggregator:
             return "beyond_route"
         if not (0.5 <= seg.speed_mps <= 100.0):
             return "impossible_speed"
-        if not all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators):
+        if not self._accepted_grid(seg):
             return "grid_mismatch"
         lo, hi = seg.value_range
         if not (math.isfinite(hi) and max(-lo, hi) < 1.0):
             return "implausible_ap"
         return None
+
+    def _accepted_grid(self, seg: ApSegment) -> bool:
+        """Whether every estimator accepts the segment's route and grid (a function of the two alone:
+        remembered per pair)."""
+        grid = (seg.route_id, seg.spacing_m)
+        ok = self._grids.get(grid)
+        if ok is None:
+            ok = self._grids[grid] = all(getattr(est, "accepts", lambda s: True)(seg) for est in self.estimators)
+        return ok
 
     def _reject(self, reason: str, detail: str) -> list[Ack]:
         self.rejected[reason] += 1

@@ -9,7 +9,11 @@ from shared.schema import ApSegment
 
 class Estimator(Protocol):
     """``update`` adds a segment's information, ``retract`` removes exactly what ``update`` added
-    (a superseded segment), ``snapshot`` returns the current estimate as plain data."""
+    (a superseded segment), ``snapshot`` returns the current estimate as plain data.
+
+    Optional: ``accepts(segment)``, whether the estimator takes a segment, a function of its route
+    and grid spacing alone (the aggregator remembers the answer per pair).
+    """
 
     def update(self, segment: ApSegment) -> None: ...
 

@@ -17,12 +17,12 @@ The index belongs to one process lifetime (a restarted cloud rebuilds it from it
 
 from __future__ import annotations
 
-import collections
 from pathlib import Path
 
 from shared.schema import ApSegment, decode_ap
 
 from cloud.ingest.spill import SpillMap
+from cloud.ingest.wire import encode_segment
 
 #: Default for the daemon: ~4 kB each, so ~80 MB of decoded segments at most.
 DEFAULT_MAX_RESIDENT = 20_000
@@ -33,30 +33,11 @@ def _decode_one(payload: bytes) -> ApSegment:
     return seg
 
 
-_RECENT = 16
-_recent: collections.OrderedDict[int, tuple[ApSegment, bytes]] = collections.OrderedDict()
-
-
-def _encode(seg: ApSegment) -> bytes:
-    """``seg.encode()``, shared by the stores of one process: the aggregator's store and the profile
-    estimator's hold the same segment objects and spill them at about the same write, so the second
-    reuses the first's payload (encoding is most of what a spill costs). Keyed by object, checked
-    by identity; the last few only, so nothing is kept alive for long."""
-    hit = _recent.get(id(seg))
-    if hit is not None and hit[0] is seg:
-        return hit[1]
-    payload = seg.encode()
-    _recent[id(seg)] = (seg, payload)
-    if len(_recent) > _RECENT:
-        _recent.popitem(last=False)
-    return payload
-
-
 class SegmentStore(SpillMap):
     """``slot → ApSegment``, at most ``max_resident`` decoded in memory (None: all of them)."""
 
     def __init__(self, max_resident: int | None = None, spill_dir: str | Path | None = None):
-        super().__init__(max_resident, spill_dir, encode=_encode, decode=_decode_one,
+        super().__init__(max_resident, spill_dir, encode=encode_segment, decode=_decode_one,
                          tag=lambda seg: seg.calib_version, prefix="segments-")
 
     def calib_version(self, slot: tuple) -> int:
