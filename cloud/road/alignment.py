@@ -50,6 +50,7 @@ REFINE_BAND_M = (0.34, 0.5)
 WINDOW_M = 30.0  # long enough to hold the band's longest wave, short enough that ε·W ≪ the shortest
 FINE_LAG_M = 0.6  # residual shift searched after the coarse line (m)
 MIN_POINTS = 400
+FULL_SHARE = 0.8  # a pass spanning this share of its route's covered stretch is a full pass (centring)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,14 +81,18 @@ def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | No
     to the maps *where each pass is* — every metre of road weighed once per pass covering it. A
     pass's map says nothing beyond its own stretch: extrapolated to a common origin, a short pass's
     ill-determined stretch far from chainage 0 (0.5 % of 400 m is 2 m) would move every pass's
-    frame by metres. Without ``extents``, ``F = mean_p T_p`` (passes that span the same stretch).
+    frame by metres. Without ``extents``, or when every pass spans most (``FULL_SHARE``) of the
+    stretch the passes cover together, ``F = mean_p T_p``: there the line through the maps would
+    gain a spurious tilt from the passes' extents moving with their own shifts.
     """
     if not alignments:
         return []
     alpha = np.array([a.shift_m - a.stretch * a.x_ref_m for a in alignments])
     beta = np.array([1.0 + a.stretch for a in alignments])
     a0, b0 = float(np.mean(alpha)), float(np.mean(beta))
-    if extents is not None:
+    union = (min(lo for lo, _ in extents), max(hi for _, hi in extents)) if extents else (0.0, 0.0)
+    partial = extents is not None and any(hi - lo < FULL_SHARE * (union[1] - union[0]) for lo, hi in extents)
+    if partial:
         y = np.concatenate([np.linspace(lo, hi, 9) for lo, hi in extents])
         z = np.concatenate([al + be * np.linspace(lo, hi, 9) for (lo, hi), al, be in zip(extents, alpha, beta)])
         w = np.concatenate([np.full(9, max(hi - lo, 1e-3)) for lo, hi in extents])
