@@ -39,6 +39,14 @@ def _positions(site: Site, route_ids, chainage_m) -> tuple[np.ndarray, np.ndarra
     return lat, lon
 
 
+def segment_line(geometry, start_m: float, end_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(lat, lon)`` of the stretch ``start_m``–``end_m`` of a route's line (a `shared.geo.RouteGeometry`):
+    its ends and the line's vertices between them, so the stretch follows the route's bends."""
+    v = geometry.vertex_chainage_m
+    inside = v[(v > start_m) & (v < end_m)]
+    return geometry.position(np.concatenate(([start_m], inside, [end_m])))
+
+
 def _nullable(values: np.ndarray) -> pa.Array:
     return pa.array(values, type=pa.float64(), mask=~np.isfinite(values))
 
@@ -85,8 +93,7 @@ def roughness_geojson(table: pa.Table, site: Site) -> dict | None:
         g = geometry.get(row["route_id"])
         if g is None:
             continue
-        inside = g.vertex_chainage_m[(g.vertex_chainage_m > row["start_m"]) & (g.vertex_chainage_m < row["end_m"])]
-        lat, lon = g.position(np.concatenate(([row["start_m"]], inside, [row["end_m"]])))
+        lat, lon = segment_line(g, row["start_m"], row["end_m"])
         props = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
         features.append(line_feature(lat, lon, props))
     return {"type": "FeatureCollection", "features": features} if features else None

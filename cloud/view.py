@@ -19,6 +19,9 @@ paths are keys::
     bridge/<bridge>/summary, alarms         TextDocument (the assessment), TextLog (decisions and alarms)
     rail/<route>/track_quality/...          EN 13848 D1 level against chainage, sd per 200 m bars, table
     rail/<vehicle>/runs                     TextDocument, a carriage's run estimates with 95 % intervals
+    map/routes/<route>/line                 GeoLineStrings: the route's line (registries with geometry only)
+    map/routes/<route>/iri_100m             GeoLineStrings: one stretch per 100 m segment, coloured by IRI class
+    map/bridges/<bridge>                    GeoPoints: the bridge at mid-span, coloured by its state
 
 **Charts of one quantity against another** (profile against chainage, stiffness along the span,
 MR-IL, track level) are 2D views of a `cloud.chart.Frame`. Rerun's time-series plots have real
@@ -51,6 +54,7 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from cloud.chart import Frame
+from cloud.coordinates import segment_line
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +98,15 @@ IRI_CLASSES = (("good", 0.0, 1.5, (80, 190, 110)),
                ("acceptable", 1.5, 2.7, (235, 185, 60)),
                ("poor", 2.7, float("inf"), (230, 80, 70)))
 IRI_LENGTHS_M = (100.0, 10.0)
+MAP_IRI_LENGTH_M = 100.0  # the map colours the routes by the IRI per this length
+MAP_ROUTE_COLOUR = (150, 150, 150)  # a route's line where no IRI is known yet
+MAP_LINE_RADIUS = rr.Radius.ui_points(2.0)
+MAP_IRI_RADIUS = rr.Radius.ui_points(4.0)  # wider than the route's line, which shows through gaps
+MAP_BRIDGE_RADIUS = rr.Radius.ui_points(7.0)
+# A bridge's state on the map: no estimate yet, estimated without a damage decision (rough deck:
+# hypotheses off), no alarm, alarm.
+BRIDGE_STATES = {"pending": (150, 150, 150), "undecided": (235, 150, 60), "ok": (80, 190, 110),
+                 "alarm": (230, 80, 70)}
 CALIBRATION_UNITS = {"K/M": "1/s²", "k/M": "1/s²", "C/M": "1/s", "c/M": "1/s", "m/M": "–"}  # quarter-car ratios
 
 DAMAGE_SERIES = (("P(damage) %", (235, 80, 70), 2.0), ("alarm threshold %", (80, 80, 80), 1.5),
@@ -141,6 +154,24 @@ def _bridge_id(bridge: Any) -> str:
     return str(getattr(bridge, "id", bridge))
 
 
+def map_route_path(route_id: str) -> str:
+    """Entity path of a route's lines on the map, ``map/routes/<route>``."""
+    return f"map/routes/{_part(route_id)}"
+
+
+def map_bridge_path(bridge_id: str) -> str:
+    """Entity path of a bridge's point on the map, ``map/bridges/<bridge>``."""
+    return f"map/bridges/{_part(bridge_id)}"
+
+
+def bridge_state(estimate: Any) -> str:
+    """A bridge's state on the map (`BRIDGE_STATES`) from its latest estimate (None: no estimate)."""
+    if estimate is None:
+        return "pending"
+    a = estimate.assessment
+    return "undecided" if a is None else "alarm" if a.alarm else "ok"
+
+
 def rail_path(name: str) -> str:
     """Entity path of a rail route's or carriage's group, ``rail/<name>``."""
     return f"rail/{_part(name)}"
@@ -167,8 +198,9 @@ def _stats_view(name: str, keys: Sequence[str] | None, exclude: Sequence[str] = 
 
 def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
               calibration_params: Sequence[str] = (), rail_routes: Sequence[str] = (),
-              rail_vehicles: Sequence[str] = (), run_names: Sequence[str] = ()) -> rrb.Blueprint:
-    """The one default layout, opened on the ``pass`` timeline: road, bridges, fleet, rail.
+              rail_vehicles: Sequence[str] = (), run_names: Sequence[str] = (), with_map: bool = False
+              ) -> rrb.Blueprint:
+    """The one default layout, opened on the ``pass`` timeline: road (with the map), bridges, fleet, rail.
 
     Parameters
     ----------
@@ -178,6 +210,8 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
         P(damage) with the alarm over passes, D1/D2, the MR-IL, the assessment and the alarm log.
     calibration_params : the fleet-calibrated quantities, one convergence plot each.
     rail_routes, rail_vehicles, run_names : per rail route its track quality; per carriage its runs.
+    with_map : a map of the routes coloured by IRI class and the bridges by state, beside the road
+        panels (only when the registry has route geometry).
     """
     rows: list = []
     shares: list[float] = []
@@ -185,7 +219,10 @@ def blueprint(routes: Mapping[str, float], bridges: Iterable[Any] = (),
     bridge_routes = {getattr(b, "route", None) for b in bridges}
     road = [_road_view(rid, rid in bridge_routes) for rid in routes]
     if road:
-        rows.append(rrb.Tabs(*road, name="road") if len(road) > 1 else road[0])
+        road_row = rrb.Tabs(*road, name="road") if len(road) > 1 else road[0]
+        if with_map:
+            road_row = rrb.Horizontal(road_row, _map_view(), column_shares=[3, 2])
+        rows.append(road_row)
         shares.append(5.0)
     bridge_views = [_bridge_view(b) for b in bridges]
     if bridge_views:
@@ -235,6 +272,13 @@ def _road_view(rid: str, has_bridges: bool) -> rrb.Container:
             rrb.BarChartView(origin=f"{root}/passes_per_tile", name="passes per 50 m tile", plot_legend=no_legend),
             column_shares=[2, 2, 1]),
         row_shares=[3, 2], name=str(rid))
+
+
+def _map_view() -> rrb.MapView:
+    (good, _, g_hi, _), (fair, _, f_hi, _), (poor, _, _, _) = IRI_CLASSES
+    return rrb.MapView(origin="map", name=f"map: IRI per {MAP_IRI_LENGTH_M:g} m (green {good} < {g_hi:g}, amber "
+                       f"{fair}, red {poor} > {f_hi:g} m/km); bridges: grey no estimate, orange undecided, "
+                       "green no alarm, red alarm", background=rrb.MapProvider.OpenStreetMap)
 
 
 def _bridge_view(b: Any) -> rrb.Container:
@@ -365,7 +409,7 @@ class View:
                  connect_url: str | None = None, routes: Mapping[str, float] | None = None,
                  bridges: Sequence[Any] = (), *, recording_id: str | None = None,
                  clock: Callable[[], float] = time.time, viewer_port: int = DEFAULT_VIEWER_PORT,
-                 calibration_params: Sequence[str] = ()):
+                 calibration_params: Sequence[str] = (), geometry: Mapping[str, Any] | None = None):
         sinks: list = []
         if rrd_path is not None:
             Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
@@ -386,6 +430,7 @@ class View:
         self._styled: dict[str, Any] = {}  # entity path → what its static style was made for
         self._routes = dict(routes or {})
         self._bridges = list(bridges)
+        self._geometry = {rid: g for rid, g in (geometry or {}).items() if g is not None}
         self._calibration_params = tuple(calibration_params)
         self._calibration_rounds = 0
         self._calibration_history: dict[str, dict[str, list]] = {}  # param → vehicle → (round, mean, lo, hi)
@@ -397,9 +442,11 @@ class View:
         self._rec.set_log_time_enabled(False)
         self._rec.set_log_tick_enabled(False)
         self._rec.set_sinks(*sinks, default_blueprint=self._blueprint())
+        self._log_map_base()
 
     def _blueprint(self) -> rrb.Blueprint:
-        return blueprint(self._routes, self._bridges, self._calibration_params, *self._rail_layout)
+        return blueprint(self._routes, self._bridges, self._calibration_params, *self._rail_layout,
+                         with_map=bool(self._geometry))
 
     # -- time ------------------------------------------------------------------------------------------
     @property
@@ -441,6 +488,60 @@ class View:
         title = np.array([[min(0.008 * frame.width * len(y_title), 0.4 * frame.width), -3.0 * gap]])
         self._rec.log(f"{root}/axes/titles", rr.Points2D(title, labels=[y_title], radii=LABEL_RADIUS,
                                                          colors=LABEL_COLOUR, show_labels=True))
+
+    # -- map -------------------------------------------------------------------------------------------
+    def _bridge_position(self, bridge: Any) -> tuple[float, float] | None:
+        g = self._geometry.get(getattr(bridge, "route", None))
+        if g is None or not hasattr(bridge, "start_chainage_m"):
+            return None
+        lat, lon = g.position(float(bridge.start_chainage_m) + 0.5 * float(bridge.span_m))
+        return float(lat[0]), float(lon[0])
+
+    def _log_map_base(self) -> None:
+        """The routes' lines (static: the registry's, unchanging) and every bridge as yet unestimated."""
+        with self._lock:
+            for rid, g in self._geometry.items():
+                lat, lon = segment_line(g, 0.0, g.length_m)
+                self._rec.log(f"{map_route_path(rid)}/line", rr.GeoLineStrings(
+                    lat_lon=[np.column_stack([lat, lon])], radii=MAP_LINE_RADIUS, colors=MAP_ROUTE_COLOUR),
+                    static=True)
+        for b in self._bridges:
+            self.log_bridge_state(_bridge_id(b), None)
+
+    def log_map_roughness(self, route_id: str, start_m: np.ndarray, end_m: np.ndarray, iri: np.ndarray) -> None:
+        """Colour the route's line on the map by IRI class (`IRI_CLASSES`), one stretch per
+        segment ``start_m``–``end_m`` (m); NaN IRI draws no stretch. Nothing without geometry."""
+        g = self._geometry.get(route_id)
+        if g is None:
+            return
+        start, end, iri = (np.asarray(a, dtype=float) for a in (start_m, end_m, iri))
+        colour = {name: c for name, _, _, c in IRI_CLASSES}
+        strips, colours = [], []
+        for a, b, v in zip(start, end, iri):
+            if np.isfinite(v) and b > a:
+                lat, lon = segment_line(g, a, b)
+                strips.append(np.column_stack([lat, lon]))
+                colours.append(colour[iri_class(v)])
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(f"{map_route_path(route_id)}/iri_{int(round(MAP_IRI_LENGTH_M))}m", rr.GeoLineStrings(
+                lat_lon=strips, radii=MAP_IRI_RADIUS, colors=colours or None))
+
+    def log_bridge_state(self, bridge_id: str, estimate: Any) -> None:
+        """Place the bridge on the map coloured by its state (`bridge_state` of its latest estimate,
+        None before the first); nothing when its route has no geometry."""
+        b = next((b for b in self._bridges if _bridge_id(b) == bridge_id), None)
+        at = None if b is None else self._bridge_position(b)
+        if at is None:
+            return
+        with self._lock:
+            if self._closed:
+                return
+            self._stamp()
+            self._rec.log(map_bridge_path(bridge_id), rr.GeoPoints(
+                lat_lon=[at], radii=MAP_BRIDGE_RADIUS, colors=BRIDGE_STATES[bridge_state(estimate)]))
 
     # -- profile ---------------------------------------------------------------------------------------
     def log_profile(self, snapshot: Any) -> None:
@@ -538,6 +639,8 @@ class View:
             self._stamp()
             for name, chart in charts.items():
                 self._rec.log(f"{root}/{name}", chart)
+        if abs(float(length_m) - MAP_IRI_LENGTH_M) < 1e-9:
+            self.log_map_roughness(route_id, start, end, iri)
 
     def log_calibration(self, rows: Sequence[Mapping[str, Any]]) -> None:
         """Log one calibration round: every vehicle's calibrated quantities with 95 % intervals.
@@ -785,6 +888,7 @@ class View:
                                    nan if a is None else a.loss_probability,
                                    alarm=None if a is None else bool(a.alarm), alarm_probability=alarm_p)
         self.log_bridge_summary(bid, bridge_summary_markdown(estimate))
+        self.log_bridge_state(bid, estimate)
         with self._lock:
             first = bid not in self._first_estimate_logged
             self._first_estimate_logged.add(bid)

@@ -1,13 +1,20 @@
 """Along-track fusion: matched GNSS chainages and the IMU's longitudinal acceleration → a smooth
 distance, speed and acceleration, by a Kalman filter and Rauch–Tung–Striebel smoother over time.
 
-State ``[s, v, b]``: distance along the direction of travel (m), speed (m/s) and the
-accelerometer's bias (m/s²; it also takes a road grade's share of gravity). The measured
-longitudinal acceleration drives the state (s̈ = a_imu − b + w, white w of density ``q_acc``; b a
-random walk of density ``q_bias``); each fix measures s with its own 1σ. GNSS then sets where the
-vehicle is (metres, absolute, no cumulative stretch) and the IMU how it moves between fixes, so a
-short dropout is bridged without a jump. Without an IMU the input is zero and ``q_acc`` must be
-larger: a constant-acceleration-noise model of the GNSS track alone.
+State ``[s, v, b, e]``: distance along the direction of travel (m), speed (m/s), the
+accelerometer's bias (m/s²; it also takes a road grade's share of gravity) and the GNSS fixes'
+slowly varying along-track error (m). The measured longitudinal acceleration drives the state
+(s̈ = a_imu − b + w, white w of density ``q_acc``; b a random walk of density ``q_bias``); each fix
+measures s + e with the rest of its 1σ as white noise. A receiver's error is mostly not white: the
+satellites' geometry, the atmosphere and multipath change over tens of seconds, so consecutive fixes
+share most of their error (e a first-order Gauss–Markov process of time constant
+``gnss_tau_s`` carrying ``gnss_correlated_share`` of each fix's variance). Treating fixes as
+independent would let the track follow that wander within a pass — a smooth but non-linear chainage
+error no pass alignment (a shift and a stretch) removes, blurring the short waves when passes are
+fused. With e in the state, the IMU says how the vehicle moves within seconds and the fixes where it
+is, on average (metres, absolute, no cumulative stretch), so a short dropout is bridged without a
+jump. Without an IMU the input is zero and ``q_acc`` must be larger: a constant-acceleration-noise
+model of the GNSS track alone.
 """
 
 from __future__ import annotations
@@ -25,17 +32,24 @@ from shared.jit import kernel
 class FusionSettings:
     """``q_acc``: white acceleration noise density, (m/s²)²/Hz, with an IMU; ``q_acc_no_imu``: the
     same without one; ``q_bias``: bias random-walk density, (m/s²)²/s; ``bias_sd``: prior 1σ of the
-    bias, m/s²; ``rate_hz``: the rate the filter runs at (the IMU is averaged down to it)."""
+    bias, m/s²; ``rate_hz``: the rate the filter runs at (the IMU is averaged down to it);
+    ``gnss_tau_s``: time constant of the fixes' correlated error, s; ``gnss_correlated_share``: the
+    share of a fix's variance that is correlated (0: white fixes)."""
 
     q_acc: float = 0.002
     q_acc_no_imu: float = 2.0
     q_bias: float = 1e-4
     bias_sd: float = 0.3
     rate_hz: float = 50.0
+    gnss_tau_s: float = 30.0
+    gnss_correlated_share: float = 0.7
 
     def __post_init__(self):
         for k, v in self.__dict__.items():
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            if k == "gnss_correlated_share":
+                if not (isinstance(v, (int, float)) and 0.0 <= v < 1.0):
+                    raise ValueError(f"FusionSettings.{k}: must be in [0, 1), got {v!r}")
+            elif not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"FusionSettings.{k}: must be a positive finite number, got {v!r}")
 
 
@@ -50,17 +64,19 @@ class Track(NamedTuple):
 
 
 @kernel
-def _rts(h, acc, meas, meas_var, q_acc, q_bias, x0, P0):
+def _rts(h, acc, meas, meas_var, q_acc, q_bias, phi, q_gnss, x0, P0):
     n = acc.size
-    xf = np.empty((n, 3))
-    Pf = np.empty((n, 3, 3))
-    xp = np.empty((n, 3))
-    Pp = np.empty((n, 3, 3))
-    F = np.array([[1.0, h, -0.5 * h * h], [0.0, 1.0, -h], [0.0, 0.0, 1.0]])
-    B = np.array([0.5 * h * h, h, 0.0])
-    Q = np.array([[q_acc * h**3 / 3.0, q_acc * h * h / 2.0, 0.0],
-                  [q_acc * h * h / 2.0, q_acc * h, 0.0],
-                  [0.0, 0.0, q_bias * h]])
+    xf = np.empty((n, 4))
+    Pf = np.empty((n, 4, 4))
+    xp = np.empty((n, 4))
+    Pp = np.empty((n, 4, 4))
+    F = np.array([[1.0, h, -0.5 * h * h, 0.0], [0.0, 1.0, -h, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, phi]])
+    B = np.array([0.5 * h * h, h, 0.0, 0.0])
+    Q = np.array([[q_acc * h**3 / 3.0, q_acc * h * h / 2.0, 0.0, 0.0],
+                  [q_acc * h * h / 2.0, q_acc * h, 0.0, 0.0],
+                  [0.0, 0.0, q_bias * h, 0.0],
+                  [0.0, 0.0, 0.0, q_gnss]])
+    Hm = np.array([1.0, 0.0, 0.0, 1.0])  # a fix sees the position and its own correlated error
     x = x0.copy()
     P = P0.copy()
     for k in range(n):
@@ -69,11 +85,12 @@ def _rts(h, acc, meas, meas_var, q_acc, q_bias, x0, P0):
             P = F @ P @ F.T + Q
         xp[k] = x
         Pp[k] = P
-        if meas_var[k] > 0.0:  # a fix at this step: update on s
-            S = P[0, 0] + meas_var[k]
-            K = P[:, 0] / S
-            x = x + K * (meas[k] - x[0])
-            P = P - np.outer(K, P[0, :])
+        if meas_var[k] > 0.0:  # a fix at this step: update on s + e
+            PH = P @ Hm
+            S = Hm @ PH + meas_var[k]
+            K = PH / S
+            x = x + K * (meas[k] - Hm @ x)
+            P = P - np.outer(K, PH)
         xf[k] = x
         Pf[k] = P
     xs = xf.copy()
@@ -108,14 +125,19 @@ def smooth_track(t: np.ndarray, long_acc: np.ndarray | None, t_fix: np.ndarray, 
     meas = np.zeros(nb)
     var = np.zeros(nb)
     idx = np.clip(np.rint((np.asarray(t_fix, float) - tb[0]) / h).astype(int), 0, nb - 1)
+    rho = settings.gnss_correlated_share
     for i, k in enumerate(idx):  # one fix per filter step: the later one wins (5–10 Hz ≪ rate_hz)
         meas[k] = s_fix[i]
-        var[k] = max(float(sd_fix[i]), 1e-3) ** 2
+        var[k] = (1.0 - rho) * max(float(sd_fix[i]), 1e-3) ** 2
+    # The correlated error's stationary variance: the fixes' typical correlated share (floored at a
+    # millimetre's, nil against metre fixes, so the smoother's covariances stay invertible).
+    e_var = max(rho * float(np.median(np.maximum(np.asarray(sd_fix, float), 1e-3))) ** 2, 1e-6)
+    phi = math.exp(-h / settings.gnss_tau_s)
     first = int(idx[0])
     v0 = (s_fix[-1] - s_fix[0]) / max(float(t_fix[-1] - t_fix[0]), h)
-    x0 = np.array([s_fix[0] - v0 * (tb[first] - tb[0]), v0, 0.0])
-    P0 = np.diag([100.0**2, 10.0**2, settings.bias_sd**2])
-    xs, Ps = _rts(h, acc, meas, var, q, settings.q_bias, x0, P0)
+    x0 = np.array([s_fix[0] - v0 * (tb[first] - tb[0]), v0, 0.0, 0.0])
+    P0 = np.diag([100.0**2, 10.0**2, settings.bias_sd**2, e_var])
+    xs, Ps = _rts(h, acc, meas, var, q, settings.q_bias, phi, e_var * (1.0 - phi * phi), x0, P0)
     # Back to the input times: the distance by cubic Hermite (s, v known), speed linearly.
     s = np.interp(t, tb, xs[:, 0])
     v = np.interp(t, tb, xs[:, 1])

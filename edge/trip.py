@@ -5,8 +5,9 @@ onto the nominal grid, cut at IMU gaps (`edge.resample`), GNSS fixes matched to 
 (`edge.mapmatch`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
 IMU's along-track acceleration (`edge.fusion`). What is left is cut into passes; a sample is kept
 only if the vehicle is on one unambiguously matched route, moving in the route's direction faster
-than ``min_speed_mps``, with |longitudinal acceleration| at most ``max_long_acc_mps2`` and a fix
-within ``max_fix_gap_s``, and not within ``pad_s`` of a sample that is not.
+than ``min_speed_mps``, with |longitudinal acceleration| at most ``max_long_acc_mps2``, |lateral
+acceleration| at most ``max_lat_acc_mps2`` (a raw IMU's, over ``lat_window_s``) and a fix within
+``max_fix_gap_s``, and not within ``pad_s`` of a sample that is not.
 
 Why braking and acceleration are cut, not corrected: the inverse's vehicle models (thesis §2.2)
 are vertical — bounce and pitch driven by the profile at constant speed. Braking pitches the body
@@ -16,6 +17,12 @@ leaves in ``body_acc`` would read as road. So such stretches (and the body's set
 are cut and counted. Passes driven against chainage are rejected, not reversed: the vehicle's
 response cannot be run backwards in time, and the other carriageway is another surface, which a
 registry declares as its own route.
+
+Why turns are cut: the vertical axis is known from the data to a fraction of a degree, and that
+fraction of a turn's lateral acceleration (metres per second squared for a second or two) reads as
+a vertical bump of centimetres once integrated — far above a good road's millimetres, in the band
+the profile is scored on; a real car also rolls in a turn, which the vertical models do not have.
+So a stretch turning harder than ``max_lat_acc_mps2`` is cut like a braking one.
 """
 
 from __future__ import annotations
@@ -41,7 +48,7 @@ logger = logging.getLogger(__name__)
 
 #: Reasons a stretch of a drive is not fused as road, as counted in `TripResult.cut_s`.
 REASONS = ("imu_gap", "off_network", "ambiguous", "against_chainage", "gnss_gap", "slow", "long_acc", "settling",
-           "too_short")
+           "too_short", "turn")
 
 
 class TripError(ValueError):
@@ -54,6 +61,8 @@ class TripSettings:
 
     min_speed_mps: float = 4.0
     max_long_acc_mps2: float = 0.4
+    max_lat_acc_mps2: float = 0.4
+    lat_window_s: float = 1.0
     pad_s: float = 2.0
     max_fix_gap_s: float = 10.0
     min_pass_m: float = 40.0
@@ -64,7 +73,7 @@ class TripSettings:
     fusion: FusionSettings = field(default_factory=FusionSettings)
 
     def __post_init__(self):
-        for k in ("min_speed_mps", "max_long_acc_mps2", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s",
+        for k in ("min_speed_mps", "max_long_acc_mps2", "max_lat_acc_mps2", "lat_window_s", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s",
                   "max_turn_rad"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -165,18 +174,22 @@ def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSet
             if vc.pitch_rate is not None:
                 channels["body_pitch_rate"] = vc.pitch_rate
             long_acc = vc.long_acc
+            w = max(1, int(round(settings.lat_window_s * fs)))
+            lat_acc = np.convolve(acc @ frame.lateral, np.ones(w) / w, mode="same")  # the turn, not the vibration
         else:
             channels = dict(run.signals)
-            long_acc = None
+            long_acc = lat_acc = None
         channels = {c: channels[c] for c in wanted}
         passes += _passes_of_run(run.t, channels, long_acc, t_fix, m, sd_fix, network, settings, log.meta,
-                                 len(passes), cut)
+                                 len(passes), cut, lat_acc)
     names = network.route_ids
     return TripResult(passes, cut, t_fix, [None if r < 0 else names[r] for r in m.route], m.chainage, frame)
 
 
-def _passes_of_run(t, channels, long_acc, t_fix, m, sd_fix, network, settings, meta, k0, cut) -> list[DriveLog]:
-    """The passes within one IMU run (uniform ``t``); adds the seconds cut to ``cut``."""
+def _passes_of_run(t, channels, long_acc, t_fix, m, sd_fix, network, settings, meta, k0, cut,
+                   lat_acc=None) -> list[DriveLog]:
+    """The passes within one IMU run (uniform ``t``); adds the seconds cut to ``cut``. ``lat_acc``:
+    the vehicle's lateral acceleration (m/s², smoothed), None without a raw IMU."""
     dt = float(t[1] - t[0])
     inside = (t_fix >= t[0]) & (t_fix <= t[-1])
     fi = np.flatnonzero(inside)
@@ -223,6 +236,7 @@ def _passes_of_run(t, channels, long_acc, t_fix, m, sd_fix, network, settings, m
             ("gnss_gap", gap[where] > settings.max_fix_gap_s),
             ("slow", track.v < settings.min_speed_mps),
             ("long_acc", np.abs(track.a) > settings.max_long_acc_mps2),
+            ("turn", np.zeros(len(where), bool) if lat_acc is None else np.abs(lat_acc[where]) > settings.max_lat_acc_mps2),
         )
         for why, bad in tests:
             rs[ok & bad] = why

@@ -18,10 +18,12 @@ import pytest
 
 from rerun.chunk import RrdReader
 
-from cloud.view import View
+from cloud.view import BRIDGE_STATES, View
 from shared.drivelog import list_drive_logs, read_drive_log
-from shared.registry import load_site
+from shared.geo import RouteGeometry
+from shared.registry import Site, load_site
 from simfleet.harness import Harness
+from simfleet.network import local_to_latlon
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
 
@@ -35,15 +37,12 @@ class Blueprint:
 
 
 def read_blueprint(path: Path) -> Blueprint:
-    """The blueprint ``path`` opens with: of its blueprint stores (the default one and one per
-    `send_blueprint`, each under a random id, so listed in no particular order), the one with the most
-    views — the view only ever adds panels as quantities appear."""
+    """The last blueprint store of ``path``: the views reachable from its viewport and its time panel."""
     reader = RrdReader(path)
-    return max((_blueprint_of(reader, store) for store in reader.blueprints()), key=lambda bp: len(bp.views))
-
-
-def _blueprint_of(reader: RrdReader, store) -> Blueprint:
-    """One blueprint store: the views reachable from its viewport and its time panel."""
+    # Every blueprint sent makes a store with a random id, and the reader lists stores in no order of
+    # sending; the file does hold them in that order, each store's id first written where it starts.
+    data = Path(path).read_bytes()
+    store = max(reader.blueprints(), key=lambda st: data.find(st.recording_id.encode()))
     latest: dict[tuple[str, str], object] = {}
     for chunk in reader.stream(store=store):
         rb = chunk.to_record_batch()
@@ -102,17 +101,30 @@ def resolve(origin: str, queries: list[str], entities: set[str]) -> tuple[set[st
     return shown, exact
 
 
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory) -> Path:
+def with_geometry(site: Site) -> Site:
+    """The site with each route given a line: eastwards from a point in the Netherlands, its
+    geodesic length the route's (a registry with geometry, as interfaces.md §5 grows it)."""
+    routes = []
+    for k, r in enumerate(site.routes):
+        east = np.linspace(0.0, r.length_m, 11)
+        lat, lon = local_to_latlon(east, np.full(east.size, 200.0 * k))
+        routes.append(dataclasses.replace(r, geometry=RouteGeometry.from_latlon(np.column_stack([lat, lon]))))
+    return dataclasses.replace(site, routes=tuple(routes))
+
+
+def _record(tmp: Path, geometry: bool) -> Path:
     """A bridge run (smooth deck: the damage hypotheses and the alarm decision are on) through the
-    harness with fleet calibration, the view logging to a real .rrd."""
-    tmp = tmp_path_factory.mktemp("panels")
+    harness with fleet calibration, the view logging to a real .rrd; ``geometry``: the registry
+    has route lines (the map panel)."""
     sc = SCENARIOS["bridge-crack10-10m"]
     generate(sc, tmp / "sim", seed=3, passes=PASSES, vehicles=PASSES, workers=1, progress=False)
     site = load_site(tmp / "sim" / "site.toml")
+    if geometry:
+        site = with_geometry(site)
     h = Harness(site)
     rrd = tmp / "run.rrd"
-    h.cloud.view = View(rrd, routes={r.id: r.length_m for r in site.routes}, bridges=list(site.bridges))
+    h.cloud.view = View(rrd, routes={r.id: r.length_m for r in site.routes}, bridges=list(site.bridges),
+                        geometry={r.id: r.geometry for r in site.routes})
     for path in list_drive_logs(tmp / "sim" / "logs"):
         h.replay([read_drive_log(path)])
     h.settle()
@@ -121,7 +133,62 @@ def recording(tmp_path_factory) -> Path:
     return rrd
 
 
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    return _record(tmp_path_factory.mktemp("panels"), geometry=False)
+
+
+@pytest.fixture(scope="module")
+def recording_with_map(tmp_path_factory) -> Path:
+    return _record(tmp_path_factory.mktemp("panels_map"), geometry=True)
+
+
 def test_every_panel_has_data_at_the_end(recording):
+    assert_every_panel_has_data(recording)
+    names = " ".join(n for n, _, _ in read_blueprint(recording).views.values())
+    assert "map" not in names  # a registry without geometry has no map
+
+
+def test_with_geometry_the_map_has_data_too(recording_with_map):
+    assert_every_panel_has_data(recording_with_map)
+    bp = read_blueprint(recording_with_map)
+    (origin,) = [o for n, o, _ in bp.views.values() if n.startswith("map")]
+    entities = entities_with_data(recording_with_map)
+    shown, _ = resolve(origin, ["$origin/**"], entities)
+    assert {"map/routes/R1/line", "map/routes/R1/iri_100m"} <= shown
+    bridges = [e for e in shown if e.startswith("map/bridges/")]
+    assert bridges
+    # Every bridge ends estimated with the alarm decided (smooth deck): green or red, not grey or orange.
+    for e in bridges:
+        colour = last_value(recording_with_map, e, "GeoPoints:colors")
+        assert colour in (_rgba(BRIDGE_STATES["ok"]), _rgba(BRIDGE_STATES["alarm"])), (e, colour)
+    # The route's stretches are coloured by IRI class: the last row has one colour per 100 m segment.
+    strips = last_value(recording_with_map, "map/routes/R1/iri_100m", "GeoLineStrings:line_strings")
+    assert strips is not None and len(strips) >= 1
+
+
+def _rgba(rgb) -> int:
+    r, g, b = rgb
+    return (r << 24) | (g << 16) | (b << 8) | 0xFF
+
+
+def last_value(path: Path, entity: str, column: str):
+    """The last temporal value of ``column`` logged to ``entity`` (its first instance for colours)."""
+    out = None
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path.strip("/") != entity or chunk.is_static:
+            continue
+        rb = chunk.to_record_batch()
+        if column in rb.schema.names:
+            values = [v for v in rb.column(column).to_pylist() if v is not None]
+            if values:
+                out = values[-1]
+    if column.endswith(":colors") and out is not None:
+        return out[0]
+    return out
+
+
+def assert_every_panel_has_data(recording: Path) -> None:
     bp = read_blueprint(recording)
     entities = entities_with_data(recording)
     assert bp.timeline == "pass"

@@ -121,7 +121,9 @@ class ChainageAligner:
             al = estimate_alignment(np.arange(lo, hi) * lead[0].spacing_m, ap, snap.chainage_m, snap.elevation_m,
                                     max_stretch=s.align_max_stretch)
             if al is not None and al.score >= s.align_min_score:
-                found.setdefault(ps.route_id, {})[key] = (al, slots)
+                extent = (float(al.reported_to_true(lo * lead[0].spacing_m)),
+                          float(al.reported_to_true(hi * lead[0].spacing_m)))
+                found.setdefault(ps.route_id, {})[key] = (al, slots, extent)
         # Each route has its own frame: the mean of its own passes' errors.
         found = {rid: f for rid, f in found.items() if len(f) >= s.align_min_passes}
         self.framed = set(found)
@@ -130,7 +132,8 @@ class ChainageAligner:
         moved = 0.0
         for rid, f in found.items():
             regridded = False
-            for (key, (_, slots)), al in zip(f.items(), centred([al for al, _ in f.values()])):
+            for (key, (_, slots, _)), al in zip(f.items(), centred([al for al, _, _ in f.values()],
+                                                                   [extent for _, _, extent in f.values()])):
                 step, moves = self._apply(agg, key, al, slots)
                 moved, regridded = max(moved, step), regridded or moves
             self.frames[rid] = regridded

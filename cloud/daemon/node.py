@@ -344,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
         from cloud.view import View  # rerun: loaded only by a daemon that draws
 
         view = View(rrd_path=args.rrd, spawn_viewer=args.viewer, routes={r.id: r.length_m for r in site.routes},
-                    bridges=list(site.bridges))
+                    bridges=list(site.bridges), geometry={r.id: r.geometry for r in site.routes})
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

@@ -50,6 +50,7 @@ REFINE_BAND_M = (0.34, 0.5)
 WINDOW_M = 30.0  # long enough to hold the band's longest wave, short enough that ε·W ≪ the shortest
 FINE_LAG_M = 0.6  # residual shift searched after the coarse line (m)
 MIN_POINTS = 400
+FULL_SHARE = 0.8  # a pass spanning this share of its route's covered stretch is a full pass (centring)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,22 +67,39 @@ class Alignment:
         return self.x_ref_m + (x_rep - self.x_ref_m - self.shift_m) / (1.0 + self.stretch)
 
 
-def centred(alignments: list[Alignment]) -> list[Alignment]:
+def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | None = None) -> list[Alignment]:
     """The maps re-expressed so that their mean is the identity: the consensus frame becomes the
     passes' mean frame.
 
     Each alignment maps consensus → reported chainage, ``T_p(y) = α_p + (1 + ε_p)·y`` with
-    ``α_p = b_p − ε_p·x_ref,p``. The fleet's mean frame ``F = mean_p T_p`` (a feature's mean reported
-    position) is the frame whose error is the average of the passes' independent errors; composing
-    every map with ``F⁻¹`` removes ``mean α`` and ``mean ε`` from the intercepts and slopes *at a
-    common origin*. Subtracting the mean shift at each pass's own ``x_ref`` instead would leave
-    ``cov(ε_p, x_ref,p)`` in the frame when the passes start at different places.
+    ``α_p = b_p − ε_p·x_ref,p``. The fleet's mean frame ``F`` (a feature's mean reported position)
+    is the frame whose error is the average of the passes' independent errors; composing every map
+    with ``F⁻¹`` removes it. Subtracting the mean shift at each pass's own ``x_ref`` instead would
+    leave ``cov(ε_p, x_ref,p)`` in the frame when the passes start at different places.
+
+    ``extents`` (each pass's consensus-frame start and end, m): ``F`` is the straight line closest
+    to the maps *where each pass is* — every metre of road weighed once per pass covering it. A
+    pass's map says nothing beyond its own stretch: extrapolated to a common origin, a short pass's
+    ill-determined stretch far from chainage 0 (0.5 % of 400 m is 2 m) would move every pass's
+    frame by metres. Without ``extents``, or when every pass spans most (``FULL_SHARE``) of the
+    stretch the passes cover together, ``F = mean_p T_p``: there the line through the maps would
+    gain a spurious tilt from the passes' extents moving with their own shifts.
     """
     if not alignments:
         return []
     alpha = np.array([a.shift_m - a.stretch * a.x_ref_m for a in alignments])
     beta = np.array([1.0 + a.stretch for a in alignments])
     a0, b0 = float(np.mean(alpha)), float(np.mean(beta))
+    union = (min(lo for lo, _ in extents), max(hi for _, hi in extents)) if extents else (0.0, 0.0)
+    partial = extents is not None and any(hi - lo < FULL_SHARE * (union[1] - union[0]) for lo, hi in extents)
+    if partial:
+        y = np.concatenate([np.linspace(lo, hi, 9) for lo, hi in extents])
+        z = np.concatenate([al + be * np.linspace(lo, hi, 9) for (lo, hi), al, be in zip(extents, alpha, beta)])
+        w = np.concatenate([np.full(9, max(hi - lo, 1e-3)) for lo, hi in extents])
+        if np.ptp(y) > 1.0:  # passes spread along the route: the weighted line through their maps
+            yc = float(np.average(y, weights=w))
+            b0 = float(np.sum(w * (y - yc) * z) / np.sum(w * (y - yc) ** 2))
+            a0 = float(np.average(z, weights=w)) - b0 * yc
     out = []
     for a, al, be in zip(alignments, alpha, beta):
         # T_p ∘ F⁻¹ with F(y) = a0 + b0·y: y ↦ α_p + β_p·(y − a0)/b0.

@@ -1,0 +1,67 @@
+"""The network's field drives through ``driveby run`` (Zenoh, the real daemons) against the same roads
+driven as clean single-route passes with the same coverage.
+
+The reference is fair: the clean pass of each field pass's vehicle and route, cropped to the
+chainage the field pass covers (`tests.network_diagnosis.matched_clean`), so what differs is what
+field data costs — map-matched chainage, the logger's orientation, speed changes, resampling — not
+how many passes cover a point. Both with the vehicles' true parameters (nominal calibration), so the
+fleet calibration's own error stays out. Truth is read here only, to score.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from shared.registry import load_site
+from simfleet.harness import run_in_process
+from simfleet.run import run
+from cloud.daemon.settings import CloudSettings
+from tests.network_diagnosis import matched_clean, network_passes, score_routes
+
+SEED = 0
+RATIO = 1.2  # the issue's goal: within 1.2x of the clean passes
+
+
+@pytest.fixture(scope="module")
+def scores(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("network_accuracy")
+    for name, out in (("network", tmp / "net"), ("network-clean", tmp / "clean")):
+        r = subprocess.run([sys.executable, "-m", "simfleet", "sim", name, "--out", str(out), "--seed", str(SEED),
+                            "--nominal", "true"], capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr
+    res = run(tmp / "net" / "logs", tmp / "net" / "site.toml", tmp / "export", calibration="nominal", progress=False)
+    assert res.passes >= 8 and res.acked == res.passes
+    _, passes, _ = network_passes(tmp / "net")  # the passes driveby run cut, for their coverage
+    run_in_process(matched_clean(tmp / "clean", passes), load_site(tmp / "clean" / "site.toml"), tmp / "matched",
+                   CloudSettings(calibration="nominal"))
+    truth = json.loads((tmp / "net" / "truth.json").read_text())
+    return score_routes(tmp / "export", truth), score_routes(tmp / "matched", truth)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "open: each field pass's map-matched chainage is off by its own 0.5-3 m (GNSS wander; shift rms 0.9 m, "
+    "stretch 0.5 %) and a route has 2-3 overlapping partial passes here: the cloud's alignment cannot place "
+    "them against so thin a consensus (none at all on routes below align_min_passes), so the fused profile "
+    "blurs the waves below a few metres. Measured, seed 0, in the fleet's frame: 0.17-0.66 against "
+    "0.05-0.17 coverage-matched clean; with the truth's chainage 0.07-0.18"))
+def test_field_drives_are_within_1p2x_of_the_same_coverage_driven_clean(scores):
+    field, clean = scores
+    for rid in sorted(clean):
+        print(f"{rid}: field {field.get(rid)}\n    clean {clean[rid]}")
+    worse = []
+    for rid, ref in clean.items():
+        got = field.get(rid, {})
+        if "profile_fleet_frame" not in ref:
+            continue
+        # The fleet's frame: no data place a route in the registry's frame better than the mean of
+        # its passes' GNSS errors (metres/sqrt(passes)); the comparison is of the road's shape.
+        if not got.get("profile_fleet_frame", float("inf")) <= RATIO * ref["profile_fleet_frame"]:
+            worse.append(f"{rid} profile {got.get('profile_fleet_frame')} vs {ref['profile_fleet_frame']:.3f}")
+        if "iri_median" in ref and not got.get("iri_median", float("inf")) <= max(RATIO * ref["iri_median"], 0.02):
+            # 2 %: below it the 100 m IRI of 2-3 partial passes is within the clean fleet's own scatter
+            worse.append(f"{rid} IRI {got.get('iri_median')} vs {ref['iri_median']:.3f}")
+    assert not worse, "; ".join(worse)
