@@ -36,8 +36,8 @@ from cloud.bridge.estimator import BridgeEstimate, BridgeEstimator, BridgeSettin
 log = logging.getLogger(__name__)
 
 CLEARED = "cleared"  # Alarm.kind of the message that ends an alarm
-CATCH_UP_ESTIMATES = 6  # at most this many estimates when many passes arrive at once (one each step)
-CATCH_UP_LEAST = 5  # passes per step at least: a few passes at once are one estimate
+CATCH_UP_ESTIMATES = 4  # at most this many estimates when many passes arrive at once (one each step)
+CATCH_UP_LEAST = 8  # passes per step at least: a few passes at once are one estimate
 
 
 def catch_up_steps(pending: int) -> list[int | None]:
