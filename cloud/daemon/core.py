@@ -29,7 +29,7 @@ from shared.vehicles import RAIL_MODELS
 from cloud.bridge.estimator import BridgeSettings
 from cloud.bridge.monitor import CLEARED, BridgeMonitor, catch_up_steps
 from cloud.bridge.vehicle_error import class_log_sd, fit_log_sd
-from cloud.daemon.chainage import ChainageAligner
+from cloud.daemon.chainage import ChainageAligner, Slice
 from cloud.daemon.epochs import Epochs
 from cloud.daemon.queries import TILE_M, bridge_state, tile_points, tile_state
 from cloud.daemon.settings import CloudSettings
@@ -148,7 +148,7 @@ class Cloud:
 
     def _acks(self, acks) -> None:
         if acks and self.settings.align:
-            self.aligner.due, self.aligner.sweeps = True, 0  # a new series of sweeps, sized for new passes
+            self.aligner.renew()  # a new series of sweeps, sized for new passes
         if acks:
             self.bridge_sync_due = True
         for ack in acks:
@@ -232,41 +232,58 @@ class Cloud:
                 store.flush(budget_s / 2)
 
     def maybe_align(self) -> bool:
-        """One chainage alignment sweep, if passes completed since the last series: every complete road
-        pass against the consensus of the others, each route's maps centred on its fleet's mean
+        """One slice of chainage alignment, if passes completed since the last series: every complete
+        road pass against the consensus of the others, each route's maps centred on its fleet's mean
         (:class:`~cloud.daemon.chainage.ChainageAligner`). A series of sweeps against the others'
-        improving consensus runs one sweep per call (idle work: the serve loop takes input between
-        them) until no pass moves more than ``align_tol_m``, up to ``align_iterations`` when new
-        passes came in (2 otherwise). True if this sweep placed passes (a calibration round waits
-        until the series ends)."""
+        improving consensus runs until no pass moves more than ``align_tol_m``, up to
+        ``align_iterations`` when new passes came in (2 otherwise); each sweep runs in slices of about
+        ``align_budget_s`` of the core's clock, one per call (idle work: the serve loop takes input
+        between them, and holds its lock no longer than a slice). True while a sweep goes on, and at
+        the end of one that placed passes (a calibration round waits until the series ends)."""
         aligner, s = self.aligner, self.settings
         if not aligner.due:
             return False
-        self._reapply_alignments()  # recomputed passes first: the sweep compares against them
-        if aligner.sweeps == 0:
-            aligner.sweep_limit = s.align_iterations if aligner.has_new_passes(self.aggregator) else 2
-        moved = aligner.sweep(self.aggregator, self.consensus)
+        work = Slice(self.clock, s.align_budget_s)
+        # Recomputed passes first: the sweep compares against them.
+        if not self._reapply_alignments(work):
+            return True  # more of them at the next call
+        if not work.more():
+            return True  # the sweep starts (or goes on) at the next call
+        result = aligner.step(self.aggregator, self.consensus, work)
+        if result is None:
+            return True
+        moved = result.moved
+        if aligner.sweeps == 0:  # the series' first sweep sizes it
+            aligner.sweep_limit = s.align_iterations if result.new_passes else 2
         aligner.sweeps += 1
         aligner.swept = aligner.swept or moved is not None
-        if moved is None or moved < s.align_tol_m or aligner.sweeps >= aligner.sweep_limit:
+        if aligner.renewed:  # passes completed during this sweep: a new series, sized for them, follows
+            aligner.renewed, aligner.sweeps = False, 0
+        elif moved is None or moved < s.align_tol_m or aligner.sweeps >= aligner.sweep_limit:
             aligner.due, aligner.sweeps = False, 0
             if aligner.swept and s.continuous_aps:  # re-gridded (or restored) passes: their continuous-time APs afresh
+                # (Keys only: the corrections themselves are fused in bounded slices, fuse_pending.)
                 self._unfused.update(dict.fromkeys(self.aggregator.passes))
             aligner.swept = False
+        self.publish_status()
         if moved is None:
-            self.publish_status()
-            return False
+            return aligner.due  # (a series renewed by passes completed meanwhile goes on)
         if self.calibrator is not None:
             self.calibrator.dirty = True  # the consensus moved: the vehicles may need another round
-        self.publish_status()
         return True
 
-    def _reapply_alignments(self) -> None:
-        """Idle work: recomputed passes re-gridded with the alignment found for them, their
-        continuous-time APs then due afresh."""
-        reapplied = self.aligner.reapply_pending(self.aggregator)
+    def _reapply_alignments(self, work: Slice | None = None) -> bool:
+        """Idle work: recomputed passes re-gridded with the alignment found for them, as many as
+        ``work`` allows (None: all), their continuous-time APs then due afresh. True if none is left."""
+        reapplied = self.aligner.reapply_pending(self.aggregator, work)
         if self.settings.continuous_aps:
             self._unfused.update(dict.fromkeys(reapplied))
+        return not self.aligner.pending
+
+    @property
+    def aligning(self) -> bool:
+        """Whether chainage alignment has slices still to run (a series of sweeps goes on)."""
+        return self.aligner.due
 
     def _placed(self, key: tuple[str, str]) -> bool:
         """Whether a pass is placed in chainage (:meth:`ChainageAligner.placed`)."""
@@ -318,7 +335,8 @@ class Cloud:
         passes = self.aggregator.passes
         current = sum(n for (vid, version), n in self.aggregator.acked.items() if version == self.current_version(vid))
         busy = self.calibrator is not None and (self.epochs.pending() or not self.epochs.finished())
-        busy = busy or self.aligner.due or bool(self._unfused)  # (estimates still to take their corrected passes)
+        # (a sweep part-done keeps ``due``; estimates still to take their corrected passes)
+        busy = busy or self.aligner.due or self.aligner.sweeping or bool(self._unfused)
         return {"passes": len(passes), "passes_current": current, "settled": not busy and current == len(passes),
                 "calibration_rounds": self.calibrator.rounds if self.calibrator is not None else 0,
                 "calibration_epoch_passes": self.epochs.size,

@@ -41,6 +41,9 @@ log = logging.getLogger("driveby.cloud")
 #: cloud records (sent, applied) for each such segment it accepts and answers ``control/<id>/latency``.
 TRACE = struct.Struct("<d")
 TRACE_RECORDS = 100_000
+# The idle loop's shortest pause between alignment slices: long enough for input threads waiting
+# on the lock to wake and take it before the next slice does.
+MIN_SLICE_GAP_S = 0.005
 
 
 class LatencyTrace:
@@ -239,15 +242,23 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
         decl.append(session.declare_queryable(keys.state_bridge_key(cloud.net, bid),
                                               lambda query, bid=bid: on_bridge_state(query, bid)))
     token = session.liveliness().declare_token(keys.alive_key(cloud.net, "cloud", node_id))
+    # While alignment has slices to run, the loop comes back after about one slice's time rather
+    # than a whole status interval: input waiting on the lock still takes it first, and a long
+    # sweep is not stretched out by idle gaps.
+    slice_wait = min(settings.status_interval_s, max(settings.align_budget_s, MIN_SLICE_GAP_S))
+    wait = settings.status_interval_s
     try:
-        while not stop.wait(settings.status_interval_s):
+        while not stop.wait(wait):
+            wait = settings.status_interval_s
             try:
                 with lock:
                     quiet = cloud.clock() - last_input >= settings.quiet_s
                     cloud.flush_status(force=quiet)
                     if quiet:  # align, calibrate and estimate bridges when the bus is quiet
                         cloud.fuse_pending(settings.flush_budget_s)  # bounded: the next input waits on the lock
-                        if cloud.maybe_align():
+                        if cloud.maybe_align():  # one slice of a sweep (align_budget_s): bounded too
+                            if cloud.aligning:
+                                wait = slice_wait
                             cloud.bridge_sync_due = True  # the passes' held segments may have moved
                         else:
                             # (A round journals the calibrator through cloud.record before publishing.)

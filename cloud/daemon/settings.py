@@ -49,6 +49,10 @@ class CloudSettings:
     align_tol_m : sweeps stop once no pass's implied position moves more than this (m).
     align_apply_m : a pass is re-gridded only if alignment moves it more than this somewhere (m):
         below it, re-gridding would only blur the pass.
+    align_budget_s : a sweep runs in slices of about this long (each overruns it by at most one
+        pass's estimate or re-gridding), one per quiet tick, so the daemon's lock is never held for a
+        whole sweep (seconds at thousands of passes) and input waits at most a slice; ``inf``: a
+        whole sweep per call.
 
     Calibration epochs (reproducible rounds)
     ----------------------------------------
@@ -102,6 +106,7 @@ class CloudSettings:
     align_max_stretch: float = 0.06
     align_tol_m: float = 0.02
     align_apply_m: float = 0.10
+    align_budget_s: float = 0.05
 
     epoch_first: int = 8
     epoch_max_step: int = 64
@@ -133,6 +138,7 @@ class CloudSettings:
         require(self.align_min_passes >= 1, "align_min_passes", ">= 1")
         require(self.align_iterations >= 1, "align_iterations", ">= 1")
         require(0.0 < self.align_max_stretch < 1.0, "align_max_stretch", "a fraction in (0, 1)")
+        require(self.align_budget_s >= 0, "align_budget_s", "a duration >= 0 (s; inf: unbounded)")
         for name in ("align_tol_m", "align_apply_m", "epoch_tail_s", "refresh_wait_s", "reissue_after_s",
                      "quiet_s", "status_interval_s", "status_heartbeat_s", "flush_budget_s"):
             value = getattr(self, name)
