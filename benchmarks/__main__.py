@@ -23,6 +23,7 @@ REGISTRY: dict[str, str] = {
     "soak": "benchmarks.soak",
     "rail": "benchmarks.rail",
     "edge": "benchmarks.edge",
+    "align": "benchmarks.align",
 }
 
 
