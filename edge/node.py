@@ -291,7 +291,7 @@ class Edge:
 
     def _send(self, vehicle: str, pass_id: str, calib_version: int, key: str, payload: bytes) -> None:
         if self.outbox is not None:
-            self.outbox.add(vehicle, pass_id, calib_version, key, payload)
+            self.outbox.add(vehicle, pass_id, calib_version, key, payload, self.trace)
         if self.cloud_present:
             self.publish(key, payload)
 
@@ -324,9 +324,13 @@ class Edge:
         if self.outbox is None:
             return
         if present:
-            pending = self.outbox.messages()
-            for key, payload in pending:
-                self.publish(key, payload)
+            pending, current = self.outbox.traced(), self.trace
+            try:
+                for key, payload, trace in pending:
+                    self.trace = trace  # publish tags with self.trace: each resend with its own message's
+                    self.publish(key, payload)
+            finally:
+                self.trace = current
             self.resent += len(pending)
         self.cloud_present = present
 

@@ -6,6 +6,10 @@ alive they are only stored; when one appears (a restart, the end of an outage) e
 is sent again. Redelivery is harmless: the cloud treats segments as idempotent by vehicle, pass,
 tile and calibration version.
 
+Each message keeps the trace it was first published with (the zenoh attachment a benchmark times
+a segment by, :attr:`edge.node.Edge.trace`): a resend carries the message's own, not whatever
+the edge is processing when it resends.
+
 On disk each pending pass is one Arrow IPC stream ``<dir>/<vehicle>/<pass>.arrows`` written
 through to the OS message by message, so an edge killed and restarted still delivers what it
 had not got acknowledged. The store is bounded: past ``max_bytes`` the oldest passes are dropped
@@ -25,7 +29,8 @@ import pyarrow as pa
 
 log = logging.getLogger("driveby.edge.outbox")
 
-SCHEMA = pa.schema([("calib_version", pa.int64()), ("key", pa.string()), ("payload", pa.binary())])
+SCHEMA = pa.schema([("calib_version", pa.int64()), ("key", pa.string()), ("payload", pa.binary()),
+                    ("trace", pa.binary())])  # (trace: null when untraced, absent in older spools)
 DEFAULT_MAX_BYTES = 512 * 2**20
 
 
@@ -33,6 +38,7 @@ DEFAULT_MAX_BYTES = 512 * 2**20
 class _Pending:
     calib_version: int
     messages: list[tuple[str, bytes]] = dataclasses.field(default_factory=list)
+    traces: list[bytes | None] = dataclasses.field(default_factory=list)  # each message's, in order
     nbytes: int = 0
     file: object = None
     writer: object = None
@@ -69,7 +75,7 @@ class Outbox:
         for path in files:
             vehicle = urllib.parse.unquote(path.parent.name)
             pass_id = urllib.parse.unquote(path.stem)
-            rows: list[tuple[int, str, bytes]] = []
+            rows: list[tuple[int, str, bytes, bytes | None]] = []
             try:
                 reader = pa.ipc.open_stream(pa.memory_map(str(path)))
                 while True:
@@ -77,34 +83,38 @@ class Outbox:
                         cols = reader.read_next_batch().to_pydict()
                     except StopIteration:
                         break
-                    rows.extend(zip(cols["calib_version"], cols["key"], cols["payload"]))
+                    traces = cols.get("trace", [None] * len(cols["key"]))
+                    rows.extend(zip(cols["calib_version"], cols["key"], cols["payload"], traces))
             except (pa.ArrowInvalid, OSError):  # a torn tail (killed mid-write): keep what is complete
                 pass
             if not rows:
                 path.unlink(missing_ok=True)
                 continue
             version = max(r[0] for r in rows)
-            p = _Pending(version, [(k, v) for c, k, v in rows if c == version])
+            p = _Pending(version, [(k, v) for c, k, v, _ in rows if c == version],
+                         [t for c, _, _, t in rows if c == version])
             p.nbytes = sum(len(v) for _, v in p.messages)
             self.pending[(vehicle, pass_id)] = p
             self.nbytes += p.nbytes
         if self.pending:
             log.warning("outbox: %d unacknowledged passes recovered from %s", len(self.pending), self.dir)
 
-    def _write(self, vehicle: str, pass_id: str, p: _Pending, key: str, payload: bytes) -> None:
+    def _write(self, vehicle: str, pass_id: str, p: _Pending, key: str, payload: bytes,
+               trace: bytes | None) -> None:
         if self.dir is None:
             return
-        todo = [(key, payload)]
+        todo = [(key, payload, trace)]
         if p.writer is None:  # a new pass, or one recovered from disk: (re)write all it holds
             path = self._path(vehicle, pass_id)
             path.parent.mkdir(parents=True, exist_ok=True)
             p.file = open(path, "wb", buffering=0)  # write-through: a killed edge keeps what it wrote
             p.writer = pa.ipc.new_stream(p.file, SCHEMA)
-            todo = p.messages
+            todo = [(k, v, t) for (k, v), t in zip(p.messages, p.traces)]
         n = len(todo)
         p.writer.write_batch(pa.record_batch(
-            [pa.array([p.calib_version] * n, pa.int64()), pa.array([k for k, _ in todo], pa.string()),
-             pa.array([v for _, v in todo], pa.binary())], schema=SCHEMA))
+            [pa.array([p.calib_version] * n, pa.int64()), pa.array([k for k, _, _ in todo], pa.string()),
+             pa.array([v for _, v, _ in todo], pa.binary()), pa.array([t for _, _, t in todo], pa.binary())],
+            schema=SCHEMA))
 
     def _drop(self, k: tuple[str, str]) -> None:
         p = self.pending.pop(k)
@@ -115,8 +125,10 @@ class Outbox:
             self._path(*k).unlink(missing_ok=True)
 
     # -- use -------------------------------------------------------------------------------------
-    def add(self, vehicle: str, pass_id: str, calib_version: int, key: str, payload: bytes) -> None:
-        """Keep one message of a pass until the pass is acknowledged under ``calib_version``."""
+    def add(self, vehicle: str, pass_id: str, calib_version: int, key: str, payload: bytes,
+            trace: bytes | None = None) -> None:
+        """Keep one message of a pass until the pass is acknowledged under ``calib_version``, with the
+        trace it is published with (None: untraced)."""
         k = (vehicle, pass_id)
         p = self.pending.get(k)
         if p is not None and calib_version < p.calib_version:
@@ -127,9 +139,10 @@ class Outbox:
         if p is None:
             p = self.pending[k] = _Pending(calib_version)
         p.messages.append((key, payload))
+        p.traces.append(trace)
         p.nbytes += len(payload)
         self.nbytes += len(payload)
-        self._write(vehicle, pass_id, p, key, payload)
+        self._write(vehicle, pass_id, p, key, payload, trace)
         while self.nbytes > self.max_bytes and len(self.pending) > 1:
             old = next(iter(self.pending))
             if old == k:
@@ -147,6 +160,10 @@ class Outbox:
     def messages(self) -> list[tuple[str, bytes]]:
         """Every pending message, oldest pass first, in the order it was sent."""
         return [m for p in self.pending.values() for m in p.messages]
+
+    def traced(self) -> list[tuple[str, bytes, bytes | None]]:
+        """:meth:`messages` with the trace each was first published with: ``(key, payload, trace)``."""
+        return [(k, v, t) for p in self.pending.values() for (k, v), t in zip(p.messages, p.traces)]
 
     def stats(self) -> dict:
         return {"pending_passes": len(self.pending), "pending_bytes": self.nbytes,

@@ -79,6 +79,7 @@ def test_bad_settings_are_clear_errors(tmp_path):
 # -- the edge with an outbox, wired to a real cloud core (no network: the cores are transport-free) --
 
 import numpy as np  # noqa: E402
+import pyarrow as pa  # noqa: E402
 
 from cloud.daemon.core import Cloud  # noqa: E402
 from cloud.daemon.settings import CloudSettings  # noqa: E402
@@ -148,3 +149,54 @@ def test_an_outage_delays_delivery_but_changes_nothing(road, tmp_path):
     wire.clear()
     edge.on_cloud_presence(True)
     assert wire == []
+
+
+def test_a_resend_carries_each_messages_own_trace(road, tmp_path):
+    """The trace (the zenoh attachment a benchmark times a segment by) is the edge's ``trace`` while
+    it publishes: a message stored during an outage and resent when a cloud appears carries the
+    trace of the chunk that released it, not the one the edge holds when it resends — in memory and
+    from a restarted edge's spool."""
+    site = load_site(road / "site.toml")
+
+    def traced_drive(edge):
+        for path in list_drive_logs(road / "logs"):
+            log = read_drive_log(path)
+            for chunk in chunks_of(log):
+                edge.trace = f"{log.meta.vehicle_id}/{chunk.seq}".encode()  # as the daemon tags each chunk
+                edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
+
+    def wired(outbox):
+        wire: list = []
+        edge = Edge(NET, lambda k, p: wire.append((k, edge.trace)), site, "nominal", outbox=outbox)
+        return edge, wire
+
+    reference, direct = wired(None)  # cloud present throughout: each message tagged as released
+    traced_drive(reference)
+    assert direct and all(t is not None for _, t in direct)
+    edge, wire = wired(Outbox(tmp_path / "spool"))
+    edge.on_cloud_presence(False)
+    traced_drive(edge)
+    assert wire == []
+    edge.trace = b"something else"  # the edge is busy with another chunk when the cloud appears
+    edge.on_cloud_presence(True)
+    assert wire == direct
+    assert edge.trace == b"something else"
+    edge.outbox.close()
+    restarted, wire = wired(Outbox(tmp_path / "spool"))  # killed and restarted: the spool keeps them
+    restarted.on_cloud_presence(True)
+    assert wire == direct
+
+
+def test_a_spool_written_without_traces_still_loads(tmp_path):
+    """Spool files from before traces were kept: their messages load, untraced."""
+    path = tmp_path / "veh-1" / "p1.arrows"
+    path.parent.mkdir(parents=True)
+    old = pa.schema([("calib_version", pa.int64()), ("key", pa.string()), ("payload", pa.binary())])
+    with open(path, "wb") as f, pa.ipc.new_stream(f, old) as w:
+        w.write_batch(pa.record_batch([pa.array([0, 0]), pa.array(["k0", "k1"]), pa.array([b"a", b"b"])], schema=old))
+    box = Outbox(tmp_path)
+    assert box.messages() == [("k0", b"a"), ("k1", b"b")]
+    assert box.traced() == [("k0", b"a", None), ("k1", b"b", None)]
+    box.add("veh-1", "p1", 0, "k2", b"c", b"t2")  # rewritten in the current schema, traces kept
+    box.close()
+    assert Outbox(tmp_path).traced() == [("k0", b"a", None), ("k1", b"b", None), ("k2", b"c", b"t2")]
