@@ -182,19 +182,6 @@ class ChainageAligner:
             if sl in aligned:
                 aggregator.replace_held(sl, aligned[sl])
 
-    def has_new_passes(self, aggregator) -> bool:
-        """Some acknowledged road pass has no alignment yet."""
-        return any(key not in self.alignments for key, ps in aggregator.passes.items()
-                   if ps.acked and self.aligned_model(ps.model))
-
-    def sweep(self, aggregator, consensus) -> float | None:
-        """One whole sweep at once (:meth:`step` without a budget): the largest change of any pass's
-        implied position (m), or None when too few passes align."""
-        result = self.step(aggregator, consensus)
-        while result is None:
-            result = self.step(aggregator, consensus)
-        return result.moved
-
     def step(self, aggregator, consensus, work: Slice | None = None) -> SweepResult | None:
         """One slice of a sweep (a new one if none is in progress), as much as ``work`` allows; the
         sweep's result once it has finished, None while it goes on.
