@@ -51,7 +51,7 @@ class CloudSettings:
         below it, re-gridding would only blur the pass.
     align_budget_s : a sweep runs in slices of about this long (each overruns it by at most one
         pass's estimate or re-gridding), one per quiet tick, so the daemon's lock is never held for a
-        whole sweep (seconds at thousands of passes) and input waits at most a slice; ``inf``: a
+        whole sweep (whose cost grows with the passes) and input waits at most a slice; ``inf``: a
         whole sweep per call.
 
     Calibration epochs (reproducible rounds)
