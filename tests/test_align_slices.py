@@ -14,6 +14,7 @@ import cloud.daemon.chainage as chainage
 from benchmarks.align import SITE, fleet_alignments, road, send_pass
 from cloud.daemon.core import Cloud
 from cloud.daemon.settings import CloudSettings
+from cloud.ingest.aggregator import MIN_RESIDENT_PASSES
 from cloud.road.alignment import centred, realign
 
 PASSES = 7
@@ -73,12 +74,15 @@ def test_the_budget_is_a_validated_setting():
             CloudSettings(align_budget_s=bad)
 
 
-def test_slices_give_exactly_the_alignments_and_held_segments_of_whole_sweeps():
+@pytest.mark.parametrize("memory", [{}, {"max_resident": 5, "max_resident_passes": MIN_RESIDENT_PASSES}],
+                         ids=["resident", "spilled"])
+def test_slices_give_exactly_the_alignments_and_held_segments_of_whole_sweeps(memory, tmp_path):
     """On a quiet bus, a series run one pass per slice (budget 0) ends where whole sweeps (budget
     inf) do: the same alignments, the same segments held, the same frames, bit for bit — and it
-    took many calls, so it was sliced."""
-    whole, _, truth = _fleet(math.inf)
-    sliced, _, _ = _fleet(0.0)
+    took many calls, so it was sliced. Also with segments and passes spilled to disk between slices."""
+    memory = {**memory, "spill_dir": tmp_path} if memory else {}
+    whole, _, truth = _fleet(math.inf, **memory)
+    sliced, _, _ = _fleet(0.0, **memory)
     whole_calls, sliced_calls = _settle(whole), _settle(sliced)
     assert whole_calls <= BASE.align_iterations
     assert sliced_calls >= 2 * PASSES * whole_calls  # every estimate and every apply a slice of its own
@@ -94,8 +98,8 @@ def test_slices_give_exactly_the_alignments_and_held_segments_of_whole_sweeps():
 
 
 def test_a_slice_overruns_its_budget_by_at_most_one_passs_work(monkeypatch):
-    """The clock moves only with work: each estimate and each re-gridding costs ``COST`` of it. A
-    slice of budget 2.5·COST does at most three of them (the third starts before 2.5·COST), and
+    """The clock moves only with work: each estimate and each re-gridding costs ``cost`` of it. A
+    slice of budget 2.5·cost does at most three of them (the third starts before 2.5·cost), and
     every slice does at least one."""
     cost, budget = 1.0, 2.5
     cloud, clock, _ = _fleet(budget)
