@@ -242,10 +242,10 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
         decl.append(session.declare_queryable(keys.state_bridge_key(cloud.net, bid),
                                               lambda query, bid=bid: on_bridge_state(query, bid)))
     token = session.liveliness().declare_token(keys.alive_key(cloud.net, "cloud", node_id))
-    # While alignment has slices to run, the loop comes back after about one slice's time rather
-    # than a whole status interval: input waiting on the lock still takes it first, and a long
-    # sweep is not stretched out by idle gaps.
-    slice_wait = min(settings.status_interval_s, max(settings.align_budget_s, MIN_SLICE_GAP_S))
+    # While alignment has slices to run, the loop comes back after a short gap rather than a whole
+    # status interval: input waiting on the lock takes it in the gap, and a long sweep on a quiet bus
+    # is not stretched out by idle time.
+    slice_wait = min(settings.status_interval_s, MIN_SLICE_GAP_S)
     wait = settings.status_interval_s
     try:
         while not stop.wait(wait):
