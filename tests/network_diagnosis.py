@@ -12,6 +12,8 @@ frame and in the fleet's, with the band's coverage; IRI per 100 m):
   coverage as the field drives, exact chainage);
 * ``truth``: the network passes cut from the drives, their chainage and speed replaced by the truth
   (what the edge's field steps cost apart from chainage);
+* ``affine`` / ``shift``: the truth's chainage plus what a perfect shift-and-stretch / shift-only
+  alignment of each pass would leave of the edge's chainage error;
 * ``mm``: the network passes as the edge cuts them (map matching and fusion).
 
 Suffixes: ``-noalign`` turns the cloud's alignment off, ``-nominal`` calibrates nominally (else fleet).
@@ -60,6 +62,23 @@ def with_true_chainage(passes, truth):
     return out, np.concatenate(errs)
 
 
+def with_residual_chainage(passes, truth, model: str):
+    """The passes with the truth's chainage plus the part of the edge's chainage error that a
+    perfect pass alignment would leave: ``affine`` removes each pass's best shift and stretch,
+    ``shift`` its mean error only, anything else nothing."""
+    out = []
+    for p in passes:
+        t, c, v = _truth_track(truth, p.meta.pass_id.rsplit("-", 2)[0])
+        ct = np.interp(p.t, t, c)
+        e = p.chainage - ct
+        A = np.stack([np.ones_like(ct), ct - ct.mean()], 1)[:, : {"affine": 2, "shift": 1}.get(model, 0)]
+        sol, *_ = np.linalg.lstsq(A, e, rcond=None) if A.shape[1] else (np.zeros(0),)
+        r = e - A @ sol
+        # The edge's chainage within a pass is the integrated speed: the speed carries the residual.
+        out.append(dataclasses.replace(p, chainage=ct + r, speed=np.interp(p.t, t, v) + np.gradient(r, p.t)))
+    return out
+
+
 def matched_clean(cleandir: Path, net_passes):
     """The clean pass of each network pass's vehicle and route, cropped to the chainage it covers."""
     clean = {(g.meta.vehicle_id, g.meta.route_id): g for g in map(read_drive_log, list_drive_logs(cleandir / "logs"))}
@@ -103,6 +122,8 @@ def main(argv: list[str]) -> None:
             site, passes, cut = network_passes(netdir)
             if var.startswith("matched"):
                 passes = matched_clean(cleandir, passes)
+            elif var.startswith(("affine", "shift", "speed")):
+                passes = with_residual_chainage(passes, truth, var.split("-")[0])
             elif var.startswith("truth"):
                 passes, e = with_true_chainage(passes, truth)
                 print(f"  chainage error |e|: median {np.median(np.abs(e)):.3f} m, p95 {np.percentile(np.abs(e), 95):.3f} m")
