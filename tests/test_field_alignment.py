@@ -3,7 +3,7 @@ a short pass far from chainage 0 must not move the fleet's frame by its ill-dete
 
 import numpy as np
 
-from cloud.road.alignment import Alignment, centred
+from cloud.road.alignment import Alignment, centred, damped
 
 
 def test_a_short_pass_far_down_the_route_leaves_the_frame_where_the_passes_are():
@@ -28,3 +28,50 @@ def test_passes_spanning_the_same_stretch_centre_as_before():
     extents = [(0.0, 500.0)] * 5
     for a, b in zip(centred(als), centred(als, extents)):
         assert abs(a.shift_m - b.shift_m) < 1e-9 and abs(a.stretch - b.stretch) < 1e-12
+
+
+def test_a_sweep_over_few_passes_lands_where_they_agree_instead_of_swapping_them():
+    # Passes at offsets x_p (reported − true), each placed against the mean of the others where
+    # they are held: a full step overshoots by (n + 1)/n — two passes swap for ever, three halve
+    # and flip sign. The damped step n/(n + 1) meets the others in one sweep.
+    for x in ([1.0, -0.8], [0.9, -0.4, 0.2]):
+        x = np.asarray(x)
+        n = len(x) - 1
+        held = {"full": np.zeros(len(x)), "damped": np.zeros(len(x))}  # each pass's applied shift
+        for _ in range(6):
+            for how, t in held.items():
+                est = [x[p] - np.mean([x[q] - t[q] for q in range(len(x)) if q != p]) for p in range(len(x))]
+                new = [Alignment(e, 0.0, 0.0, 1.0) for e in est]
+                if how == "damped":
+                    new = [damped(Alignment(float(t[p]), 0.0, 0.0, 1.0), a, n) for p, a in enumerate(new)]
+                t[:] = [a.shift_m for a in centred(new)]
+        # Placed: every pass at the same place (their mean), reported − shift.
+        assert np.ptp(x - held["damped"]) < 1e-9, x - held["damped"]
+        if n == 1:  # undamped, two passes swap their offset every sweep: after an even number, as reported
+            assert abs(np.ptp(x - held["full"]) - np.ptp(x)) < 1e-9
+
+
+def test_damped_from_nothing_is_the_share_of_the_estimate_and_with_many_passes_almost_all_of_it():
+    est = Alignment(1.0, 0.004, 100.0, 0.9)
+    half = damped(None, est, 1.0)
+    assert abs(half.shift_m - 0.5) < 1e-12 and abs(half.stretch - 0.002) < 1e-12 and half.score == 0.9
+    assert abs(damped(None, est, 30.0).shift_m - 30.0 / 31.0) < 1e-12
+    # Maps given at different reference chainages are combined as maps, not as numbers.
+    old = Alignment(0.2, 0.001, 0.0, 0.9)
+    step = damped(old, est, 1.0)
+    x = np.array([0.0, 100.0, 300.0])
+    assert np.allclose(step.true_to_reported(x), 0.5 * (old.true_to_reported(x) + est.true_to_reported(x)))
+
+
+def test_stretches_no_pass_links_are_centred_each_on_its_own_and_a_lone_pass_keeps_its_place():
+    # Two passes at 0–250 m (offsets +1 and −1), two at 400–600 m (+3 and +1) and a lone pass at
+    # 700–760 m placed +2 m against a pass that did not align.
+    als = [Alignment(1.0, 0.0, 0.0, 1.0), Alignment(-1.0, 0.0, 0.0, 1.0), Alignment(3.0, 0.0, 400.0, 1.0),
+           Alignment(1.0, 0.0, 400.0, 1.0), Alignment(2.0, 0.0, 700.0, 1.0)]
+    extents = [(0.0, 250.0), (10.0, 240.0), (400.0, 600.0), (420.0, 590.0), (700.0, 760.0)]
+    out = centred(als, extents)
+    assert np.allclose([a.shift_m for a in out[:2]], [1.0, -1.0], atol=1e-9)
+    assert np.allclose([a.shift_m for a in out[2:4]], [1.0, -1.0], atol=1e-9)
+    assert out[4] == als[4]
+    for a in out:
+        assert abs(a.stretch) < 1e-12

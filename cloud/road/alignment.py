@@ -67,6 +67,25 @@ class Alignment:
         return self.x_ref_m + (x_rep - self.x_ref_m - self.shift_m) / (1.0 + self.stretch)
 
 
+def damped(old: Alignment | None, new: Alignment, n_others: float) -> Alignment:
+    """The step of a sweep towards ``new``, the pass's map against the consensus of ``n_others``
+    passes (their mean count over the pass), from its map of the last sweep ``old`` (None: the
+    identity): ``old + n/(n + 1)·(new − old)``.
+
+    Every pass of a sweep is placed against the others where they were, and they move too. Against
+    ``n`` others a full step overshoots by ``(n + 1)/n``: with one other pass, two passes swap their
+    offset every sweep and never meet; with two, the error halves and flips sign per sweep. The
+    step ``n/(n + 1)`` lands where the passes agree in one sweep when they overlap in full (the
+    others' mean misplacement is then ``−1/n`` of this pass's own); with tens of passes it is the
+    full step.
+    """
+    k = n_others / (n_others + 1.0) if n_others > 0 else 1.0
+    a_old, e_old = (0.0, 0.0) if old is None else (old.shift_m - old.stretch * old.x_ref_m, old.stretch)
+    a_new, e_new = new.shift_m - new.stretch * new.x_ref_m, new.stretch
+    a, e = a_old + k * (a_new - a_old), e_old + k * (e_new - e_old)
+    return Alignment(float(a + e * new.x_ref_m), float(e), new.x_ref_m, new.score)
+
+
 def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | None = None) -> list[Alignment]:
     """The maps re-expressed so that their mean is the identity: the consensus frame becomes the
     passes' mean frame.
@@ -83,10 +102,22 @@ def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | No
     ill-determined stretch far from chainage 0 (0.5 % of 400 m is 2 m) would move every pass's
     frame by metres. Without ``extents``, or when every pass spans most (``FULL_SHARE``) of the
     stretch the passes cover together, ``F = mean_p T_p``: there the line through the maps would
-    gain a spurious tilt from the passes' extents moving with their own shifts.
+    gain a spurious tilt from the passes' extents moving with their own shifts. Passes in stretches
+    of the route that no pass links (no overlap) are centred group by group.
     """
     if not alignments:
         return []
+    groups = _overlapping(extents) if extents else [list(range(len(alignments)))]
+    if len(groups) > 1:
+        out: list[Alignment | None] = [None] * len(alignments)
+        for g in groups:
+            # Passes that share no road with another aligned pass share no frame with it either. A
+            # lone one was placed against passes that did not align (they stay where they report):
+            # its map is its place in their frame, and centring it alone would undo it.
+            done = centred([alignments[i] for i in g], [extents[i] for i in g]) if len(g) > 1 else [alignments[g[0]]]
+            for i, al in zip(g, done):
+                out[i] = al
+        return out
     alpha = np.array([a.shift_m - a.stretch * a.x_ref_m for a in alignments])
     beta = np.array([1.0 + a.stretch for a in alignments])
     a0, b0 = float(np.mean(alpha)), float(np.mean(beta))
@@ -107,6 +138,22 @@ def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | No
         eps = be_c - 1.0
         out.append(Alignment(float(al_c + eps * a.x_ref_m), float(eps), a.x_ref_m, a.score))
     return out
+
+
+def _overlapping(extents: list[tuple[float, float]]) -> list[list[int]]:
+    """The indices of ``extents`` grouped into chains of stretches that overlap (in start order)."""
+    order = sorted(range(len(extents)), key=lambda i: extents[i][0])
+    groups: list[list[int]] = []
+    end = -np.inf
+    for i in order:
+        lo, hi = extents[i]
+        if groups and lo < end:
+            groups[-1].append(i)
+            end = max(end, hi)
+        else:
+            groups.append([i])
+            end = hi
+    return [sorted(g) for g in groups]
 
 
 @functools.lru_cache(maxsize=16)
