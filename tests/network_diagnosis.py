@@ -25,10 +25,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from cloud.daemon.settings import CloudSettings
 from edge.trip import TripSettings, split_drives
@@ -92,7 +94,25 @@ def matched_clean(cleandir: Path, net_passes):
     return out
 
 
+def _scored_stretch(export: Path, route_id: str, out: Path) -> Path:
+    """A copy of the export's profile with only the stretch of ``route_id`` that `score_profile`
+    scores (its longest run of points), so that a frame fitted to it is that stretch's own."""
+    t = pq.read_table(Path(export) / "profile.parquet")
+    d = t.to_pydict()
+    rows = np.flatnonzero(np.asarray(d["route_id"]) == route_id)
+    x = np.asarray(d["chainage_m"])[rows]
+    h = float(np.median(np.diff(x))) if x.size > 1 else 1.0
+    runs = np.split(np.arange(x.size), np.flatnonzero(np.diff(x) > 1.5 * h) + 1)
+    keep = rows[max(runs, key=len)]
+    out.mkdir(parents=True, exist_ok=True)
+    pq.write_table(t.take(keep), out / "profile.parquet")
+    return out
+
+
 def score_routes(export: Path, truth: dict) -> dict:
+    """Per route: profile error in the registry's frame, in the fleet's (one shift and stretch of
+    the whole route fitted), in the scored stretch's own frame (fitted to that stretch alone:
+    stretches no pass links each carry their own passes' mean GNSS error), band coverage, IRI."""
     rows = {}
     for rid, tr in route_truths(truth).items():
         row = {}
@@ -100,6 +120,9 @@ def score_routes(export: Path, truth: dict) -> dict:
             a, b = score_profile(export, tr), score_profile(export, tr, fit_frame=True)
             row |= {"profile": a.rel_error, "profile_fleet_frame": b.rel_error, "coverage": a.coverage,
                     "coverage_fleet_frame": b.coverage, "max_passes": a.max_passes}
+            with tempfile.TemporaryDirectory() as tmp:
+                c = score_profile(_scored_stretch(export, rid, Path(tmp)), tr, fit_frame=True)
+            row |= {"profile_stretch_frame": c.rel_error, "coverage_stretch_frame": c.coverage}
             ir = score_iri(export, tr)
             row |= {"iri_median": ir.median_rel_error, "iri_coverage": ir.coverage, "iri_segments": ir.n_segments}
         except (ValueError, KeyError) as e:
