@@ -3,7 +3,8 @@ a short pass far from chainage 0 must not move the fleet's frame by its ill-dete
 
 import numpy as np
 
-from cloud.road.alignment import Alignment, centred, damped
+from cloud.road.alignment import Alignment, centred, damped, estimate_alignment
+from shared.profiles import iso8608_profile, tyre_filter
 
 
 def test_a_short_pass_far_down_the_route_leaves_the_frame_where_the_passes_are():
@@ -75,3 +76,38 @@ def test_stretches_no_pass_links_are_centred_each_on_its_own_and_a_lone_pass_kee
     assert out[4] == als[4]
     for a in out:
         assert abs(a.stretch) < 1e-12
+
+
+def _pass_on(profile, lo: float, hi: float, shift: float, stretch: float, seed: int):
+    """A pass's AP over true chainage lo–hi, gridded where it reports itself (5 cm)."""
+    h = 0.05
+    x_true = np.arange(lo, hi, h)
+    al = Alignment(shift, stretch, lo, 1.0)
+    x_rep = al.true_to_reported(x_true)
+    grid = np.arange(np.ceil(x_rep[0] / h), np.floor(x_rep[-1] / h)) * h
+    ap = np.interp(grid, x_rep, profile.at(x_true)) + np.random.default_rng(seed).normal(0, 5e-5, grid.size)
+    return grid, ap, al, x_true
+
+
+def test_a_short_pass_is_placed_by_a_shift_and_a_partial_consensus_does_not_invent_matches():
+    profile = tyre_filter(iso8608_profile(800.0, 0.01, "A", seed=3))
+    h = 0.05
+    xc = np.arange(0.0, 800.0, h)
+    # A 55 m pass 3.3 m off: two windows. Against the road they agree (shift and stretch); against
+    # a consensus whose second half is another surface (a patch, another lane) the second window
+    # matches somewhere else, and the pass is placed by the first one's shift.
+    grid, ap, al_true, x_true = _pass_on(profile, 400.0, 455.0, 3.3, 0.002, 1)
+    other = tyre_filter(iso8608_profile(800.0, 0.01, "A", seed=11))
+    for cons, tol in ((profile.at(xc), 0.03), (np.where(xc < 428.0, profile.at(xc), other.at(xc)), 0.1)):
+        al = estimate_alignment(grid, ap, xc, cons)
+        assert al is not None
+        # Shift alone: off by up to ε·L = 11 cm at the far end.
+        assert np.max(np.abs(al.true_to_reported(x_true) - al_true.true_to_reported(x_true))) < tol + 0.02
+    # A 115 m pass whose first 30 m the consensus does not cover (the others start later): windows
+    # there must not match the zeros beyond the consensus's end.
+    grid, ap, al_true, x_true = _pass_on(profile, 50.0, 165.0, 0.3, 0.003, 2)
+    cons = np.where((xc >= 82.0) & (xc <= 167.0), profile.at(xc), np.nan)
+    al = estimate_alignment(grid, ap, xc, cons)
+    assert al is not None
+    covered = x_true[x_true >= 82.0]
+    assert np.max(np.abs(al.true_to_reported(covered) - al_true.true_to_reported(covered))) < 0.05

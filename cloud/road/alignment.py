@@ -188,8 +188,11 @@ def _window_shifts(a: np.ndarray, c: np.ndarray, starts: np.ndarray, n_win: int,
         cw = c[lo:hi]
         num = fftconvolve(cw, w[::-1], mode="valid")  # num[i] = Σ w · cw[i : i + n_win]
         e = np.concatenate([[0.0], np.cumsum(cw * cw)])
-        den = np.sqrt(np.sum(w * w) * (e[n_win:] - e[:-n_win])) + 1e-30
-        r = num / den
+        ww = np.sum(w * w)
+        ce = e[n_win:] - e[:-n_win]
+        # Where the consensus is (almost) nil — past its ends, zero-padded — the running sums'
+        # rounding leaves a ratio of two tiny numbers, not a correlation: no match there.
+        r = np.where(ce > 1e-6 * ww, num / (np.sqrt(ww * np.maximum(ce, 0.0)) + 1e-300), 0.0)
         i = int(np.argmax(r))
         frac = 0.0
         if 0 < i < r.size - 1:
@@ -228,7 +231,8 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     """(b, ε) of a pass's AP (on its reported grid ``x_rep``) against the consensus ``cons`` (on the
     regular grid ``x_cons``, same spacing). None if they overlap too little or nothing correlates.
     ``refine_band_m``: the band of the final least-squares fit (default ``REFINE_BAND_M``).
-    ``stretch_step`` is accepted for compatibility and ignored (ε is not searched on a grid)."""
+    ``stretch_step`` is accepted for compatibility and ignored (ε is not searched on a grid).
+    With fewer than three usable windows the pass is placed by a shift alone (ε = 0)."""
     ok = np.isfinite(ap)
     okc = np.isfinite(cons)
     if ok.sum() < MIN_POINTS or okc.sum() < MIN_POINTS:
@@ -262,7 +266,19 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     x_r = x_rep[0] + (starts + n_win / 2) * h
     d = -k * h
     x_t = x_r - d
-    b, eps, _ = _line(x_t[good] - x_ref, d[good], r[good], robust=True)
+    # Two windows cannot out-vote a false peak, and they fix a line through it: when a short pass's
+    # two windows (or a pass this little covered by the others) disagree beyond any plausible
+    # stretch, it is placed by a shift alone — its best-correlated window's — its stretch (a few per
+    # mille of tens of metres) left as reported.
+    shift_only = good.sum() < 2
+    if good.sum() == 2:  # a line through two windows only if they agree on a plausible stretch
+        (i1, i2) = np.flatnonzero(good)
+        shift_only = abs(d[i2] - d[i1]) > FINE_LAG_M + 0.01 * abs(x_t[i2] - x_t[i1])
+    if shift_only:
+        best = int(np.argmax(np.where(good, r, -np.inf)))
+        b, eps = float(d[best]), 0.0
+    else:
+        b, eps, _ = _line(x_t[good] - x_ref, d[good], r[good], robust=True)
     if abs(eps) > 1.5 * max_stretch or abs(b) > max_shift_m + 2.0:
         return None
     # Fine: re-grid the pass with (b, ε) and refine on small residual shifts.
@@ -289,9 +305,12 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
         # true chainage there is larger by kk·h, i.e. its shift smaller by (1+ε)·kk·h.
         yk = -(1.0 + eps) * kk[g] * h
         db, de, inl = _line(xm[g] - x_ref, yk, rr[g], robust=g.sum() >= 3, floor_m=0.02)
+        if shift_only:  # the best window's residual shift, the others' left out
+            best = int(np.argmax(rr[g]))
+            db, de, inl = float(yk[best]), 0.0, np.arange(g.sum()) == best
         # The inlier windows' stretches of true chainage: where the pass and the consensus agree.
         inlier_m = [(xg[0] + s * h, xg[0] + (s + n_win - 1) * h) for s in st[g][inl]]
-        if g.sum() < 3:
+        if g.sum() < 3 or shift_only:
             de = 0.0
         b, eps = b + db, eps + de
         # The score is the coarse band's correlation: against a consensus still smeared by the
@@ -310,7 +329,7 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     if refine != fine_band_m:
         c_band, a_band = _band(c, h, refine), _band(ap, h, refine)
     b, eps = _least_squares(x_rep, a_band, xc, c_band, Alignment(b, eps, x_ref, score), inlier_m,
-                            max_move_m=refine[0] / 4.0)
+                            max_move_m=refine[0] / 4.0, stretch=not shift_only)
     if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
         return None
     # A move must earn its place: a pass already in the consensus frame that differs from the others
@@ -342,8 +361,8 @@ def _correlation(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray
 
 
 def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment,
-                   inlier_m: list[tuple[float, float]], max_move_m: float, iterations: int = 4
-                   ) -> tuple[float, float]:
+                   inlier_m: list[tuple[float, float]], max_move_m: float, iterations: int = 4,
+                   stretch: bool = True) -> tuple[float, float]:
     """(b, ε) minimising Σ (g·a(T(x)) − c(x))² over the true-chainage stretches ``inlier_m``, from
     ``al`` by Gauss–Newton (T: true → reported chainage; ``a`` on the reported grid ``x_rep`` is
     interpolated by a cubic spline, whose derivative is the Jacobian; g absorbs a gain mismatch).
@@ -371,6 +390,8 @@ def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarr
         gain = float(np.dot(av, cv) / (np.dot(av, av) + 1e-300))
         # r = g·a(T(x)) − c(x); ∂r/∂b = g·a', ∂r/∂ε = g·a'·(x − x_ref), ∂r/∂g = a.
         J = np.stack([gain * dv, gain * dv * (xg - al.x_ref_m), av], axis=1)
+        if not stretch:  # ε stays as given
+            J[:, 1] = 0.0
         r = gain * av - cv
         scale = np.sqrt(np.sum(J * J, axis=0)) + 1e-300
         step, *_ = np.linalg.lstsq(J / scale, -r, rcond=None)
