@@ -50,6 +50,7 @@ REFINE_BAND_M = (0.34, 0.5)
 WINDOW_M = 30.0  # long enough to hold the band's longest wave, short enough that ε·W ≪ the shortest
 FINE_LAG_M = 0.6  # residual shift searched after the coarse line (m)
 MIN_POINTS = 400
+DAMP_BELOW = 3.0  # a sweep's step is damped against fewer other passes than this (`damped`)
 FULL_SHARE = 0.8  # a pass spanning this share of its route's covered stretch is a full pass (centring)
 
 
@@ -76,10 +77,11 @@ def damped(old: Alignment | None, new: Alignment, n_others: float) -> Alignment:
     ``n`` others a full step overshoots by ``(n + 1)/n``: with one other pass, two passes swap their
     offset every sweep and never meet; with two, the error halves and flips sign per sweep. The
     step ``n/(n + 1)`` lands where the passes agree in one sweep when they overlap in full (the
-    others' mean misplacement is then ``−1/n`` of this pass's own); with tens of passes it is the
-    full step.
+    others' mean misplacement is then ``−1/n`` of this pass's own). From ``DAMP_BELOW`` others on the
+    full step is taken: its error shrinks by ``1/n`` a sweep, and each sweep's map is then the pass's
+    own estimate against the latest consensus, not partly the first sweep's against a smeared one.
     """
-    k = n_others / (n_others + 1.0) if n_others > 0 else 1.0
+    k = n_others / (n_others + 1.0) if 0 < n_others < DAMP_BELOW else 1.0
     a_old, e_old = (0.0, 0.0) if old is None else (old.shift_m - old.stretch * old.x_ref_m, old.stretch)
     a_new, e_new = new.shift_m - new.stretch * new.x_ref_m, new.stretch
     a, e = a_old + k * (a_new - a_old), e_old + k * (e_new - e_old)
