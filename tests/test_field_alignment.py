@@ -32,36 +32,45 @@ def test_passes_spanning_the_same_stretch_centre_as_before():
 
 
 def test_a_sweep_over_few_passes_lands_where_they_agree_instead_of_swapping_them():
-    # Passes at offsets x_p (reported − true), each placed against the mean of the others where
-    # they are held: a full step overshoots by (n + 1)/n — two passes swap for ever, three halve
-    # and flip sign. The damped step n/(n + 1) meets the others in one sweep.
+    # Passes at offsets x_p (reported − true) over the whole road, each placed against the mean of
+    # the others where they are held: a full step overshoots by (n + 1)/n — two passes swap for
+    # ever, three halve and flip sign. The damped step n/(n + 1) from the second sweep on meets.
+    xc = np.arange(0.0, 200.0, 1.0)
     for x in ([1.0, -0.8], [0.9, -0.4, 0.2]):
         x = np.asarray(x)
-        n = len(x) - 1
-        held = {"full": np.zeros(len(x)), "damped": np.zeros(len(x))}  # each pass's applied shift
+        n = np.full(xc.size, len(x) - 1)
+        held = {"full": [None] * len(x), "damped": [None] * len(x)}  # each pass's map
         for _ in range(6):
-            for how, t in held.items():
-                est = [x[p] - np.mean([x[q] - t[q] for q in range(len(x)) if q != p]) for p in range(len(x))]
-                new = [Alignment(e, 0.0, 0.0, 1.0) for e in est]
+            for how, maps in held.items():
+                t = [0.0 if m is None else m.shift_m for m in maps]
+                est = [Alignment(x[p] - np.mean([x[q] - t[q] for q in range(len(x)) if q != p]), 0.0, 0.0, 1.0)
+                       for p in range(len(x))]
                 if how == "damped":
-                    new = [damped(Alignment(float(t[p]), 0.0, 0.0, 1.0), a, n) for p, a in enumerate(new)]
-                t[:] = [a.shift_m for a in centred(new)]
-        # Placed: every pass at the same place (their mean), reported − shift.
-        assert np.ptp(x - held["damped"]) < 1e-9, x - held["damped"]
-        if n == 1:  # undamped, two passes swap their offset every sweep: after an even number, as reported
-            assert abs(np.ptp(x - held["full"]) - np.ptp(x)) < 1e-9
+                    est = [damped(maps[p], a, xc, n, 0.0, 200.0) for p, a in enumerate(est)]
+                maps[:] = centred(est)
+        placed = x - np.array([m.shift_m for m in held["damped"]])
+        assert np.ptp(placed) < 1e-9, placed
+        if len(x) == 2:  # undamped, two passes swap their offset every sweep: after an even number, as reported
+            assert abs(np.ptp(x - np.array([m.shift_m for m in held["full"]])) - np.ptp(x)) < 1e-9
 
 
-def test_damped_from_nothing_is_the_share_of_the_estimate_and_with_many_passes_all_of_it():
-    est = Alignment(1.0, 0.004, 100.0, 0.9)
-    half = damped(None, est, 1.0)
-    assert abs(half.shift_m - 0.5) < 1e-12 and abs(half.stretch - 0.002) < 1e-12 and half.score == 0.9
-    assert damped(None, est, 30.0).shift_m == 1.0  # against many others: the full step
-    # Maps given at different reference chainages are combined as maps, not as numbers.
-    old = Alignment(0.2, 0.001, 0.0, 0.9)
-    step = damped(old, est, 1.0)
+def test_the_damped_step_is_the_share_of_the_move_for_few_or_partial_passes_and_all_of_it_else():
+    xc = np.arange(0.0, 300.0, 1.0)
+    old, est = Alignment(0.2, 0.001, 0.0, 0.9), Alignment(1.0, 0.004, 100.0, 0.9)
     x = np.array([0.0, 100.0, 300.0])
+    one = np.ones(xc.size)
+    # From nothing (a pass's first sweep): the estimate itself.
+    assert damped(None, est, xc, one, 0.0, 300.0) == est
+    # One other pass: half-way, maps combined as maps (given at different reference chainages).
+    step = damped(old, est, xc, one, 0.0, 300.0)
     assert np.allclose(step.true_to_reported(x), 0.5 * (old.true_to_reported(x) + est.true_to_reported(x)))
+    assert step.score == 0.9
+    # Ten others over the whole pass: the full step. Ten others over a third of it: damped.
+    assert damped(old, est, xc, 10 * one, 0.0, 300.0) == est
+    part = np.where(xc < 100.0, 10.0, 0.0)
+    step = damped(old, est, xc, part, 0.0, 300.0)
+    assert np.allclose(step.true_to_reported(x), old.true_to_reported(x) + 10 / 11 * (est.true_to_reported(x)
+                                                                                      - old.true_to_reported(x)))
 
 
 def test_stretches_no_pass_links_are_centred_each_on_its_own_and_a_lone_pass_keeps_its_place():

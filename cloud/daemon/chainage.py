@@ -121,8 +121,8 @@ class ChainageAligner:
             al = estimate_alignment(np.arange(lo, hi) * lead[0].spacing_m, ap, snap.chainage_m, snap.elevation_m,
                                     max_stretch=s.align_max_stretch)
             if al is not None and al.score >= s.align_min_score:
-                n = snap.n_passes[(snap.chainage_m >= lo * lead[0].spacing_m) & (snap.chainage_m < hi * lead[0].spacing_m)]
-                al = damped(self.alignments.get(key), al, float(np.mean(n[n > 0])) if (n > 0).any() else 0.0)
+                al = damped(self.alignments.get(key), al, snap.chainage_m, snap.n_passes, lo * lead[0].spacing_m,
+                            hi * lead[0].spacing_m)
                 extent = (float(al.reported_to_true(lo * lead[0].spacing_m)),
                           float(al.reported_to_true(hi * lead[0].spacing_m)))
                 found.setdefault(ps.route_id, {})[key] = (al, slots, extent)

@@ -68,21 +68,33 @@ class Alignment:
         return self.x_ref_m + (x_rep - self.x_ref_m - self.shift_m) / (1.0 + self.stretch)
 
 
-def damped(old: Alignment | None, new: Alignment, n_others: float) -> Alignment:
-    """The step of a sweep towards ``new``, the pass's map against the consensus of ``n_others``
-    passes (their mean count over the pass), from its map of the last sweep ``old`` (None: the
-    identity): ``old + n/(n + 1)·(new − old)``.
+def damped(old: Alignment | None, new: Alignment, cons_x: np.ndarray, cons_n: np.ndarray, lo_m: float,
+           hi_m: float) -> Alignment:
+    """The step of a sweep towards ``new``, the pass's map (the pass at ``lo_m``–``hi_m``) against a
+    consensus of ``cons_n`` other passes per point ``cons_x``, from its map of the last sweep ``old``.
 
     Every pass of a sweep is placed against the others where they were, and they move too. Against
     ``n`` others a full step overshoots by ``(n + 1)/n``: with one other pass, two passes swap their
-    offset every sweep and never meet; with two, the error halves and flips sign per sweep. The
-    step ``n/(n + 1)`` lands where the passes agree in one sweep when they overlap in full (the
-    others' mean misplacement is then ``−1/n`` of this pass's own). From ``DAMP_BELOW`` others on the
-    full step is taken: its error shrinks by ``1/n`` a sweep, and each sweep's map is then the pass's
-    own estimate against the latest consensus, not partly the first sweep's against a smeared one.
+    offset every sweep and never meet; with two, the error halves and flips sign per sweep; partial
+    passes, each overlapping other subsets, pass such swings to and fro. The step ``n/(n + 1)``
+    (``n`` the others' mean count over the pass) lands where passes that overlap in full agree in
+    one sweep. It is taken from a pass's second sweep on (the first, from nothing, is the full
+    estimate: a series then goes on while passes still move), for partial passes and against fewer
+    than ``DAMP_BELOW`` others. Full passes against more take the full step: its error shrinks by
+    ``1/n`` a sweep, and each sweep's map stays the pass's own estimate against the latest consensus,
+    not partly an earlier one's against a consensus still smeared.
     """
-    k = n_others / (n_others + 1.0) if 0 < n_others < DAMP_BELOW else 1.0
-    a_old, e_old = (0.0, 0.0) if old is None else (old.shift_m - old.stretch * old.x_ref_m, old.stretch)
+    inside = (cons_x >= lo_m) & (cons_x < hi_m)
+    n_in = cons_n[inside]
+    if old is None or not (n_in > 0).any():
+        return new
+    n = float(np.mean(n_in[n_in > 0]))
+    covered = cons_x[cons_n > 0]
+    full = (np.mean(n_in > 0) >= FULL_SHARE and hi_m - lo_m >= FULL_SHARE * float(np.ptp(covered)))
+    if full and n >= DAMP_BELOW:
+        return new
+    k = n / (n + 1.0)
+    a_old, e_old = old.shift_m - old.stretch * old.x_ref_m, old.stretch
     a_new, e_new = new.shift_m - new.stretch * new.x_ref_m, new.stretch
     a, e = a_old + k * (a_new - a_old), e_old + k * (e_new - e_old)
     return Alignment(float(a + e * new.x_ref_m), float(e), new.x_ref_m, new.score)
