@@ -34,11 +34,19 @@ class FusionSettings:
     same without one; ``q_bias``: bias random-walk density, (m/s²)²/s; ``bias_sd``: prior 1σ of the
     bias, m/s²; ``rate_hz``: the rate the filter runs at (the IMU is averaged down to it);
     ``gnss_tau_s``: time constant of the fixes' correlated error, s; ``gnss_correlated_share``: the
-    share of a fix's variance that is correlated (0: white fixes)."""
+    share of a fix's variance that is correlated (0: white fixes).
 
-    q_acc: float = 0.002
+    ``q_acc`` is a phone accelerometer's own noise density (~1e-5) with a margin for what a small
+    tilt error leaks in of the body's vibration; ``q_bias`` lets the bias move by millimetres per
+    second squared over a pass. Together they let the IMU, not the fixes' wander, shape the track
+    within a pass, so that its chainage error is a shift and a stretch — provided the bias is known
+    (from the whole drive, `edge.trip.imu_bias`): a bias wrong by 0.01 m/s² bends a 20 s pass by
+    decimetres. A road's changing grade enters as a changing bias (g times the grade's change), so
+    on hilly roads ``q_bias`` must grow with it."""
+
+    q_acc: float = 0.0002
     q_acc_no_imu: float = 2.0
-    q_bias: float = 1e-4
+    q_bias: float = 1e-6
     bias_sd: float = 0.3
     rate_hz: float = 50.0
     gnss_tau_s: float = 30.0
@@ -103,9 +111,14 @@ def _rts(h, acc, meas, meas_var, q_acc, q_bias, phi, q_gnss, x0, P0):
 
 
 def smooth_track(t: np.ndarray, long_acc: np.ndarray | None, t_fix: np.ndarray, s_fix: np.ndarray,
-                 sd_fix: np.ndarray, settings: FusionSettings = FusionSettings()) -> Track:
+                 sd_fix: np.ndarray, settings: FusionSettings = FusionSettings(), bias_mps2: float = 0.0,
+                 bias_sd_mps2: float | None = None) -> Track:
     """Fuse fixes ``s_fix`` (m along the direction of travel, 1σ ``sd_fix``, at times ``t_fix``)
-    with ``long_acc`` (m/s² at the uniform times ``t``, or None) and return the track at ``t``."""
+    with ``long_acc`` (m/s² at the uniform times ``t``, or None) and return the track at ``t``.
+
+    ``bias_mps2``, ``bias_sd_mps2``: the accelerometer bias's prior mean and 1σ (default 0 and the
+    settings' ``bias_sd``), e.g. from the whole drive (`edge.trip.imu_bias`): a stretch's own fixes
+    hardly tell a bias from the GNSS error's wander, and a wrong bias bends the track."""
     t = np.asarray(t, float)
     if len(t) < 2 or len(t_fix) < 2:
         raise ValueError("smooth_track: needs at least two samples and two fixes")
@@ -135,8 +148,9 @@ def smooth_track(t: np.ndarray, long_acc: np.ndarray | None, t_fix: np.ndarray, 
     phi = math.exp(-h / settings.gnss_tau_s)
     first = int(idx[0])
     v0 = (s_fix[-1] - s_fix[0]) / max(float(t_fix[-1] - t_fix[0]), h)
-    x0 = np.array([s_fix[0] - v0 * (tb[first] - tb[0]), v0, 0.0, 0.0])
-    P0 = np.diag([100.0**2, 10.0**2, settings.bias_sd**2, e_var])
+    b_sd = settings.bias_sd if bias_sd_mps2 is None else max(float(bias_sd_mps2), 1e-6)
+    x0 = np.array([s_fix[0] - v0 * (tb[first] - tb[0]), v0, float(bias_mps2) if long_acc is not None else 0.0, 0.0])
+    P0 = np.diag([100.0**2, 10.0**2, b_sd**2, e_var])
     xs, Ps = _rts(h, acc, meas, var, q, settings.q_bias, phi, e_var * (1.0 - phi * phi), x0, P0)
     # Back to the input times: the distance by cubic Hermite (s, v known), speed linearly.
     s = np.interp(t, tb, xs[:, 0])

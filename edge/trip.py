@@ -2,7 +2,8 @@
 
 Steps, each its own module: the raw IMU's orientation (`edge.orientation`), the logger's timestamps
 onto the nominal grid, cut at IMU gaps (`edge.resample`), GNSS fixes matched to the network
-(`edge.mapmatch`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
+(`edge.mapmatch`), the longitudinal accelerometer's bias once per drive from the GNSS track's
+speed (`imu_bias`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
 IMU's along-track acceleration (`edge.fusion`). What is left is cut into passes; a sample is kept
 only if the vehicle is on one unambiguously matched route, moving in the route's direction faster
 than ``min_speed_mps``, with |longitudinal acceleration| at most ``max_long_acc_mps2``, |lateral
@@ -164,7 +165,7 @@ def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSet
     if raw:
         frame = _logger_frame(runs, t_fix, lat, lon, settings, name)
 
-    passes: list[DriveLog] = []
+    per_run = []
     for run in runs:
         if raw:
             acc = np.column_stack([run.signals[c] for c in ACC_COLUMNS])
@@ -173,23 +174,32 @@ def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSet
             channels = {"body_acc": vc.body_acc}
             if vc.pitch_rate is not None:
                 channels["body_pitch_rate"] = vc.pitch_rate
-            long_acc = vc.long_acc
-            w = max(1, int(round(settings.lat_window_s * fs)))
-            lat_acc = np.convolve(acc @ frame.lateral, np.ones(w) / w, mode="same")  # the turn, not the vibration
+            per_run.append((channels, vc.long_acc, acc @ frame.lateral))
         else:
-            channels = dict(run.signals)
-            long_acc = lat_acc = None
+            per_run.append((dict(run.signals), None, None))
+    bias = None
+    if raw:
+        bias = imu_bias([(run.t, la, lt) for run, (_, la, lt) in zip(runs, per_run)], t_fix, lat, lon, settings)
+    passes: list[DriveLog] = []
+    for run, (channels, long_acc, lat_raw) in zip(runs, per_run):
+        lat_acc = None
+        if lat_raw is not None:
+            w = max(1, int(round(settings.lat_window_s * fs)))
+            lat_acc = np.convolve(lat_raw, np.ones(w) / w, mode="same")  # the turn, not the vibration
+            if bias is not None:
+                long_acc = long_acc - bias.yaw_leak * lat_raw
         channels = {c: channels[c] for c in wanted}
         passes += _passes_of_run(run.t, channels, long_acc, t_fix, m, sd_fix, network, settings, log.meta,
-                                 len(passes), cut, lat_acc)
+                                 len(passes), cut, lat_acc, bias)
     names = network.route_ids
     return TripResult(passes, cut, t_fix, [None if r < 0 else names[r] for r in m.route], m.chainage, frame)
 
 
 def _passes_of_run(t, channels, long_acc, t_fix, m, sd_fix, network, settings, meta, k0, cut,
-                   lat_acc=None) -> list[DriveLog]:
+                   lat_acc=None, bias: ImuBias | None = None) -> list[DriveLog]:
     """The passes within one IMU run (uniform ``t``); adds the seconds cut to ``cut``. ``lat_acc``:
-    the vehicle's lateral acceleration (m/s², smoothed), None without a raw IMU."""
+    the vehicle's lateral acceleration (m/s², smoothed), None without a raw IMU; ``bias``: the
+    drive's accelerometer bias (None: each stretch's fusion finds its own)."""
     dt = float(t[1] - t[0])
     inside = (t_fix >= t[0]) & (t_fix <= t[-1])
     fi = np.flatnonzero(inside)
@@ -223,8 +233,9 @@ def _passes_of_run(t, channels, long_acc, t_fix, m, sd_fix, network, settings, m
         sel = (t >= t_fix[idx[0]]) & (t <= t_fix[idx[-1]])
         if sel.sum() < 2:
             continue
+        # Along the direction of travel the bias keeps its sign: the vehicle's forward axis is fixed.
         track = smooth_track(t[sel], None if long_acc is None else long_acc[sel], t_fix[idx], direction * c_fix,
-                             sd_fix[idx], settings.fusion)
+                             sd_fix[idx], settings.fusion, *(() if bias is None else (bias.bias_mps2, bias.bias_sd_mps2)))
         where = np.flatnonzero(sel)
         chain[where] = direction * track.s
         speed[where] = track.v
@@ -317,21 +328,17 @@ def _logger_frame(runs, t_fix, lat, lon, settings: TripSettings, name: str) -> L
         raise TripError(f"{name}: raw IMU: {e}") from None
 
 
-def track_acceleration(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s: float,
-                       min_speed_mps: float = 3.0, still_mps: float = 0.3
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The GNSS track's acceleration in the vehicle's axes, ``(a_long, a_lat)`` (m/s², lateral to
-    the left) at each fix, from a local quadratic fit of the position over ``window_s``; its yaw
-    rate (rad/s); and whether it is known: moving faster than ``min_speed_mps`` (heading defined)
-    or standing (slower than ``still_mps``: zero)."""
+def _track_fits(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The track's velocity and acceleration (east, north; NaN where the window holds too few
+    fixes) at each fix, from a local quadratic fit of the position over ``window_s``."""
     mid = len(lat) // 2
     local = CRS.from_dict({"proj": "aeqd", "lat_0": float(lat[mid]), "lon_0": float(lon[mid]), "datum": "WGS84",
                            "units": "m"})
     x, y = Transformer.from_crs("EPSG:4326", local, always_xy=True).transform(lon, lat)
     x, y = np.asarray(x), np.asarray(y)
-    out = np.full((len(t_fix), 2), np.nan)
-    yaw = np.zeros(len(t_fix))
-    valid = np.zeros(len(t_fix), bool)
+    vel = np.full((len(t_fix), 2), np.nan)
+    acc = np.full((len(t_fix), 2), np.nan)
     lo = np.searchsorted(t_fix, t_fix - window_s / 2)
     hi = np.searchsorted(t_fix, t_fix + window_s / 2)
     for i in range(len(t_fix)):
@@ -342,8 +349,24 @@ def track_acceleration(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, wind
         V = np.column_stack([np.ones(b - a), tt, tt**2])
         cx, *_ = np.linalg.lstsq(V, x[a:b], rcond=None)
         cy, *_ = np.linalg.lstsq(V, y[a:b], rcond=None)
-        v = np.array([cx[1], cy[1]])
-        acc = 2.0 * np.array([cx[2], cy[2]])
+        vel[i] = (cx[1], cy[1])
+        acc[i] = (2.0 * cx[2], 2.0 * cy[2])
+    return vel, acc, np.isfinite(vel[:, 0])
+
+
+def track_acceleration(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, window_s: float,
+                       min_speed_mps: float = 3.0, still_mps: float = 0.3
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The GNSS track's acceleration in the vehicle's axes, ``(a_long, a_lat)`` (m/s², lateral to
+    the left) at each fix, from a local quadratic fit of the position over ``window_s``; its yaw
+    rate (rad/s); and whether it is known: moving faster than ``min_speed_mps`` (heading defined)
+    or standing (slower than ``still_mps``: zero)."""
+    vel, acc_en, fitted = _track_fits(t_fix, lat, lon, window_s)
+    out = np.full((len(t_fix), 2), np.nan)
+    yaw = np.zeros(len(t_fix))
+    valid = np.zeros(len(t_fix), bool)
+    for i in np.flatnonzero(fitted):
+        v, acc = vel[i], acc_en[i]
         sp = float(np.hypot(*v))
         if sp >= min_speed_mps:
             u = v / sp
@@ -354,3 +377,72 @@ def track_acceleration(t_fix: np.ndarray, lat: np.ndarray, lon: np.ndarray, wind
             out[i] = 0.0
             valid[i] = True
     return out, yaw, valid
+
+
+class ImuBias(NamedTuple):
+    """The along-track accelerometer's error over a drive: ``bias_mps2`` (its 1σ ``bias_sd_mps2``)
+    and ``yaw_leak``, the share of the lateral acceleration that reads as longitudinal (the
+    forward axis's small heading error, rad)."""
+
+    bias_mps2: float
+    bias_sd_mps2: float
+    yaw_leak: float
+
+
+def imu_bias(runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], t_fix: np.ndarray, lat: np.ndarray,
+             lon: np.ndarray, settings: TripSettings) -> ImuBias | None:
+    """The longitudinal accelerometer's bias and yaw leak, once per drive, from the GNSS track's speed.
+
+    ``runs``: per IMU run (time, longitudinal, lateral acceleration). Per fix, the GNSS speed and the
+    IMU's integrated speed are taken by the same operator (the slope of a local quadratic fit over
+    ``heading_window_s``, as the orientation takes accelerations); least squares gives each run's
+    initial speed, one bias and one yaw leak for the drive. The GNSS error is bounded (metres) while
+    a bias's effect grows with time, so over a whole drive the bias is known to a few mm/s², where a
+    single stretch's fixes (tens of seconds) leave it to centimetres per second squared — a bend of
+    decimetres in every pass's chainage. Fixes while turning are left out (the fitted speed cuts the
+    corner), standing ones count as speed zero. None when too few fixes are usable.
+    """
+    w = settings.heading_window_s
+    vel, _, fitted = _track_fits(t_fix, lat, lon, w)
+    _, yaw_rate, valid = track_acceleration(t_fix, lat, lon, w)
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    speed = np.where(speed < 0.3, 0.0, speed)  # standing: the fit's speed is noise
+    usable = fitted & valid & (np.abs(yaw_rate) * w < settings.max_turn_rad)
+    rows, ys, run_of = [], [], []
+    for r, (t, a_long, a_lat) in enumerate(runs):
+        h = float(t[1] - t[0])
+        P = np.empty((len(t), 3))
+        for j, a in enumerate((a_long, a_lat)):
+            v = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * h)])
+            P[:, j] = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * h)])
+        P[:, 2] = 0.5 * (t - t[0]) ** 2
+        inside = np.flatnonzero(usable & (t_fix - w / 2 >= t[0]) & (t_fix + w / 2 <= t[-1]))
+        for i in inside:
+            sel = np.abs(t_fix - t_fix[i]) <= w / 2
+            tt = t_fix[sel] - t_fix[i]
+            V = np.column_stack([np.ones(len(tt)), tt, tt**2])
+            X = np.column_stack([np.interp(t_fix[sel], t, P[:, j]) for j in range(3)])
+            coef, *_ = np.linalg.lstsq(V, X, rcond=None)
+            rows.append((r, coef[1, 1], coef[1, 2], 2.0 * coef[2, 0]))  # run, integrated lateral, integrated time, acc
+            ys.append(speed[i] - coef[1, 0])
+            run_of.append(r)
+    n_runs = len(runs)
+    if len(ys) < 10 * (n_runs + 2):
+        return None
+    # speed − ∫a_long = v0_run − δ·∫a_lat − b·(t − t_run); weak priors keep δ and b finite without turns.
+    sd_v, prior = 0.2, 0.05  # m/s per fix; a prior 1σ of 0.05 (rad, m/s²): far wider than either
+    A = np.zeros((len(ys) + 2, n_runs + 3))
+    for k, (r, sl, st, ac) in enumerate(rows):
+        A[k, r], A[k, n_runs], A[k, n_runs + 1], A[k, n_runs + 2] = 1.0, -sl, -st, ac
+    A[: len(ys)] /= sd_v
+    y = np.concatenate([np.asarray(ys) / sd_v, [0.0, 0.0]])
+    A[len(ys), n_runs], A[len(ys) + 1, n_runs + 1] = 1.0 / prior, 1.0 / prior
+    sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+    resid = (y - A @ sol)[: len(ys)] * sd_v
+    cov = np.linalg.inv(A.T @ A) * sd_v**-2
+    # The fixes' errors are correlated over the GNSS error's time constant: one independent value
+    # per that many fixes, so the formal 1σ grows by the root of their number.
+    rate = (len(t_fix) - 1) / max(float(t_fix[-1] - t_fix[0]), 1e-9)
+    inflate = max(1.0, rate * settings.fusion.gnss_tau_s)
+    sd_b = float(np.sqrt(cov[n_runs + 1, n_runs + 1] * float(np.mean(resid**2)) * inflate))
+    return ImuBias(float(sol[n_runs + 1]), sd_b, float(sol[n_runs]))

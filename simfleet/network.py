@@ -186,12 +186,18 @@ def speed_profile(path_len: float, stops_at: list[float], cruise: float, accel: 
             if not slow_done and s >= brake_at:
                 slow_done = True
             a_cmd = float(np.clip(2.0 * (target - v), -brake, accel))
-            if to_stop < 1.5 and v < 0.4:  # creeping the last metre: stand still
-                v = a = a_cmd = 0.0
-                nxt += 1
-                wait = stop_s
-                if nxt >= len(stops):
-                    break
+            if to_stop < 1.5 and v < 0.4:  # creeping the last metre: brake to a standstill
+                # Braking, not a jump of the speed: an accelerometer sees every change of speed.
+                a = -min(brake, v / dt)
+                v = max(v + a * dt, 0.0)
+                s += v * dt
+                if v == 0.0:
+                    a = 0.0
+                    nxt += 1
+                    wait = stop_s
+                    if nxt >= len(stops):
+                        break
+                continue
         a += (a_cmd - a) * dt / tau
         v = max(v + a * dt, 0.0)
         if v == 0.0 and a < 0:

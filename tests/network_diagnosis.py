@@ -12,6 +12,8 @@ frame and in the fleet's, with the band's coverage; IRI per 100 m):
   coverage as the field drives, exact chainage);
 * ``truth``: the network passes cut from the drives, their chainage and speed replaced by the truth
   (what the edge's field steps cost apart from chainage);
+* ``affine`` / ``shift``: the truth's chainage plus what a perfect shift-and-stretch / shift-only
+  alignment of each pass would leave of the edge's chainage error;
 * ``mm``: the network passes as the edge cuts them (map matching and fusion).
 
 Suffixes: ``-noalign`` turns the cloud's alignment off, ``-nominal`` calibrates nominally (else fleet).
@@ -23,10 +25,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 from cloud.daemon.settings import CloudSettings
 from edge.trip import TripSettings, split_drives
@@ -60,6 +64,23 @@ def with_true_chainage(passes, truth):
     return out, np.concatenate(errs)
 
 
+def with_residual_chainage(passes, truth, model: str):
+    """The passes with the truth's chainage plus the part of the edge's chainage error that a
+    perfect pass alignment would leave: ``affine`` removes each pass's best shift and stretch,
+    ``shift`` its mean error only, anything else nothing."""
+    out = []
+    for p in passes:
+        t, c, v = _truth_track(truth, p.meta.pass_id.rsplit("-", 2)[0])
+        ct = np.interp(p.t, t, c)
+        e = p.chainage - ct
+        A = np.stack([np.ones_like(ct), ct - ct.mean()], 1)[:, : {"affine": 2, "shift": 1}.get(model, 0)]
+        sol, *_ = np.linalg.lstsq(A, e, rcond=None) if A.shape[1] else (np.zeros(0),)
+        r = e - A @ sol
+        # The edge's chainage within a pass is the integrated speed: the speed carries the residual.
+        out.append(dataclasses.replace(p, chainage=ct + r, speed=np.interp(p.t, t, v) + np.gradient(r, p.t)))
+    return out
+
+
 def matched_clean(cleandir: Path, net_passes):
     """The clean pass of each network pass's vehicle and route, cropped to the chainage it covers."""
     clean = {(g.meta.vehicle_id, g.meta.route_id): g for g in map(read_drive_log, list_drive_logs(cleandir / "logs"))}
@@ -73,7 +94,25 @@ def matched_clean(cleandir: Path, net_passes):
     return out
 
 
+def _scored_stretch(export: Path, route_id: str, out: Path) -> Path:
+    """A copy of the export's profile with only the stretch of ``route_id`` that `score_profile`
+    scores (its longest run of points), so that a frame fitted to it is that stretch's own."""
+    t = pq.read_table(Path(export) / "profile.parquet")
+    d = t.to_pydict()
+    rows = np.flatnonzero(np.asarray(d["route_id"]) == route_id)
+    x = np.asarray(d["chainage_m"])[rows]
+    h = float(np.median(np.diff(x))) if x.size > 1 else 1.0
+    runs = np.split(np.arange(x.size), np.flatnonzero(np.diff(x) > 1.5 * h) + 1)
+    keep = rows[max(runs, key=len)]
+    out.mkdir(parents=True, exist_ok=True)
+    pq.write_table(t.take(keep), out / "profile.parquet")
+    return out
+
+
 def score_routes(export: Path, truth: dict) -> dict:
+    """Per route: profile error in the registry's frame, in the fleet's (one shift and stretch of
+    the whole route fitted), in the scored stretch's own frame (fitted to that stretch alone:
+    stretches no pass links each carry their own passes' mean GNSS error), band coverage, IRI."""
     rows = {}
     for rid, tr in route_truths(truth).items():
         row = {}
@@ -81,6 +120,9 @@ def score_routes(export: Path, truth: dict) -> dict:
             a, b = score_profile(export, tr), score_profile(export, tr, fit_frame=True)
             row |= {"profile": a.rel_error, "profile_fleet_frame": b.rel_error, "coverage": a.coverage,
                     "coverage_fleet_frame": b.coverage, "max_passes": a.max_passes}
+            with tempfile.TemporaryDirectory() as tmp:
+                c = score_profile(_scored_stretch(export, rid, Path(tmp)), tr, fit_frame=True)
+            row |= {"profile_stretch_frame": c.rel_error, "coverage_stretch_frame": c.coverage}
             ir = score_iri(export, tr)
             row |= {"iri_median": ir.median_rel_error, "iri_coverage": ir.coverage, "iri_segments": ir.n_segments}
         except (ValueError, KeyError) as e:
@@ -103,6 +145,8 @@ def main(argv: list[str]) -> None:
             site, passes, cut = network_passes(netdir)
             if var.startswith("matched"):
                 passes = matched_clean(cleandir, passes)
+            elif var.startswith(("affine", "shift", "speed")):
+                passes = with_residual_chainage(passes, truth, var.split("-")[0])
             elif var.startswith("truth"):
                 passes, e = with_true_chainage(passes, truth)
                 print(f"  chainage error |e|: median {np.median(np.abs(e)):.3f} m, p95 {np.percentile(np.abs(e), 95):.3f} m")

@@ -43,11 +43,11 @@ def scores(tmp_path_factory):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "open: each field pass's map-matched chainage is off by its own 0.5-3 m (GNSS wander; shift rms 0.9 m, "
-    "stretch 0.5 %) and a route has 2-3 overlapping partial passes here: the cloud's alignment cannot place "
-    "them against so thin a consensus (none at all on routes below align_min_passes), so the fused profile "
-    "blurs the waves below a few metres. Measured, seed 0, in the fleet's frame: 0.17-0.66 against "
-    "0.05-0.17 coverage-matched clean; with the truth's chainage 0.07-0.18"))
+    "open: with each drive's accelerometer bias (chainage error per pass a shift and a stretch) and "
+    "alignment over 2-3 partial passes, the field profile is where the truth's chainage puts it, and that "
+    "is not within 1.2x of the clean passes on every route: the field passes themselves (speed changes, "
+    "a tilted logger, resampling) cost R1 and R4 ~1.3x with exact chainage, and R3's 100 m IRI from 1-2 "
+    "passes errs by 0.13-0.17 with exact chainage too (clean 0.008)"))
 def test_field_drives_are_within_1p2x_of_the_same_coverage_driven_clean(scores):
     field, clean = scores
     for rid in sorted(clean):
@@ -55,12 +55,14 @@ def test_field_drives_are_within_1p2x_of_the_same_coverage_driven_clean(scores):
     worse = []
     for rid, ref in clean.items():
         got = field.get(rid, {})
-        if "profile_fleet_frame" not in ref:
+        if "profile_stretch_frame" not in ref:
             continue
         # The fleet's frame: no data place a route in the registry's frame better than the mean of
-        # its passes' GNSS errors (metres/sqrt(passes)); the comparison is of the road's shape.
-        if not got.get("profile_fleet_frame", float("inf")) <= RATIO * ref["profile_fleet_frame"]:
-            worse.append(f"{rid} profile {got.get('profile_fleet_frame')} vs {ref['profile_fleet_frame']:.3f}")
+        # its passes' GNSS errors (metres/sqrt(passes)); the comparison is of the road's shape. Where
+        # no pass links two stretches of a route, each has its own passes' frame, so the frame is
+        # fitted to the scored stretch alone.
+        if not got.get("profile_stretch_frame", float("inf")) <= RATIO * ref["profile_stretch_frame"]:
+            worse.append(f"{rid} profile {got.get('profile_stretch_frame')} vs {ref['profile_stretch_frame']:.3f}")
         if "iri_median" in ref and not got.get("iri_median", float("inf")) <= max(RATIO * ref["iri_median"], 0.02):
             # 2 %: below it the 100 m IRI of 2-3 partial passes is within the clean fleet's own scatter
             worse.append(f"{rid} IRI {got.get('iri_median')} vs {ref['iri_median']:.3f}")

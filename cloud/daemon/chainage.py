@@ -30,7 +30,7 @@ from shared.schema import ApSegment
 from shared.vehicles import RAIL_MODELS
 
 from cloud.daemon.settings import CloudSettings
-from cloud.road.alignment import Alignment, centred, estimate_alignment, realign
+from cloud.road.alignment import Alignment, centred, damped, estimate_alignment, realign
 
 PassKey = tuple[str, str]  # (vehicle, pass)
 
@@ -244,6 +244,8 @@ class ChainageAligner:
         al = estimate_alignment(np.arange(lo, hi) * lead[0].spacing_m, ap, snap.chainage_m, snap.elevation_m,
                                 max_stretch=s.align_max_stretch)
         if al is not None and al.score >= s.align_min_score:
+            al = damped(self.alignments.get(key), al, snap.chainage_m, snap.n_passes, lo * lead[0].spacing_m,
+                        hi * lead[0].spacing_m)
             extent = (float(al.reported_to_true(lo * lead[0].spacing_m)),
                       float(al.reported_to_true(hi * lead[0].spacing_m)))
             sw.found.setdefault(ps.route_id, {})[key] = _Estimate(al, slots, extent, _version(ps))

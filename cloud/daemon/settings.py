@@ -101,7 +101,7 @@ class CloudSettings:
 
     align: bool = True
     align_min_score: float = 0.5
-    align_min_passes: int = 3
+    align_min_passes: int = 2
     align_iterations: int = 6
     align_max_stretch: float = 0.06
     align_tol_m: float = 0.02

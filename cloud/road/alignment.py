@@ -50,6 +50,7 @@ REFINE_BAND_M = (0.34, 0.5)
 WINDOW_M = 30.0  # long enough to hold the band's longest wave, short enough that ε·W ≪ the shortest
 FINE_LAG_M = 0.6  # residual shift searched after the coarse line (m)
 MIN_POINTS = 400
+DAMP_BELOW = 3.0  # a sweep's step is damped against fewer other passes than this (`damped`)
 FULL_SHARE = 0.8  # a pass spanning this share of its route's covered stretch is a full pass (centring)
 
 
@@ -65,6 +66,38 @@ class Alignment:
 
     def reported_to_true(self, x_rep: np.ndarray) -> np.ndarray:
         return self.x_ref_m + (x_rep - self.x_ref_m - self.shift_m) / (1.0 + self.stretch)
+
+
+def damped(old: Alignment | None, new: Alignment, cons_x: np.ndarray, cons_n: np.ndarray, lo_m: float,
+           hi_m: float) -> Alignment:
+    """The step of a sweep towards ``new``, the pass's map (the pass at ``lo_m``–``hi_m``) against a
+    consensus of ``cons_n`` other passes per point ``cons_x``, from its map of the last sweep ``old``.
+
+    Every pass of a sweep is placed against the others where they were, and they move too. Against
+    ``n`` others a full step overshoots by ``(n + 1)/n``: with one other pass, two passes swap their
+    offset every sweep and never meet; with two, the error halves and flips sign per sweep; partial
+    passes, each overlapping other subsets, pass such swings to and fro. The step ``n/(n + 1)``
+    (``n`` the others' mean count over the pass) lands where passes that overlap in full agree in
+    one sweep. It is taken from a pass's second sweep on (the first, from nothing, is the full
+    estimate: a series then goes on while passes still move), for partial passes and against fewer
+    than ``DAMP_BELOW`` others. Full passes against more take the full step: its error shrinks by
+    ``1/n`` a sweep, and each sweep's map stays the pass's own estimate against the latest consensus,
+    not partly an earlier one's against a consensus still smeared.
+    """
+    inside = (cons_x >= lo_m) & (cons_x < hi_m)
+    n_in = cons_n[inside]
+    if old is None or not (n_in > 0).any():
+        return new
+    n = float(np.mean(n_in[n_in > 0]))
+    covered = cons_x[cons_n > 0]
+    full = (np.mean(n_in > 0) >= FULL_SHARE and hi_m - lo_m >= FULL_SHARE * float(np.ptp(covered)))
+    if full and n >= DAMP_BELOW:
+        return new
+    k = n / (n + 1.0)
+    a_old, e_old = old.shift_m - old.stretch * old.x_ref_m, old.stretch
+    a_new, e_new = new.shift_m - new.stretch * new.x_ref_m, new.stretch
+    a, e = a_old + k * (a_new - a_old), e_old + k * (e_new - e_old)
+    return Alignment(float(a + e * new.x_ref_m), float(e), new.x_ref_m, new.score)
 
 
 def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | None = None) -> list[Alignment]:
@@ -83,10 +116,22 @@ def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | No
     ill-determined stretch far from chainage 0 (0.5 % of 400 m is 2 m) would move every pass's
     frame by metres. Without ``extents``, or when every pass spans most (``FULL_SHARE``) of the
     stretch the passes cover together, ``F = mean_p T_p``: there the line through the maps would
-    gain a spurious tilt from the passes' extents moving with their own shifts.
+    gain a spurious tilt from the passes' extents moving with their own shifts. Passes in stretches
+    of the route that no pass links (no overlap) are centred group by group.
     """
     if not alignments:
         return []
+    groups = _overlapping(extents) if extents else [list(range(len(alignments)))]
+    if len(groups) > 1:
+        out: list[Alignment | None] = [None] * len(alignments)
+        for g in groups:
+            # Passes that share no road with another aligned pass share no frame with it either. A
+            # lone one was placed against passes that did not align (they stay where they report):
+            # its map is its place in their frame, and centring it alone would undo it.
+            done = centred([alignments[i] for i in g], [extents[i] for i in g]) if len(g) > 1 else [alignments[g[0]]]
+            for i, al in zip(g, done):
+                out[i] = al
+        return out
     alpha = np.array([a.shift_m - a.stretch * a.x_ref_m for a in alignments])
     beta = np.array([1.0 + a.stretch for a in alignments])
     a0, b0 = float(np.mean(alpha)), float(np.mean(beta))
@@ -107,6 +152,22 @@ def centred(alignments: list[Alignment], extents: list[tuple[float, float]] | No
         eps = be_c - 1.0
         out.append(Alignment(float(al_c + eps * a.x_ref_m), float(eps), a.x_ref_m, a.score))
     return out
+
+
+def _overlapping(extents: list[tuple[float, float]]) -> list[list[int]]:
+    """The indices of ``extents`` grouped into chains of stretches that overlap (in start order)."""
+    order = sorted(range(len(extents)), key=lambda i: extents[i][0])
+    groups: list[list[int]] = []
+    end = -np.inf
+    for i in order:
+        lo, hi = extents[i]
+        if groups and lo < end:
+            groups[-1].append(i)
+            end = max(end, hi)
+        else:
+            groups.append([i])
+            end = hi
+    return [sorted(g) for g in groups]
 
 
 @functools.lru_cache(maxsize=16)
@@ -141,8 +202,11 @@ def _window_shifts(a: np.ndarray, c: np.ndarray, starts: np.ndarray, n_win: int,
         cw = c[lo:hi]
         num = fftconvolve(cw, w[::-1], mode="valid")  # num[i] = Σ w · cw[i : i + n_win]
         e = np.concatenate([[0.0], np.cumsum(cw * cw)])
-        den = np.sqrt(np.sum(w * w) * (e[n_win:] - e[:-n_win])) + 1e-30
-        r = num / den
+        ww = np.sum(w * w)
+        ce = e[n_win:] - e[:-n_win]
+        # Where the consensus is (almost) nil — past its ends, zero-padded — the running sums'
+        # rounding leaves a ratio of two tiny numbers, not a correlation: no match there.
+        r = np.where(ce > 1e-6 * ww, num / (np.sqrt(ww * np.maximum(ce, 0.0)) + 1e-300), 0.0)
         i = int(np.argmax(r))
         frac = 0.0
         if 0 < i < r.size - 1:
@@ -181,7 +245,8 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     """(b, ε) of a pass's AP (on its reported grid ``x_rep``) against the consensus ``cons`` (on the
     regular grid ``x_cons``, same spacing). None if they overlap too little or nothing correlates.
     ``refine_band_m``: the band of the final least-squares fit (default ``REFINE_BAND_M``).
-    ``stretch_step`` is accepted for compatibility and ignored (ε is not searched on a grid)."""
+    ``stretch_step`` is accepted for compatibility and ignored (ε is not searched on a grid).
+    With fewer than three usable windows the pass is placed by a shift alone (ε = 0)."""
     ok = np.isfinite(ap)
     okc = np.isfinite(cons)
     if ok.sum() < MIN_POINTS or okc.sum() < MIN_POINTS:
@@ -215,7 +280,19 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     x_r = x_rep[0] + (starts + n_win / 2) * h
     d = -k * h
     x_t = x_r - d
-    b, eps, _ = _line(x_t[good] - x_ref, d[good], r[good], robust=True)
+    # Two windows cannot out-vote a false peak, and they fix a line through it: when a short pass's
+    # two windows (or a pass this little covered by the others) disagree beyond any plausible
+    # stretch, it is placed by a shift alone — its best-correlated window's — its stretch (a few per
+    # mille of tens of metres) left as reported.
+    shift_only = good.sum() < 2
+    if good.sum() == 2:  # a line through two windows only if they agree on a plausible stretch
+        (i1, i2) = np.flatnonzero(good)
+        shift_only = abs(d[i2] - d[i1]) > FINE_LAG_M + 0.01 * abs(x_t[i2] - x_t[i1])
+    if shift_only:
+        best = int(np.argmax(np.where(good, r, -np.inf)))
+        b, eps = float(d[best]), 0.0
+    else:
+        b, eps, _ = _line(x_t[good] - x_ref, d[good], r[good], robust=True)
     if abs(eps) > 1.5 * max_stretch or abs(b) > max_shift_m + 2.0:
         return None
     # Fine: re-grid the pass with (b, ε) and refine on small residual shifts.
@@ -242,9 +319,12 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
         # true chainage there is larger by kk·h, i.e. its shift smaller by (1+ε)·kk·h.
         yk = -(1.0 + eps) * kk[g] * h
         db, de, inl = _line(xm[g] - x_ref, yk, rr[g], robust=g.sum() >= 3, floor_m=0.02)
+        if shift_only:  # the best window's residual shift, the others' left out
+            best = int(np.argmax(rr[g]))
+            db, de, inl = float(yk[best]), 0.0, np.arange(g.sum()) == best
         # The inlier windows' stretches of true chainage: where the pass and the consensus agree.
         inlier_m = [(xg[0] + s * h, xg[0] + (s + n_win - 1) * h) for s in st[g][inl]]
-        if g.sum() < 3:
+        if g.sum() < 3 or shift_only:
             de = 0.0
         b, eps = b + db, eps + de
         # The score is the coarse band's correlation: against a consensus still smeared by the
@@ -263,7 +343,7 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     if refine != fine_band_m:
         c_band, a_band = _band(c, h, refine), _band(ap, h, refine)
     b, eps = _least_squares(x_rep, a_band, xc, c_band, Alignment(b, eps, x_ref, score), inlier_m,
-                            max_move_m=refine[0] / 4.0)
+                            max_move_m=refine[0] / 4.0, stretch=not shift_only)
     if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
         return None
     # A move must earn its place: a pass already in the consensus frame that differs from the others
@@ -295,8 +375,8 @@ def _correlation(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray
 
 
 def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarray, al: Alignment,
-                   inlier_m: list[tuple[float, float]], max_move_m: float, iterations: int = 4
-                   ) -> tuple[float, float]:
+                   inlier_m: list[tuple[float, float]], max_move_m: float, iterations: int = 4,
+                   stretch: bool = True) -> tuple[float, float]:
     """(b, ε) minimising Σ (g·a(T(x)) − c(x))² over the true-chainage stretches ``inlier_m``, from
     ``al`` by Gauss–Newton (T: true → reported chainage; ``a`` on the reported grid ``x_rep`` is
     interpolated by a cubic spline, whose derivative is the Jacobian; g absorbs a gain mismatch).
@@ -324,6 +404,8 @@ def _least_squares(x_rep: np.ndarray, a: np.ndarray, xc: np.ndarray, c: np.ndarr
         gain = float(np.dot(av, cv) / (np.dot(av, av) + 1e-300))
         # r = g·a(T(x)) − c(x); ∂r/∂b = g·a', ∂r/∂ε = g·a'·(x − x_ref), ∂r/∂g = a.
         J = np.stack([gain * dv, gain * dv * (xg - al.x_ref_m), av], axis=1)
+        if not stretch:  # ε stays as given
+            J[:, 1] = 0.0
         r = gain * av - cv
         scale = np.sqrt(np.sum(J * J, axis=0)) + 1e-300
         step, *_ = np.linalg.lstsq(J / scale, -r, rcond=None)
