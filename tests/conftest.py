@@ -26,5 +26,6 @@ settings.load_profile("deterministic")
 
 def pytest_configure(config):
     workers = getattr(config.option, "numprocesses", None)
-    if not hasattr(config, "workerinput") and isinstance(workers, int) and workers > 1:
+    if (not hasattr(config, "workerinput") and isinstance(workers, int) and workers > 1
+            and not config.option.collectonly):
         warm_in(workers)

@@ -54,7 +54,8 @@ def _text(t) -> str:
     return repr(t)
 
 
-def _parse(text: str):
+def parse_signature(text: str) -> tuple:
+    """The argument types of a signature line's text."""
     return eval(_LITERAL.sub(r"literal(\1)", text), {"__builtins__": {}}, _NAMES)  # noqa: S307 (our own file)
 
 
@@ -75,7 +76,7 @@ def record() -> int:
                 for sig in kernel._cache._cache_file._load_index():
                     text = f"({''.join(_text(t) + ', ' for t in sig[0])})"
                     try:
-                        ok = _parse(text) == tuple(sig[0])
+                        ok = parse_signature(text) == tuple(sig[0])
                     except Exception:  # a type whose text is not its constructor
                         ok = False
                     (lines if ok else skipped).append(f"{info.name} {name} {text}")
@@ -93,7 +94,7 @@ def warm(part: int, parts: int) -> int:
     for line in lines[part::parts]:
         module, name, text = line.split(" ", 2)
         try:
-            getattr(importlib.import_module(module), name).compile(_parse(text))
+            getattr(importlib.import_module(module), name).compile(parse_signature(text))
             done += 1
         except Exception as e:  # a stale line: that kernel is compiled where it is called
             log.warning("not warmed: %s (%s)", line, e)
