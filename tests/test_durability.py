@@ -61,6 +61,12 @@ def _feed(cloud, msgs, durability=None):
         (cloud.on_segment if kind == AP else cloud.on_done)(key, payload)
 
 
+@pytest.fixture(scope="module")
+def messages(road) -> tuple[tuple[str, bytes], ...]:
+    """The edge's messages for the road's passes, made once for the module (a tuple: no test changes them)."""
+    return tuple(_messages(road))
+
+
 def _cloud(road):
     return Cloud(NET, load_site(road / "site.toml"), lambda k, p: None, CloudSettings(calibration="nominal"))
 
@@ -78,8 +84,8 @@ def _same(a: Cloud, b: Cloud):
 
 
 @pytest.mark.parametrize("snapshot_at", [None, 0.5])
-def test_recovery_rebuilds_the_same_state(road, tmp_path, snapshot_at):
-    msgs = _messages(road)
+def test_recovery_rebuilds_the_same_state(road, messages, tmp_path, snapshot_at):
+    msgs = list(messages)
     msgs = msgs[:5] + [("driveby/t/ap/R1/0/veh-x", b"garbage")] + msgs[5:]  # a rejection is state too
     ref = _cloud(road)
     _feed(ref, msgs)
@@ -97,8 +103,8 @@ def test_recovery_rebuilds_the_same_state(road, tmp_path, snapshot_at):
     _same(ref, restarted)
 
 
-def test_duplicates_after_recovery_change_nothing(road, tmp_path):
-    msgs = _messages(road)
+def test_duplicates_after_recovery_change_nothing(road, messages, tmp_path):
+    msgs = messages
     ref = _cloud(road)
     _feed(ref, msgs)
     c = _cloud(road)
@@ -301,10 +307,10 @@ def _export_tables(cloud, out) -> dict:
     return {p.name: pq.read_table(p) for p in cloud.export(out)}
 
 
-def test_memory_stays_bounded_as_passes_accumulate_and_the_export_is_unchanged(road, tmp_path):
+def test_memory_stays_bounded_as_passes_accumulate_and_the_export_is_unchanged(road, messages, tmp_path):
     """At most ``max_resident`` segments stay decoded in memory; the rest are spilled and read back
     exactly, so the export is the unbounded cloud's, table for table."""
-    msgs = _messages(road)
+    msgs = messages
     unbounded = _cloud(road)
     _feed(unbounded, msgs)
     bound = 3
@@ -353,7 +359,7 @@ def _fleet_of(msgs, n_passes: int, vehicles: int) -> list[tuple[str, bytes]]:
     return out
 
 
-def test_held_state_stays_bounded_as_passes_accumulate(road, tmp_path):
+def test_held_state_stays_bounded_as_passes_accumulate(road, messages, tmp_path):
     """The cloud's per-pass state (segments, pass bookkeeping: idempotence, exact retraction) lives
     on disk beyond a window, so what it holds in memory stops growing with the passes: measured
     with tracemalloc between the middle and the end of 120 passes, against an unbounded cloud that
@@ -361,7 +367,7 @@ def test_held_state_stays_bounded_as_passes_accumulate(road, tmp_path):
     import gc
     import tracemalloc
 
-    fleet = _fleet_of(_messages(road), n_passes=120, vehicles=30)
+    fleet = _fleet_of(messages, n_passes=120, vehicles=30)
     seg_bound, pass_bound = 24, 8
 
     def fed(cloud):
@@ -400,11 +406,11 @@ def test_held_state_stays_bounded_as_passes_accumulate(road, tmp_path):
         assert a[name].equals(b[name]), name
 
 
-def test_compaction_runs_when_the_journal_is_mostly_garbage(road, tmp_path):
+def test_compaction_runs_when_the_journal_is_mostly_garbage(road, messages, tmp_path):
     """A snapshot rewrites the live state: not due while every journalled record is live (a soak's
     steady stream), due once superseded or duplicate records make the journal twice the live state;
     the compacted state restarts to the same cloud."""
-    msgs = _messages(road)
+    msgs = messages
     cloud = _cloud(road)
     d = Durability(Journal(tmp_path), cloud, min_records=5)
     d.recover()

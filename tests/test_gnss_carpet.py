@@ -9,6 +9,7 @@ calibrate. Truth is read only here, to score.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,21 +32,40 @@ from simfleet.worlds import ivp
 SEED = 3
 
 
-def _simulate(tmp_path, name: str, passes: int, length_m: float, nominal: str = "true", **changes):
-    scenario = dataclasses.replace(SCENARIOS[name], route_length_m=length_m, **changes)
-    out = tmp_path / scenario.name
-    generate(scenario, out, seed=SEED, passes=passes, vehicles=passes, nominal=nominal, workers=1, progress=False)
-    return out
+class Fleets:
+    """Simulated fleets and their in-process runs, each made once for the module: several tests look
+    at the same fleet (and the same run of it) from different sides, and none changes what it is given."""
+
+    def __init__(self, tmp_path_factory):
+        self._tmp = tmp_path_factory
+        self._sims: dict[tuple, Path] = {}
+        self._runs: dict[tuple, Cloud] = {}
+
+    def simulate(self, name: str, passes: int, length_m: float, nominal: str = "true") -> Path:
+        key = (name, passes, length_m, nominal)
+        if key not in self._sims:
+            out = self._tmp.mktemp(f"{name}-{nominal}")
+            scenario = dataclasses.replace(SCENARIOS[name], route_length_m=length_m)
+            generate(scenario, out, seed=SEED, passes=passes, vehicles=passes, nominal=nominal, workers=1,
+                     progress=False)
+            self._sims[key] = out
+        return self._sims[key]
+
+    def run(self, sim_dir: Path, calibration: str, align: bool | None = None, export: str = "export") -> Cloud:
+        """The logs through edge and cloud in process; ``align`` None: the cloud's default settings."""
+        key = (sim_dir, calibration, align, export)
+        if key not in self._runs:
+            site, logs = load_inputs(sim_dir / "logs", sim_dir / "site.toml")
+            settings = CloudSettings(calibration=calibration)
+            if align is not None:
+                settings = dataclasses.replace(settings, align=align)
+            self._runs[key], _ = run_in_process(logs, site, sim_dir / export, settings=settings)
+        return self._runs[key]
 
 
-def _run(sim_dir, calibration: str, align: bool | None = None, export: str = "export") -> Cloud:
-    """The logs through edge and cloud in process; ``align`` None: the cloud's default settings."""
-    site, logs = load_inputs(sim_dir / "logs", sim_dir / "site.toml")
-    settings = CloudSettings(calibration=calibration)
-    if align is not None:
-        settings = dataclasses.replace(settings, align=align)
-    cloud, _ = run_in_process(logs, site, sim_dir / export, settings=settings)
-    return cloud
+@pytest.fixture(scope="module")
+def fleets(tmp_path_factory) -> Fleets:
+    return Fleets(tmp_path_factory)
 
 
 def _frames(export_dir) -> set[str]:
@@ -92,12 +112,12 @@ def _map_residuals(alignments, maps, x=np.linspace(15.0, 105.0, 7)) -> np.ndarra
     # moved above wheel hop; a calibration learning from such passes was biased by 5-8 %.
     ("class", 0.010, 0.025),  # measured 3.8 mm, 11.2 mm
 ])
-def test_alignment_places_every_pass_in_one_common_frame(tmp_path, nominal, rms_m, max_m):
+def test_alignment_places_every_pass_in_one_common_frame(fleets, nominal, rms_m, max_m):
     """12 passes, 120 m: every pass's chainage map (GNSS bias of metres, odometer stretch of ~1 %)
     is recovered to a few mm, up to the fleet's common frame, with the vehicles' true parameters and
     with the class mean."""
-    gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0, nominal=nominal)
-    cloud = _run(gnss, "nominal")
+    gnss = fleets.simulate("road-qc-gnss", passes=12, length_m=120.0, nominal=nominal)
+    cloud = fleets.run(gnss, "nominal")
     maps = _edge_chainage_maps(gnss)
     assert set(k[1] for k in cloud.alignments) == set(maps)
     truth = load_truth(gnss / "truth.json")
@@ -108,7 +128,7 @@ def test_alignment_places_every_pass_in_one_common_frame(tmp_path, nominal, rms_
     assert np.sqrt(np.mean(err**2)) < rms_m and np.abs(err).max() < max_m
 
 
-def test_profile_with_gnss_error_is_as_good_as_without(tmp_path):
+def test_profile_with_gnss_error_is_as_good_as_without(fleets):
     """The GNSS target with true parameters: the aligned profile within 1.2x of the same fleet without
     GNSS error (alignment on the plain road changes nothing). Measured 1.33 % against 1.74 %.
 
@@ -116,25 +136,25 @@ def test_profile_with_gnss_error_is_as_good_as_without(tmp_path):
     (its band-pass pivots on the end values). With the drift nuisance off it is 1.36 % against
     1.01 % here and 1.10-1.71x over 7 seeds, though the passes are placed to 2 mm and an oracle
     alignment scores the same; padded about a line fitted over the last 2 m, 0.87-1.21x."""
-    gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0)
-    plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0)
-    _run(gnss, "nominal")
-    _run(plain, "nominal")
+    gnss = fleets.simulate("road-qc-gnss", passes=12, length_m=120.0)
+    plain = fleets.simulate("road-qc", passes=12, length_m=120.0)
+    fleets.run(gnss, "nominal")
+    fleets.run(plain, "nominal")
     score = score_profile(gnss / "export", load_truth(gnss / "truth.json"), fit_frame=True).rel_error
     reference = score_profile(plain / "export", load_truth(plain / "truth.json")).rel_error
     print(f"profile {score:.4f} with GNSS error and alignment, {reference:.4f} without")
     assert score <= 1.2 * reference
 
 
-def test_carpet_fleet_mean_profile_under_lane_scatter(tmp_path):
+def test_carpet_fleet_mean_profile_under_lane_scatter(fleets):
     """12 passes on random lanes of the 3-D carpet, true parameters: the fused profile is the fleet
     mean (the lane-count-weighted mean of the lanes driven) within 10 %, though single lanes differ
     from it by far more at short wavelengths."""
-    carpet = _simulate(tmp_path, "carpet", passes=12, length_m=120.0)
+    carpet = fleets.simulate("carpet", passes=12, length_m=120.0)
     truth = load_truth(carpet / "truth.json")
     lanes = {p["lane"] for p in truth["passes"]}
     assert len(lanes) >= 4  # the passes really scatter across the carpet
-    _run(carpet, "nominal")
+    fleets.run(carpet, "nominal")
     score = score_profile(carpet / "export", truth).rel_error
     print(f"carpet fleet-mean profile error {score:.4f}")
     assert score <= 0.10
@@ -155,7 +175,7 @@ def _export_frame_error(sim_dir, export_dir, x) -> tuple[np.ndarray, np.ndarray]
     return frame.true_to_reported(x) - x, fleet - x
 
 
-def test_default_run_with_gnss_error_is_as_good_as_without(tmp_path):
+def test_default_run_with_gnss_error_is_as_good_as_without(fleets):
     """The GNSS target on a small version, with the cloud's *default* settings (fleet calibration,
     alignment on): the profile within 1.2x of the same fleet without GNSS error, scored in the
     fleet's frame, and the vehicles calibrated as well (k/M, c/M medians within 3 %). The frame is
@@ -163,10 +183,10 @@ def test_default_run_with_gnss_error_is_as_good_as_without(tmp_path):
     export says so; the true frame is off by that mean (metres of GNSS bias and % of stretch over 12
     passes average to decimetres), which only a surveyed reference removes. Without alignment the
     calibration learns a smeared road and diverges."""
-    gnss = _simulate(tmp_path, "road-qc-gnss", passes=12, length_m=120.0, nominal="class")
-    plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0, nominal="class")
-    _run(gnss, "fleet")
-    _run(plain, "fleet")
+    gnss = fleets.simulate("road-qc-gnss", passes=12, length_m=120.0, nominal="class")
+    plain = fleets.simulate("road-qc", passes=12, length_m=120.0, nominal="class")
+    fleets.run(gnss, "fleet")
+    fleets.run(plain, "fleet")
     truth = load_truth(gnss / "truth.json")
     score = score_profile(gnss / "export", truth, fit_frame=True).rel_error
     true_frame = score_profile(gnss / "export", truth).rel_error
@@ -187,13 +207,13 @@ def test_default_run_with_gnss_error_is_as_good_as_without(tmp_path):
     assert np.max(np.abs(fleet_off)) > 0.1
 
 
-def test_alignment_on_by_default_is_a_no_op_on_a_fleet_in_one_frame(tmp_path):
+def test_alignment_on_by_default_is_a_no_op_on_a_fleet_in_one_frame(fleets):
     """Clean data are not made worse by alignment being on: a fleet without GNSS error is aligned (every
     pass is looked at), nothing moves by more than ``align_apply_m``, and the export is the one without
     alignment, its chainage in the registry's frame."""
-    plain = _simulate(tmp_path, "road-qc", passes=12, length_m=120.0)
-    cloud = _run(plain, "nominal")
-    _run(plain, "nominal", align=False, export="export-off")
+    plain = fleets.simulate("road-qc", passes=12, length_m=120.0)
+    cloud = fleets.run(plain, "nominal")
+    fleets.run(plain, "nominal", align=False, export="export-off")
     assert len(cloud.alignments) == 12
     x = np.linspace(0.0, 120.0, 7)
     moved = max(np.max(np.abs(al.true_to_reported(x) - x)) for al in cloud.alignments.values())
@@ -206,7 +226,7 @@ def test_alignment_on_by_default_is_a_no_op_on_a_fleet_in_one_frame(tmp_path):
     assert _frames(plain / "export") == _frames(plain / "export-off") == {REGISTRY_FRAME}
 
 
-def test_default_run_with_gnss_error_on_the_second_world(tmp_path):
+def test_default_run_with_gnss_error_on_the_second_world(fleets, tmp_path):
     """The same target on data the estimators were not shaped on (the ivp world: its own integrator,
     logger chain, prior-drawn vehicles, slowly varying speed, logs starting mid-motion, chainage
     integrated from an odometer with a per-run scale error): with GNSS bias and 2 % odometer error,
@@ -218,8 +238,8 @@ def test_default_run_with_gnss_error_on_the_second_world(tmp_path):
     exact = dataclasses.replace(scenario, name="road-qc", gnss_bias_sd_m=0.0, gnss_jitter_sd_m=0.0, speed_error_sd=0.0)
     ivp.generate(exact, plain, seed=SEED, passes=12, vehicles=12, workers=1, progress=False,
                  settings=ivp.WorldSettings(speed_error_sd=0.0))
-    _run(gnss, "fleet")
-    _run(plain, "fleet")
+    fleets.run(gnss, "fleet")
+    fleets.run(plain, "fleet")
     truth = load_truth(gnss / "truth.json")
     score = score_profile(gnss / "export", truth, fit_frame=True).rel_error
     reference = score_profile(plain / "export", load_truth(plain / "truth.json")).rel_error

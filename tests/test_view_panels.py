@@ -112,20 +112,18 @@ def with_geometry(site: Site) -> Site:
     return dataclasses.replace(site, routes=tuple(routes))
 
 
-def _record(tmp: Path, geometry: bool) -> Path:
+def _record(sim: Path, tmp: Path, geometry: bool) -> Path:
     """A bridge run (smooth deck: the damage hypotheses and the alarm decision are on) through the
     harness with fleet calibration, the view logging to a real .rrd; ``geometry``: the registry
     has route lines (the map panel)."""
-    sc = SCENARIOS["bridge-crack10-10m"]
-    generate(sc, tmp / "sim", seed=3, passes=PASSES, vehicles=PASSES, workers=1, progress=False)
-    site = load_site(tmp / "sim" / "site.toml")
+    site = load_site(sim / "site.toml")
     if geometry:
         site = with_geometry(site)
     h = Harness(site)
     rrd = tmp / "run.rrd"
     h.cloud.view = View(rrd, routes={r.id: r.length_m for r in site.routes}, bridges=list(site.bridges),
                         geometry={r.id: r.geometry for r in site.routes})
-    for path in list_drive_logs(tmp / "sim" / "logs"):
+    for path in list_drive_logs(sim / "logs"):
         h.replay([read_drive_log(path)])
     h.settle()
     h.cloud.export(tmp / "export")  # every pass in the bridge's estimate, as at the end of a run
@@ -134,13 +132,21 @@ def _record(tmp: Path, geometry: bool) -> Path:
 
 
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory) -> Path:
-    return _record(tmp_path_factory.mktemp("panels"), geometry=False)
+def sim(tmp_path_factory) -> Path:
+    """The drive logs both recordings are made from (read only)."""
+    out = tmp_path_factory.mktemp("sim")
+    generate(SCENARIOS["bridge-crack10-10m"], out, seed=3, passes=PASSES, vehicles=PASSES, workers=1, progress=False)
+    return out
 
 
 @pytest.fixture(scope="module")
-def recording_with_map(tmp_path_factory) -> Path:
-    return _record(tmp_path_factory.mktemp("panels_map"), geometry=True)
+def recording(sim, tmp_path_factory) -> Path:
+    return _record(sim, tmp_path_factory.mktemp("panels"), geometry=False)
+
+
+@pytest.fixture(scope="module")
+def recording_with_map(sim, tmp_path_factory) -> Path:
+    return _record(sim, tmp_path_factory.mktemp("panels_map"), geometry=True)
 
 
 def test_every_panel_has_data_at_the_end(recording):
