@@ -54,6 +54,7 @@ import math
 
 import numpy as np
 from scipy.ndimage import correlate1d
+from scipy.signal import butter, sosfiltfilt
 from scipy.stats import t as student_t
 
 from shared.schema import ApSegment
@@ -335,6 +336,23 @@ TREND_STEP_M = 1.0
 #: which the data do not give back (its tail, up to ten times the next term, goes to the band).
 TREND_TERMS = 12
 TREND_RATIO_MAX = 0.9
+#: m: the terms after the first are kept at wavelengths beyond this only (zero-phase low-pass). The
+#: waves the trend takes mostly everywhere are longer than its half-width; shorter ones it takes
+#: mostly only near a pass's ends (a one-sided window follows them), where the series would amplify
+#: the consensus's own error about as much as it restores: there the first term is all.
+TREND_LONG_M = 100.0
+
+
+def _lowpass_stretches(y: np.ndarray, edges: np.ndarray, step_m: float) -> np.ndarray:
+    """``y`` low-passed (zero phase) beyond :data:`TREND_LONG_M` on each covered stretch."""
+    out = np.zeros_like(y)
+    sos = butter(2, step_m / TREND_LONG_M * 2.0, output="sos")
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < 8:
+            out[a:b] = y[a:b]
+            continue
+        out[a:b] = sosfiltfilt(sos, y[a:b], padlen=min(b - a - 1, int(TREND_LONG_M / step_m)), padtype="even")
+    return out
 
 
 def _pass_extents(snap: ProfileSnapshot, segments: list[ApSegment]) -> list[tuple[int, int]]:
@@ -401,9 +419,10 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
     window's width are mostly left to the passes and the first term is nearly all; waves the trend
     takes mostly (its eigenvalue λ near 1 — on a route not much longer than the window, its
     curvature) converge as λᵏ, so one term would leave ``λ²/(1 − λ)`` of them out. ``restore`` is
-    therefore the sum of the terms while they shrink (at most :data:`TREND_TERMS`), and
-    ``remainder`` the geometric tail left out, ``T̄^{K+1}μ / (1 − ρ)`` with ``ρ`` the last ratio of
-    successive terms' sizes (at most :data:`TREND_RATIO_MAX`): the size of the band's term for it.
+    therefore the sum of the terms while they shrink (at most :data:`TREND_TERMS`; those after the
+    first beyond :data:`TREND_LONG_M` only), and ``remainder`` the geometric tail left out,
+    ``T̄^{K+1}μ / (1 − ρ)`` with ``ρ`` the last ratio of successive terms' sizes (at most
+    :data:`TREND_RATIO_MAX`): the size of the band's term for it.
     Computed on a lattice of ``step_m`` (the consensus averaged over it) and interpolated; zero where
     no pass has been.
     """
@@ -445,6 +464,7 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
         return out
 
     term = less_line(t)
+    first = term
     total = np.zeros(n)
     size = float(np.sqrt(np.mean(term[covered] ** 2))) if covered.any() else 0.0
     ratio = 0.0
@@ -458,6 +478,9 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
         if ratio > TREND_RATIO_MAX or size == 0.0:  # no longer converging (or nothing left): stop here
             break
     tail = term / (1.0 - min(ratio, TREND_RATIO_MAX))
+    # The terms after the first, and the tail, only beyond :data:`TREND_LONG_M`.
+    total = first + _lowpass_stretches(total - first, edges, k * h)
+    tail = _lowpass_stretches(tail, edges, k * h)
     centre = (np.arange(n) + 0.5) * k - 0.5  # each cell's centre on the grid
     xi = np.arange(P)
     restore = np.where(ok, np.interp(xi, centre, total), 0.0)
