@@ -109,7 +109,8 @@ def test_the_vehicle_step_is_unbiased_on_the_second_worlds_physics(tmp_path):
     truth = json.loads((tmp_path / "truth.json").read_text())
     log = read_drive_log(list_drive_logs(tmp_path / "logs")[0])
     params = truth["vehicles"][log.meta.vehicle_id]
-    inverse = build_inverse(QuarterCar(**params).system(), 1.0 / log.meta.sample_rate_hz, gamma=edge_gamma("quarter_car"))
+    inverse = build_inverse(QuarterCar(**params).system(), 1.0 / log.meta.sample_rate_hz,
+                            gamma=edge_gamma("quarter_car"))
     ap = InverseStream(inverse).update(np.asarray(log.channels["body_acc"], float)[:, None])[:, 0]
     h = 0.05
     grid = np.arange(int(round(20.0 / h)), int(round(190.0 / h)))  # past the inverse's warm-up

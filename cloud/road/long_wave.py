@@ -331,15 +331,15 @@ DRIFT_HALF_WIDTH_M = 150.0
 #: Lattice step (m) the removed trend is restored on: it lives at wavelengths of fifty metres and
 #: more, which a metre lattice resolves at a thousandth of the grid's cost.
 TREND_STEP_M = 1.0
-#: Most terms of the series :func:`removed_trend` sums, and the largest ratio of successive terms it
-#: still sums and extrapolates its tail with: a slower one is a wave the trend keeps nearly whole,
-#: which the data do not give back (its tail, up to ten times the next term, goes to the band).
+#: Most terms of the series :func:`removed_trend` sums for its remainder, and the largest ratio of
+#: successive terms it still sums and extrapolates the tail with: a slower one is a wave the trend
+#: keeps nearly whole, which the data do not give back (its tail, up to ten times the next term).
 TREND_TERMS = 12
 TREND_RATIO_MAX = 0.9
-#: m: the terms after the first are kept at wavelengths beyond this only (zero-phase low-pass). The
-#: waves the trend takes mostly everywhere are longer than its half-width; shorter ones it takes
-#: mostly only near a pass's ends (a one-sided window follows them), where the series would amplify
-#: the consensus's own error about as much as it restores: there the first term is all.
+#: m: what the first term leaves out is counted at wavelengths beyond this only (zero-phase
+#: low-pass). The waves the trend takes mostly everywhere are longer than its half-width; shorter
+#: ones it takes mostly only near a pass's ends (a one-sided window follows them), where the series'
+#: further terms are mostly the consensus's own error amplified, which the band holds already.
 TREND_LONG_M = 100.0
 
 
@@ -415,16 +415,16 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
     operators at a point. Every pass shares that loss, so their scatter cannot show it; but ``T̄`` is
     known, and ``R = Σ_k T̄ᵏ μ`` wherever the series converges. A level and slope over
     ``2·half_width_m`` (or over a shorter covered stretch) are what the data cannot give (``T̄`` keeps
-    them whole), so every term is taken less its line over that window. Waves up to about the
-    window's width are mostly left to the passes and the first term is nearly all; waves the trend
-    takes mostly (its eigenvalue λ near 1 — on a route not much longer than the window, its
-    curvature) converge as λᵏ, so one term would leave ``λ²/(1 − λ)`` of them out. ``restore`` is
-    therefore the sum of the terms while they shrink (at most :data:`TREND_TERMS`; those after the
-    first beyond :data:`TREND_LONG_M` only), and ``remainder`` the geometric tail left out,
-    ``T̄^{K+1}μ / (1 − ρ)`` with ``ρ`` the last ratio of successive terms' sizes (at most
-    :data:`TREND_RATIO_MAX`): the size of the band's term for it.
-    Computed on a lattice of ``step_m`` (the consensus averaged over it) and interpolated; zero where
-    no pass has been.
+    them whole), so every term is taken less its line over that window. ``restore = T̄μ`` is the
+    first term. Further terms would restore more of the waves the trend takes mostly (eigenvalue λ
+    near 1 — on a route not much longer than the window, its curvature), but they multiply the
+    consensus's own long-wave error by as much (``Σ λᵏ``), and its band would have to grow with it;
+    so they go to the band instead: ``remainder`` is everything the first term leaves out, the terms
+    after it while they shrink (at most :data:`TREND_TERMS`) and their geometric tail ``T̄^{K+1}μ / (1 − ρ)``
+    (``ρ`` the last ratio of successive terms' sizes, at most :data:`TREND_RATIO_MAX`), beyond
+    :data:`TREND_LONG_M` — one term left ``λ²/(1 − λ)`` of such a wave out, of which ``T̄²μ`` is
+    ``λ²``. Computed on a lattice of ``step_m`` (the consensus averaged over it) and interpolated;
+    zero where no pass has been.
     """
     P = snap.elevation_m.size
     restore, remainder = np.zeros(P), np.zeros(P)
@@ -465,7 +465,7 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
 
     term = less_line(t)
     first = term
-    total = np.zeros(n)
+    total = np.zeros(n)  # the terms summed (the first included)
     size = float(np.sqrt(np.mean(term[covered] ** 2))) if covered.any() else 0.0
     ratio = 0.0
     for _ in range(TREND_TERMS):
@@ -477,14 +477,12 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
         term, size = nxt, nxt_size
         if ratio > TREND_RATIO_MAX or size == 0.0:  # no longer converging (or nothing left): stop here
             break
-    tail = term / (1.0 - min(ratio, TREND_RATIO_MAX))
-    # The terms after the first, and the tail, only beyond :data:`TREND_LONG_M`.
-    total = first + _lowpass_stretches(total - first, edges, k * h)
-    tail = _lowpass_stretches(tail, edges, k * h)
+    # Every term after the first, with the geometric tail, is what one term leaves out: the band's.
+    left_out = _lowpass_stretches(total - first + term / (1.0 - min(ratio, TREND_RATIO_MAX)), edges, k * h)
     centre = (np.arange(n) + 0.5) * k - 0.5  # each cell's centre on the grid
     xi = np.arange(P)
-    restore = np.where(ok, np.interp(xi, centre, total), 0.0)
-    remainder = np.where(ok, np.interp(xi, centre, tail), 0.0)
+    restore = np.where(ok, np.interp(xi, centre, first), 0.0)
+    remainder = np.where(ok, np.interp(xi, centre, left_out), 0.0)
     return restore, remainder
 
 
