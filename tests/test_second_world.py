@@ -82,3 +82,47 @@ def test_bridge_global_loss_is_read_within_a_point_and_alarmed(bridges):
     print(f"bridge: healthy {healthy}, 10 % loss {lossy}")
     assert abs(healthy["mean_error_pts"]) < 1.0 and not healthy["alarm"]
     assert abs(lossy["mean_error_pts"]) < 1.0 and lossy["alarm"]
+
+
+def test_the_vehicle_step_is_unbiased_on_the_second_worlds_physics(tmp_path):
+    """The second world's physics and logger (RK4 at 20 kHz, the anti-alias FIR and its resampling on
+    the logger's own clock, a start mid-motion) against the edge's discretised inverse, the cloud's
+    continuous-time correction and the vehicle step: noise-free, one pass, the true profile as the
+    consensus and the true parameters as the start, what the step finds is the model error every
+    vehicle would share. A fleet-common ratio error on that world therefore comes from the consensus
+    the fleet fits against, not from this chain (nor from the logger's filter)."""
+    import json
+
+    import numpy as np
+
+    from cloud.road.calibration import PassAp, class_prior, fit_vehicle, to_calibration
+    from cloud.road.continuous import continuous_ap
+    from shared.drivelog import list_drive_logs, read_drive_log
+    from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
+    from shared.vehicles import QuarterCar
+    from simfleet.scenarios import TABLE_4_1
+
+    sc = dataclasses.replace(SCENARIOS["road-qc"], route_length_m=200.0)
+    # No speed wobble: the step's time base is one speed per pass, and this test is about the physics.
+    ivp.generate(sc, tmp_path, seed=3, passes=1, vehicles=1, noise_pct=0.0, nominal="true", progress=False, workers=1,
+                 settings=ivp.WorldSettings(speed_error_sd=0.0, wobble=0.0))
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    log = read_drive_log(list_drive_logs(tmp_path / "logs")[0])
+    params = truth["vehicles"][log.meta.vehicle_id]
+    inverse = build_inverse(QuarterCar(**params).system(), 1.0 / log.meta.sample_rate_hz,
+                            gamma=edge_gamma("quarter_car"))
+    ap = InverseStream(inverse).update(np.asarray(log.channels["body_acc"], float)[:, None])[:, 0]
+    h = 0.05
+    grid = np.arange(int(round(20.0 / h)), int(round(190.0 / h)))  # past the inverse's warm-up
+    speed = float(np.mean(log.speed))
+    edge = PassAp(int(grid[0]), h, np.interp(grid * h, log.chainage, ap)[:, None], speed)
+    fixed = PassAp(edge.start_index, h, continuous_ap("quarter_car", params, edge), speed)
+    p = truth["profile"]
+    road = np.interp(grid * h, p["start_m"] + p["spacing_m"] * np.arange(len(p["elevation_m"])), p["elevation_m"])
+    prior = class_prior("quarter_car", TABLE_4_1["mean"], TABLE_4_1["std"])
+    fit = fit_vehicle("quarter_car", params, [(fixed, road[:, None])], prior, params["M"], ap_gamma=0.5)
+    want = to_calibration("quarter_car", params)
+    bias = {n: m / want[n] - 1.0 for n, m in zip(fit.names, fit.mean)}
+    print(f"vehicle step on the ivp world's physics, noise-free, true profile: {bias}")
+    # The same bound as on simfleet's physics (tests/test_discretisation.py): the chain's own error.
+    assert max(abs(e) for e in bias.values()) < 0.005, bias

@@ -600,6 +600,9 @@ class FleetCalibrator:
             short = last / np.maximum(g, MIN_CONTRACTION)
             var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2,
                                   prior_sd**2 / len(moves) + away**2)
+            log.debug("fleet error %s: contraction %s, common move sd %s, short %s, frozen sd %s, common sd %s",
+                      model, np.round(g, 3), np.round(np.sqrt(np.mean(common**2, axis=0)), 5), np.round(short, 5),
+                      np.round(np.sqrt(prior_sd**2 / len(moves) + away**2), 5), np.round(np.sqrt(var_common), 5))
             for vid, m in moves.items():
                 out[vid] = np.mean((m - common) ** 2, axis=0) + var_common
         return out

@@ -54,6 +54,7 @@ import math
 
 import numpy as np
 from scipy.ndimage import correlate1d
+from scipy.signal import butter, sosfiltfilt
 from scipy.stats import t as student_t
 
 from shared.schema import ApSegment
@@ -330,6 +331,28 @@ DRIFT_HALF_WIDTH_M = 150.0
 #: Lattice step (m) the removed trend is restored on: it lives at wavelengths of fifty metres and
 #: more, which a metre lattice resolves at a thousandth of the grid's cost.
 TREND_STEP_M = 1.0
+#: Most terms of the series :func:`removed_trend` sums for its remainder, and the largest ratio of
+#: successive terms it still sums and extrapolates the tail with: a slower one is a wave the trend
+#: keeps nearly whole, which the data do not give back (its tail, up to ten times the next term).
+TREND_TERMS = 12
+TREND_RATIO_MAX = 0.9
+#: m: what the first term leaves out is counted at wavelengths beyond this only (zero-phase
+#: low-pass). The waves the trend takes mostly everywhere are longer than its half-width; shorter
+#: ones it takes mostly only near a pass's ends (a one-sided window follows them), where the series'
+#: further terms are mostly the consensus's own error amplified, which the band holds already.
+TREND_LONG_M = 100.0
+
+
+def _lowpass_stretches(y: np.ndarray, edges: np.ndarray, step_m: float) -> np.ndarray:
+    """``y`` low-passed (zero phase) beyond :data:`TREND_LONG_M` on each covered stretch."""
+    out = np.zeros_like(y)
+    sos = butter(2, step_m / TREND_LONG_M * 2.0, output="sos")
+    for a, b in zip(edges[::2], edges[1::2]):
+        if b - a < 8:
+            out[a:b] = y[a:b]
+            continue
+        out[a:b] = sosfiltfilt(sos, y[a:b], padlen=min(b - a - 1, int(TREND_LONG_M / step_m)), padtype="even")
+    return out
 
 
 def _pass_extents(snap: ProfileSnapshot, segments: list[ApSegment]) -> list[tuple[int, int]]:
@@ -390,13 +413,18 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
     Each pass measures the road less its own local linear trend over ±``half_width_m`` (over the
     stretch it covers), so the consensus is ``μ ≈ (I − T̄)R``, ``T̄`` the average of the passes' trend
     operators at a point. Every pass shares that loss, so their scatter cannot show it; but ``T̄`` is
-    known, and where it takes little (wavelengths up to about its width) ``R = Σ_k T̄ᵏ μ`` converges
-    fast: ``restore = T̄μ`` is its first term and ``remainder = T̄²μ`` the first term left out (the
-    size of the band's term for it). Where ``T̄`` takes almost everything (waves several times
-    ``half_width_m``) the series does not converge and nothing is restored: a level and slope over
-    ``2·half_width_m`` (or over a shorter covered stretch) are what the data cannot give, so both
-    are returned less their line over that window. Computed on a lattice of ``step_m`` (the
-    consensus averaged over it) and interpolated; zero where no pass has been.
+    known, and ``R = Σ_k T̄ᵏ μ`` wherever the series converges. A level and slope over
+    ``2·half_width_m`` (or over a shorter covered stretch) are what the data cannot give (``T̄`` keeps
+    them whole), so every term is taken less its line over that window. ``restore = T̄μ`` is the
+    first term. Further terms would restore more of the waves the trend takes mostly (eigenvalue λ
+    near 1 — on a route not much longer than the window, its curvature), but they multiply the
+    consensus's own long-wave error by as much (``Σ λᵏ``), and its band would have to grow with it;
+    so they go to the band instead: ``remainder`` is everything the first term leaves out, the terms
+    after it while they shrink (at most :data:`TREND_TERMS`) and their geometric tail ``T̄^{K+1}μ / (1 − ρ)``
+    (``ρ`` the last ratio of successive terms' sizes, at most :data:`TREND_RATIO_MAX`), beyond
+    :data:`TREND_LONG_M` — one term left ``λ²/(1 − λ)`` of such a wave out, of which ``T̄²μ`` is
+    ``λ²``. Computed on a lattice of ``step_m`` (the consensus averaged over it) and interpolated;
+    zero where no pass has been.
     """
     P = snap.elevation_m.size
     restore, remainder = np.zeros(P), np.zeros(P)
@@ -426,17 +454,35 @@ def removed_trend(snap: ProfileSnapshot, segments: list[ApSegment], half_width_m
                 count[a:b] += m
         return np.where(count > 0, total / np.maximum(count, 1), 0.0), count > 0
 
-    t1, covered = mean_trend(v)
-    t2, _ = mean_trend(t1)
-    c1, c2 = np.zeros(n), np.zeros(n)
+    t, covered = mean_trend(v)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], covered.astype(np.int8), [0]])))
-    for a, b in zip(edges[::2], edges[1::2]):  # each contiguous covered stretch
-        c1[a:b] = less_local_line(t1[a:b], 2 * half + 1)
-        c2[a:b] = less_local_line(t2[a:b], 2 * half + 1)
+
+    def less_line(y):
+        out = np.zeros(n)
+        for a, b in zip(edges[::2], edges[1::2]):  # each contiguous covered stretch
+            out[a:b] = less_local_line(y[a:b], 2 * half + 1)
+        return out
+
+    term = less_line(t)
+    first = term
+    total = np.zeros(n)  # the terms summed (the first included)
+    size = float(np.sqrt(np.mean(term[covered] ** 2))) if covered.any() else 0.0
+    ratio = 0.0
+    for _ in range(TREND_TERMS):
+        total += term
+        t = mean_trend(t)[0]
+        nxt = less_line(t)
+        nxt_size = float(np.sqrt(np.mean(nxt[covered] ** 2))) if covered.any() else 0.0
+        ratio = nxt_size / size if size > 0 else 0.0
+        term, size = nxt, nxt_size
+        if ratio > TREND_RATIO_MAX or size == 0.0:  # no longer converging (or nothing left): stop here
+            break
+    # Every term after the first, with the geometric tail, is what one term leaves out: the band's.
+    left_out = _lowpass_stretches(total - first + term / (1.0 - min(ratio, TREND_RATIO_MAX)), edges, k * h)
     centre = (np.arange(n) + 0.5) * k - 0.5  # each cell's centre on the grid
     xi = np.arange(P)
-    restore = np.where(ok, np.interp(xi, centre, c1), 0.0)
-    remainder = np.where(ok, np.interp(xi, centre, c2), 0.0)
+    restore = np.where(ok, np.interp(xi, centre, first), 0.0)
+    remainder = np.where(ok, np.interp(xi, centre, left_out), 0.0)
     return restore, remainder
 
 
