@@ -182,6 +182,11 @@ class ChainageAligner:
             if sl in aligned:
                 aggregator.replace_held(sl, aligned[sl])
 
+    def begin(self, aggregator) -> None:
+        """A sweep starts (if none is in progress) over the passes held now; :meth:`step` runs it."""
+        if self._sweep is None:
+            self._sweep = _Sweep(todo=collections.deque(aggregator.passes))
+
     def step(self, aggregator, consensus, work: Slice | None = None) -> SweepResult | None:
         """One slice of a sweep (a new one if none is in progress), as much as ``work`` allows; the
         sweep's result once it has finished, None while it goes on.
@@ -192,8 +197,7 @@ class ChainageAligner:
         segments back). Between slices the bus may change passes: one no longer as estimated when
         its turn to apply comes keeps what it holds (the module's docstring says why)."""
         agg, work = aggregator, work if work is not None else Slice(_no_clock)
-        if self._sweep is None:
-            self._sweep = _Sweep(todo=collections.deque(agg.passes))
+        self.begin(agg)
         sw = self._sweep
         while sw.todo and work.more():
             if self._estimate(agg, consensus, sw, sw.todo.popleft()):

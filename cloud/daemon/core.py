@@ -206,14 +206,19 @@ class Cloud:
     def fuse_pending(self, budget_s: float | None = None) -> int:
         """Idle work: the profile posterior takes acknowledged passes' continuous-time APs in place of
         the edge's (:meth:`Aggregator.fuse`), in acknowledgement order, within ``budget_s`` (None:
-        all). Returns how many passes remain."""
-        t0 = self.clock()
+        all). Returns how many passes remain.
+
+        Nothing is fused while chainage alignment has recomputed passes to re-grid or a sweep
+        part-done: a sweep compares every pass against one consensus, and a re-gridded pass takes its
+        correction after. So the work happens in one order however the idle time is sliced, and the
+        estimates do not depend on the clock."""
         self.status_due = self.status_due or bool(self._unfused)  # "settled" waits for these
+        if self.aligner.pending or self.aligner.sweeping:
+            return len(self._unfused)
+        t0 = self.clock()
         while self._unfused and (budget_s is None or self.clock() - t0 < budget_s):
             key = next(iter(self._unfused))
             del self._unfused[key]
-            if key in self.aligner.pending:  # re-gridded first (idle): its correction is due again then
-                continue
             for slot, seg in (self._continuous_pass(key) or {}).items():
                 self.aggregator.fuse(slot, seg)
         return len(self._unfused)
@@ -247,6 +252,9 @@ class Cloud:
         # Recomputed passes first: the sweep compares against them.
         if not self._reapply_alignments(work):
             return True  # more of them at the next call
+        # The sweep starts now, even if it runs only at the next call: nothing is fused between the
+        # re-gridding and the sweep (fuse_pending), as when both fit in one slice.
+        aligner.begin(self.aggregator)
         if not work.more():
             return True  # the sweep starts (or goes on) at the next call
         result = aligner.step(self.aggregator, self.consensus, work)
