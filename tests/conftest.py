@@ -16,4 +16,3 @@ settings.register_profile("deterministic", derandomize=True, database=None, dead
                           suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("explore", deadline=None, print_blob=True, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("deterministic")
-
