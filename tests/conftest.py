@@ -10,9 +10,24 @@ draws fresh examples, to look for new counterexamples on purpose.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile("deterministic", derandomize=True, database=None, deadline=None, print_blob=True,
                           suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("explore", deadline=None, print_blob=True, suppress_health_check=[HealthCheck.too_slow])
 settings.load_profile("deterministic")
+
+
+@pytest.fixture(scope="session")
+def network_one_trip(tmp_path_factory):
+    """One trip of ``driveby sim network`` (seed 0), simulated once per worker through the CLI; the
+    tests that use it only read it."""
+    out = tmp_path_factory.mktemp("network_one_trip") / "net"
+    r = subprocess.run([sys.executable, "-m", "simfleet", "sim", "network", "--out", str(out), "--passes", "1"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    return out

@@ -1,9 +1,6 @@
 """A turn is not road: the splitter cuts where the vehicle turns (edge.trip), so no kept sample of a
 simulated drive lies on a route's corner."""
 
-import subprocess
-import sys
-
 import numpy as np
 
 from edge.trip import split_drives
@@ -21,11 +18,8 @@ def _corners() -> dict[str, list[float]]:
     return out
 
 
-def test_no_kept_sample_on_a_corner(tmp_path):
-    out = tmp_path / "net"
-    r = subprocess.run([sys.executable, "-m", "simfleet", "sim", "network", "--out", str(out), "--passes", "1"],
-                       capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr
+def test_no_kept_sample_on_a_corner(network_one_trip):
+    out = network_one_trip
     paths = list_drive_logs(out / "logs")
     _, passes, cut = split_drives(paths, [read_drive_log(p) for p in paths], load_site(out / "site.toml"))
     assert cut["turn"] > 0.0 and passes

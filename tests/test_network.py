@@ -53,13 +53,10 @@ def test_speed_profile_starts_and_ends_at_rest_and_stops_where_told():
     assert v[mid].min() < 0.6 * 14.0  # the mid-route braking
 
 
-def test_drives_with_positions_only_run_end_to_end_over_zenoh(tmp_path):
+def test_drives_with_positions_only_run_end_to_end_over_zenoh(tmp_path, network_one_trip):
     """``driveby run`` on logs without chainage or route: cut into passes, processed by the real edge
     and cloud daemons over Zenoh, exported with coordinates."""
-    out = tmp_path / "net"
-    r = subprocess.run([sys.executable, "-m", "simfleet", "sim", "network", "--out", str(out), "--passes", "1"],
-                       capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr
+    out = network_one_trip
     res = run(out / "logs", out / "site.toml", tmp_path / "export", calibration="nominal", progress=False)
     assert res.passes >= 4 and res.acked == res.passes  # one drive became several single-route passes
     rough = pq.read_table(tmp_path / "export" / "roughness.parquet").to_pydict()
