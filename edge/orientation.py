@@ -10,6 +10,15 @@ data, the heading from the motion — without the bias a plain mean of f takes f
 go one way. Projected on those axes: ``body_acc`` = f·up − |g| (gravity removed), ``long_acc`` =
 f·forward and, from the gyro, ``pitch_rate`` = ω·(−lateral), positive when the nose rises (the
 half-car's convention).
+
+The GNSS track's accelerations are noisy (metres of position error, differentiated twice), so the
+rotation leaves the vertical a few milliradians off, and |g| from the mean specific force takes the
+drive's mean lateral acceleration in quadrature (a loop of left turns averages tenths of m/s²
+sideways). Either leaves a constant of a fraction of a mm/s² in ``body_acc`` on a straight pass,
+and the inverse integrates ``body_acc`` twice: such a constant bends each pass's profile by
+millimetres over tens of metres, which the cloud reads as drift, widening the band and the IRI's
+draws. `level_vertical` takes the vertical from the gyro (a car turns about it) and gravity from
+the stretches between standstills, where the body's own acceleration integrates to zero.
 """
 
 from __future__ import annotations
@@ -98,6 +107,72 @@ def _wahba(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd((B * w[:, None]).T @ A)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
     return Vt.T @ D @ U.T
+
+
+def standstills(acc: np.ndarray, up: np.ndarray, window: int, still_ratio: float = 0.1) -> np.ndarray:
+    """Sample indices in the middle of each standstill of one run of uniform samples ``acc`` (n, 3).
+
+    Standing, the body settles: the vertical channel's sd over ``window`` samples falls to the
+    sensor's noise, far under its level while rolling (the road excites the body at any speed
+    worth a pass). A standstill is a run of windows below ``still_ratio`` of the run's median sd, at
+    least half a window long; its middle sample is taken, where the body has settled most.
+    """
+    z = np.asarray(acc, float) @ up
+    if len(z) < 3 * window:
+        return np.zeros(0, np.int64)
+    c1 = np.concatenate([[0.0], np.cumsum(z - z.mean())])
+    c2 = np.concatenate([[0.0], np.cumsum((z - z.mean()) ** 2)])
+    m1 = (c1[window:] - c1[:-window]) / window
+    sd = np.sqrt(np.maximum((c2[window:] - c2[:-window]) / window - m1**2, 0.0))
+    still = sd < still_ratio * np.median(sd)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
+    mids = [(a + b) // 2 + window // 2 for a, b in zip(edges[::2], edges[1::2]) if b - a >= window // 2]
+    return np.asarray(mids, np.int64)
+
+
+def level_vertical(frame: LoggerFrame, acc_runs: list[np.ndarray], gyro_runs: list[np.ndarray] | None,
+                   window: int, min_axis_ratio: float = 10.0) -> LoggerFrame:
+    """The frame with its vertical axis from the gyro and its gravity from the rests of the drive.
+
+    ``acc_runs`` / ``gyro_runs``: the drive's raw specific force (m/s²) and turn rate (rad/s) in the
+    logger frame, one (n, 3) array per run of uniform samples (``gyro_runs`` None: no gyro);
+    ``window``: samples of about a second.
+
+    Axis: a car turns about its vertical, so the turn rate's block means (``window`` samples: the
+    body's pitch and roll vibration average out, turns last seconds) scatter along that axis; their
+    principal axis is it, to a fraction of a milliradian, where the GNSS track's accelerations leave
+    milliradians. A constant gyro bias does not move a covariance. The axis is taken only when its
+    variance exceeds the next one's ``min_axis_ratio`` times (the drive turned); forward and lateral
+    are then made orthogonal to it.
+
+    Gravity: the mean of the vertical between the first and last standstill of each run
+    (`standstills`): the body is at rest at both ends, so its own acceleration integrates to zero
+    there, and the vehicle's longitudinal too. Without two standstills in a run, the frame's own
+    gravity is kept.
+    """
+    up, fwd = frame.up, frame.forward
+    if gyro_runs is not None:
+        blocks = [np.asarray(w, float)[: (len(w) // window) * window].reshape(-1, window, 3).mean(axis=1)
+                  for w in gyro_runs if len(w) >= window]
+        w = np.concatenate(blocks) if blocks else np.zeros((0, 3))
+        w = w[np.isfinite(w).all(axis=1)]
+        if len(w) >= 10:
+            vals, vecs = np.linalg.eigh(np.cov(w.T))
+            if vals[2] > min_axis_ratio * max(vals[1], 1e-30):
+                axis = vecs[:, 2] * np.sign(vecs[:, 2] @ up)
+                up = axis / np.linalg.norm(axis)
+                fwd = fwd - (fwd @ up) * up
+                fwd = fwd / np.linalg.norm(fwd)
+    total, count = 0.0, 0
+    for acc in acc_runs:
+        acc = np.asarray(acc, float)
+        rest = standstills(acc, up, window)
+        if len(rest) >= 2:
+            z = acc[rest[0]:rest[-1]] @ up
+            total += float(np.sum(z))
+            count += len(z)
+    g = total / count if count else frame.gravity_mps2
+    return LoggerFrame(up, fwd, np.cross(up, fwd), g, frame.heading_fit_r2)
 
 
 def vehicle_channels(frame: LoggerFrame, acc: np.ndarray, gyro: np.ndarray | None) -> VehicleChannels:

@@ -42,7 +42,7 @@ from shared.registry import Site
 
 from .fusion import FusionSettings, smooth_track
 from .mapmatch import MatchSettings, Network, build_network, match
-from .orientation import LoggerFrame, estimate_frame, vehicle_channels
+from .orientation import LoggerFrame, estimate_frame, level_vertical, vehicle_channels
 from .resample import ResampleSettings, resample
 
 logger = logging.getLogger(__name__)
@@ -69,13 +69,14 @@ class TripSettings:
     min_pass_m: float = 40.0
     heading_window_s: float = 5.0
     max_turn_rad: float = 0.2
+    level_window_s: float = 1.0
     resample: ResampleSettings = field(default_factory=ResampleSettings)
     match: MatchSettings = field(default_factory=MatchSettings)
     fusion: FusionSettings = field(default_factory=FusionSettings)
 
     def __post_init__(self):
         for k in ("min_speed_mps", "max_long_acc_mps2", "max_lat_acc_mps2", "lat_window_s", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s",
-                  "max_turn_rad"):
+                  "max_turn_rad", "level_window_s"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"TripSettings.{k}: must be a positive finite number, got {v!r}")
@@ -164,6 +165,11 @@ def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSet
     frame = None
     if raw:
         frame = _logger_frame(runs, t_fix, lat, lon, settings, name)
+        gyro_runs = None
+        if GYRO_COLUMNS[0] in runs[0].signals:
+            gyro_runs = [np.column_stack([r.signals[c] for c in GYRO_COLUMNS]) for r in runs]
+        frame = level_vertical(frame, [np.column_stack([r.signals[c] for c in ACC_COLUMNS]) for r in runs],
+                               gyro_runs, max(2, int(round(settings.level_window_s * fs))))
 
     per_run = []
     for run in runs:
