@@ -1,6 +1,7 @@
 """A whole drive → single-route passes the edge processes unchanged (interfaces.md §5).
 
-Steps, each its own module: the raw IMU's orientation (`edge.orientation`), the logger's timestamps
+Steps, each its own module: the raw IMU's orientation (`edge.orientation`; its vertical levelled by the
+gyro's turn axis and gravity taken between standstills, over ``level_window_s`` blocks), the logger's timestamps
 onto the nominal grid, cut at IMU gaps (`edge.resample`), GNSS fixes matched to the network
 (`edge.mapmatch`), the longitudinal accelerometer's bias once per drive from the GNSS track's
 speed (`imu_bias`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
