@@ -284,8 +284,8 @@ def _encode(kind: str, columns: dict[str, pa.Array]) -> bytes:
     return payload
 
 
-def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
-    """Parse the framing and header; returns ``(kind, version, batch)`` or raises DecodeError."""
+def _payload_bytes(payload: object) -> bytes | bytearray | memoryview:
+    """The payload's bytes, of an acceptable size, or DecodeError."""
     zenoh = sys.modules.get("zenoh")  # accept sample.payload as is, without importing zenoh here
     if zenoh is not None and isinstance(payload, zenoh.ZBytes):
         payload = payload.to_bytes()
@@ -295,6 +295,12 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
         raise DecodeError("oversize", f"payload of {len(payload)} B > {MAX_PAYLOAD_BYTES} B")
     if len(payload) == 0:
         raise DecodeError("not_arrow", "empty payload")
+    return payload
+
+
+def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
+    """Parse the framing and header; returns ``(kind, version, batch)`` or raises DecodeError."""
+    payload = _payload_bytes(payload)
     fast = _read_our_batch(payload)
     if fast is not None:
         return fast
@@ -335,6 +341,7 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
 _U8, _U16, _U32, _I32, _I64 = (struct.Struct(f) for f in ("<B", "<H", "<I", "<i", "<q"))
 _SCHEMA, _DICTIONARY_BATCH, _RECORD_BATCH = 1, 2, 3  # Arrow's MessageHeader union
 _CONTINUATION = 0xFFFFFFFF
+_METADATA_V5 = 4  # Arrow's MetadataVersion of what pyarrow writes
 _MAX_CACHED_SCHEMA_BYTES = 64 * 1024  # bounds what the schema cache holds (64 entries)
 
 
@@ -1154,9 +1161,276 @@ def decode_ap_batch(payload: bytes) -> ApBatch:
     return _decoding(ApBatch.KIND, payload, _build_ap_batch)
 
 
+# -- AP payloads read as columns: the fast path of decode_ap ----------------------------------
+#
+# The general path builds a pyarrow array per column and a Python object per value, and runs every
+# field's validator per segment: most of the cloud's cost per segment. A payload laid out as ours
+# (the schema message, one uncompressed record batch of exactly the AP columns' types, the end
+# marker) is read here straight from its buffers with numpy, the positions of the buffers coming
+# from the batch's metadata (the same bytes for every payload of a layout: parsed once), and each
+# rule of ApSegment checked once per column for the whole batch. Arrow's full validation of what the
+# metadata cannot vouch for (offsets, UTF-8) is done on the values. Anything else, and any payload
+# failing any check, goes to the general path, which decides: accepted payloads give the same
+# segments either way, and refused ones the same reason.
+
+_AP_WIRE_TYPES = dict(_AP_COLUMNS)
+# How each AP column's buffers are read: its layout and the struct code (scalars) or numpy type
+# (list values) of its values.
+_AP_LAYOUT = {name: ("list", np.dtype(_NUMPY_OF[t.value_type]).newbyteorder("<")) if pa.types.is_list(t) else
+              ("text", None) if pa.types.is_string(t) else
+              ("scalar", "q" if t == pa.int64() else "d")
+              for name, t in _AP_COLUMNS}
+_AP_REQUIRED = frozenset(_AP_NAMES) - _AP_OPTIONAL.keys()
+
+
+@functools.lru_cache(maxsize=64)
+def _ap_schema(message: bytes) -> tuple[int, tuple[str, ...]] | None:
+    """``(max_rows, column names in order)`` of a schema message of an AP payload whose columns are
+    exactly the AP columns (the optional ones may be absent) of exactly their types, else None."""
+    plan = _schema_plan(message)
+    if plan is None:
+        return None
+    schema, kind, version, max_rows = plan
+    if kind not in (ApSegment.KIND, ApBatch.KIND) or version != SCHEMA_VERSION:
+        return None
+    names = tuple(schema.names)
+    if not _AP_REQUIRED <= set(names) <= set(_AP_NAMES):
+        return None
+    if any(not f.type.equals(_AP_WIRE_TYPES[f.name]) for f in schema):
+        return None
+    return max_rows, names
+
+
+def _fb_structs(buf, table: int, field: int) -> list[tuple[int, int]]:
+    """A flatbuffer table's vector of two-int64 structs (Arrow's FieldNode and Buffer)."""
+    pos = _fb_field(buf, table, field)
+    if pos is None:
+        return []
+    vec = pos + _fb(_U32, buf, pos)
+    count = _fb(_U32, buf, vec)
+    if count > 4096:
+        raise ValueError("implausible vector length")
+    return [(_fb(_I64, buf, vec + 4 + 16 * i), _fb(_I64, buf, vec + 12 + 16 * i)) for i in range(count)]
+
+
+@dataclass(frozen=True)
+class _ApPlan:
+    """Where an AP batch's values lie in its message body (see :func:`_ap_plan`)."""
+
+    rows: int
+    body_length: int
+    start: int  # body offset of the first number ``numbers`` reads
+    numbers: struct.Struct  # every scalar and every offset of the body, in one read
+    # name → (layout, first index in what ``numbers`` reads, data buffer offset, data length)
+    columns: dict
+
+
+@functools.lru_cache(maxsize=256)
+def _ap_plan(schema_message: bytes, meta: bytes) -> _ApPlan | None:
+    """Where an AP batch's columns lie in its message body, with every check the metadata alone
+    decides done (uncompressed, no nulls, every buffer inside the body, aligned, large enough for
+    its length, none overlapping); None if any fails (cached: the metadata repeats across payloads
+    of a layout)."""
+    schema = _ap_schema(schema_message)
+    if schema is None:
+        return None
+    max_rows, names = schema
+    try:
+        root = _fb(_U32, meta, 0)
+        version, header_type = _fb_field(meta, root, 0), _fb_field(meta, root, 1)
+        header, body = _fb_field(meta, root, 2), _fb_field(meta, root, 3)
+        if version is None or _fb(_U16, meta, version) != _METADATA_V5:
+            return None
+        if header_type is None or _fb(_U8, meta, header_type) != _RECORD_BATCH or header is None or body is None:
+            return None
+        table = header + _fb(_U32, meta, header)
+        if _fb_field(meta, table, 3) is not None or _fb_field(meta, table, 4) is not None:
+            return None  # compressed, or variadic buffers: not ours
+        length = _fb_field(meta, table, 0)
+        rows = _fb(_I64, meta, length) if length is not None else 0
+        nodes, buffers = _fb_structs(meta, table, 1), _fb_structs(meta, table, 2)
+        body_length = _fb(_I64, meta, body)
+    except ValueError:
+        return None
+    if not 1 <= rows <= max_rows or not 0 <= body_length <= MAX_PAYLOAD_BYTES:
+        return None
+    try:  # Arrow's own checks of the metadata (its flatbuffer verifier, buffers against lengths): once per layout
+        framing = _U32.pack(_CONTINUATION) + _U32.pack(len(meta))
+        message = pa.ipc.read_message(pa.py_buffer(framing + meta + bytes(body_length)))
+        pa.ipc.read_record_batch(message, _schema_plan(schema_message)[0]).validate()
+    except Exception:  # noqa: BLE001 -- not ours: the general path reports it
+        return None
+    if any(off < 0 or size < 0 or off % 8 or off + size > body_length for off, size in buffers):
+        return None
+    if sum(size for _, size in buffers) > MAX_DECODED_BYTES:
+        return None
+    reads = []  # (body offset, struct code, count, column)
+    columns = {}
+    node, buf = iter(nodes), iter(buffers)
+    try:
+        for name in names:
+            layout, code = _AP_LAYOUT[name]
+            if next(node) != (rows, 0):
+                return None
+            next(buf)  # validity: no data to read when there are no nulls
+            off, size = next(buf)
+            if layout == "scalar":
+                if size < rows * 8:
+                    return None
+                reads.append((off, code, rows, name))
+                columns[name] = (layout, None, 0, 0)
+                continue
+            if size < (rows + 1) * 4:  # int32 offsets
+                return None
+            reads.append((off, "i", rows + 1, name))
+            if layout == "text":
+                data, data_size = next(buf)
+                columns[name] = (layout, None, data, data_size)
+                continue
+            n_values, nulls = next(node)
+            next(buf)
+            data, data_size = next(buf)
+            if nulls or data_size < n_values * code.itemsize:
+                return None
+            columns[name] = (layout, None, data, n_values)
+    except StopIteration:
+        return None
+    if next(node, None) is not None or next(buf, None) is not None:
+        return None
+    reads.sort()
+    fmt, at, index = ["<"], reads[0][0], 0
+    for off, code, count, name in reads:
+        if off < at:
+            return None  # overlapping buffers: read by the general path
+        fmt.append(f"{off - at}x{count}{code}")
+        at = off + count * struct.calcsize(code)
+        layout, _, data, limit = columns[name]
+        columns[name] = (layout, index, data, limit)
+        index += count
+    return _ApPlan(rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns)
+
+
+def _ap_columns_of(payload) -> tuple[int, dict] | None:
+    """``(rows, {name: per-row values})`` of an AP payload laid out as ours, read from its buffers
+    (texts as str, scalars as Python numbers, lists as ``(flat values, offsets)``), if Arrow's
+    full validation would accept them; else None."""
+    n = len(payload)
+    if n < 24 or _fb(_U32, payload, 0) != _CONTINUATION:
+        return None
+    schema_end = 8 + _fb(_U32, payload, 4)
+    if schema_end > _MAX_CACHED_SCHEMA_BYTES or schema_end + 16 > n or _fb(_U32, payload, schema_end) != _CONTINUATION:
+        return None
+    meta_length = _fb(_U32, payload, schema_end + 4)
+    start = schema_end + 8
+    if meta_length > _MAX_CACHED_BATCH_META_BYTES or start + meta_length > n:
+        return None
+    view = memoryview(payload)
+    plan = _ap_plan(view[:schema_end].tobytes(), view[start : start + meta_length].tobytes())
+    if plan is None:
+        return None
+    rows = plan.rows
+    body = start + meta_length
+    end = body + plan.body_length
+    if end + len(_END_OF_STREAM) != n or view[end:] != _END_OF_STREAM:
+        return None
+    numbers = plan.numbers.unpack_from(payload, body + plan.start)
+    out = {}
+    for name, (layout, i, data, limit) in plan.columns.items():
+        if layout == "scalar":
+            out[name] = numbers[i : i + rows]
+            continue
+        bounds = numbers[i : i + rows + 1]
+        # Arrow's full validation: offsets non-decreasing and within the data
+        if bounds[0] < 0 or bounds[-1] > limit or any(a > b for a, b in zip(bounds, bounds[1:])):
+            return None
+        if layout == "text":
+            raw = view[body + data : body + data + limit]
+            try:
+                out[name] = [str(raw[a:b], "utf-8") for a, b in zip(bounds, bounds[1:])]
+            except UnicodeDecodeError:
+                return None
+        else:
+            out[name] = (np.frombuffer(payload, _AP_LAYOUT[name][1], limit, body + data), bounds)
+    return rows, out
+
+
+# ApSegment's rules on its numeric fields, per column: (low, high, low open).
+_AP_RANGES = {"tile": (0, MAX_INT32, False), "axle": (1, 16, False), "start_index": (-MAX_INDEX, MAX_INDEX, False),
+              "spacing_m": (0.0, 100.0, True), "scale_m": (0.0, 1.0, True),
+              "offset_m": (-MAX_ABS_AP_M, MAX_ABS_AP_M, False), "sigma_ref_m": (0.0, MAX_ABS_AP_M, True),
+              "calib_version": (0, MAX_INT32, False), "speed_mps": (0.0, MAX_SPEED_MPS, False),
+              "t_first": (-math.inf, math.inf, False), "t_last": (-math.inf, math.inf, False),
+              "seq": (0, MAX_INT32, False), "n_segments_in_pass": (-1, MAX_INT32, False), "flags": (0, MAX_INT32, False)}
+_AP_FLOATS = frozenset(name for name, t in _AP_COLUMNS if t == pa.float64())
+
+
+def _ap_segments_of(rows: int, c: dict) -> list[ApSegment] | None:
+    """The segments of the columns, if every one passes :class:`ApSegment`'s rules (checked per
+    column), built without running them again; else None (the general path says which failed)."""
+    for name, (lo, hi, lo_open) in _AP_RANGES.items():
+        v = c[name]
+        # (a sum of floats is finite only if every one is: min and max are then well defined)
+        if name in _AP_FLOATS and not math.isfinite(sum(v)):
+            return None
+        low = min(v)
+        if low < lo or (lo_open and low == lo) or max(v) > hi:
+            return None
+    if any(b < a for a, b in zip(c["t_first"], c["t_last"])):
+        return None
+    if any(0 <= n <= s for s, n in zip(c["seq"], c["n_segments_in_pass"])):
+        return None
+    vehicles, routes = set(c["vehicle_id"]), set(c["route_id"])
+    if len(vehicles) != 1 or len(routes) != 1 or not (is_valid_id(*vehicles) and is_valid_id(*routes)):
+        return None  # (a batch holds the segments of one vehicle on one route)
+    for p in set(c["pass_id"]):
+        if not p or len(p) > MAX_TEXT or not p.isprintable():
+            return None
+    (values, vb), (sigmas, sb) = c["values_q"], c["sigma_q"]
+    sizes = [b - a for a, b in zip(vb, vb[1:])]
+    if min(sizes) < 1 or max(sizes) > MAX_SAMPLES or sizes != [b - a for a, b in zip(sb, sb[1:])]:
+        return None
+    if sigmas[sb[0] : sb[-1]].max() > 0:
+        return None
+    models = c.get("error_model")
+    try:
+        if models is None:
+            models = [ERROR_MODEL_NONE] * rows
+        else:
+            flat, mb = models
+            models = [ERROR_MODEL_NONE if a == b else _error_model(flat[a:b]) for a, b in zip(mb, mb[1:])]
+    except InvalidMessage:
+        return None
+    columns = dict(c, values_q=_frozen_copies(values, vb), sigma_q=_frozen_copies(sigmas, sb), error_model=models)
+    out = []
+    new, cls, names = object.__new__, ApSegment, _AP_NAMES
+    for row in zip(*(columns[name] for name in names)):
+        seg = new(cls)
+        object.__setattr__(seg, "__dict__", dict(zip(names, row)))
+        out.append(seg)
+    return out
+
+
+def _frozen_copies(flat: np.ndarray, bounds) -> list[np.ndarray]:
+    """Each row's values, a read-only copy (a segment holds its own arrays, not the payload)."""
+    out = []
+    for a, b in zip(bounds, bounds[1:]):
+        a = flat[a:b].copy()
+        a.flags.writeable = False
+        out.append(a)
+    return out
+
+
 def decode_ap(payload: bytes) -> list[ApSegment]:
     """The segments of an AP payload of either kind (``ap_segment`` or ``ap_batch``); what a
     subscriber to AP keys calls. Raises :class:`DecodeError` (``wrong_kind`` for other kinds)."""
+    payload = _payload_bytes(payload)
+    try:
+        columns = _ap_columns_of(payload)
+        segments = _ap_segments_of(*columns) if columns is not None else None
+    except ValueError:  # an offset out of range (_fb): the general path reports it
+        segments = None
+    if segments is not None:
+        return segments
     kind, version, batch = _read_batch(payload)
     if kind == ApSegment.KIND:
         return [_build(kind, version, batch, _build_ap_segment)]

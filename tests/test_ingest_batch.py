@@ -23,6 +23,7 @@ from cloud.road.gmrf_profile import GmrfProfile
 from cloud.road.mean_profile import MeanProfile
 from shared import keys
 from shared.registry import parse_site
+from shared import schema
 from shared.schema import Ack, ApBatch, ApSegment, DecodeError, PassDone, decode_ack, decode_ap
 
 ROUTE_M = 200.0
@@ -169,3 +170,53 @@ def test_ack_encoding_is_the_encoders_byte_for_byte():
         ack = Ack(pass_id=["p", "pässe", "a pass"][k % 3] + "x" * (k % 9), vehicle_id=f"veh-{k}",
                   n_segments_accepted=k * 7919 % 1000, calib_version=k % 5)
         assert encode_flat(ack) == ack.encode() and decode_ack(encode_flat(ack)) == ack
+
+
+def _general(payload):
+    """decode_ap by the general path alone (pyarrow arrays, each segment's constructor)."""
+    kind, version, batch = schema._read_batch(payload)
+    if kind == ApSegment.KIND:
+        return [schema._build(kind, version, batch, schema._build_ap_segment)]
+    if kind == ApBatch.KIND:
+        return list(schema._build(kind, version, batch, schema._build_ap_batch).segments)
+    raise DecodeError("wrong_kind", f"expected {ApSegment.KIND} or {ApBatch.KIND}, got {kind}")
+
+
+def _outcome(decode, payload):
+    try:
+        return decode(payload)
+    except DecodeError as e:
+        return (e.reason, e.detail)
+
+
+def test_the_column_reader_equals_the_general_path():
+    """decode_ap reads payloads laid out as ours from their buffers (schema._ap_columns_of); every
+    payload gives what the general path gives: the same segments, or the same reason and detail."""
+    segs = _mixed_segments(11)
+    payloads = [ApBatch(tuple(segs[:6])).encode(), ApBatch(tuple(segs[6:9])).encode(), segs[12].encode(),
+                segs[13].encode(), ApBatch((segs[1],)).encode()]
+    for p in payloads:  # our encoder's payloads take the fast path
+        assert schema._ap_columns_of(p) is not None and schema._ap_segments_of(*schema._ap_columns_of(p)) is not None
+        assert decode_ap(p) == _general(p)
+    rng = np.random.default_rng(12)
+    bad = [("speed_mps", 151.0), ("speed_mps", float("nan")), ("t_first", float("inf")), ("axle", 17),
+           ("tile", -1), ("pass_id", "a\x01b"), ("pass_id", ""), ("vehicle_id", "no spaces"), ("spacing_m", 0.0),
+           ("seq", 5), ("sigma_q", np.array([0, 1, -2], np.int16)), ("values_q", np.zeros(0, np.int16)),
+           ("error_model", np.array([1.0, -2.0, 0.1]))]
+    for field, value in bad:
+        seg = dataclasses.replace(segs[0], n_segments_in_pass=5)
+        if field.endswith("_q"):
+            seg = dataclasses.replace(seg, values_q=seg.values_q[:3], sigma_q=seg.sigma_q[:3])
+        object.__setattr__(seg, field, value)  # (what another writer could put on the wire)
+        payloads.append(_unchecked_batch([segs[1], seg]).encode())
+    for p in list(payloads):  # and damaged bytes: a flipped byte anywhere, a cut
+        for _ in range(60):
+            b = bytearray(p)
+            b[int(rng.integers(len(b)))] ^= 1 << int(rng.integers(8))
+            payloads.append(bytes(b))
+        payloads.append(p[: int(rng.integers(len(p)))])
+    fast = 0
+    for p in payloads:
+        assert _outcome(decode_ap, p) == _outcome(_general, p)
+        fast += schema._ap_columns_of(p) is not None
+    assert fast > len(payloads) // 4  # (most damage lands in the values: read by the fast path)
