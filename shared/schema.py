@@ -1173,32 +1173,40 @@ def decode_ap_batch(payload: bytes) -> ApBatch:
 # failing any check, goes to the general path, which decides: accepted payloads give the same
 # segments either way, and refused ones the same reason.
 
-_AP_WIRE_TYPES = dict(_AP_COLUMNS)
-# How each AP column's buffers are read: its layout and the struct code (scalars) or numpy type
-# (list values) of its values.
-_AP_LAYOUT = {name: ("list", np.dtype(_NUMPY_OF[t.value_type]).newbyteorder("<")) if pa.types.is_list(t) else
-              ("text", None) if pa.types.is_string(t) else
-              ("scalar", "q" if t == pa.int64() else "d")
-              for name, t in _AP_COLUMNS}
-_AP_REQUIRED = frozenset(_AP_NAMES) - _AP_OPTIONAL.keys()
+def _reads(columns, optional) -> tuple[dict, frozenset]:
+    """How a kind's columns are read: name → (Arrow type, layout, struct code of scalars or numpy
+    type of list values), and the names a payload must have."""
+    table = {name: (t, "list", np.dtype(_NUMPY_OF[t.value_type]).newbyteorder("<")) if pa.types.is_list(t) else
+             (t, "text", None) if pa.types.is_string(t) else
+             (t, "nullmap", None) if t.equals(_PARAMS_TYPE) else  # (read when null: else the general path)
+             (t, "scalar", "q" if t == pa.int64() else "d")
+             for name, t in columns}
+    return table, frozenset(table) - frozenset(optional)
+
+
+# Kinds read by the column reader: their columns' types and layouts, and required names.
+_AP_KINDS = (ApSegment.KIND, ApBatch.KIND)
+_COLUMN_READS = {kind: _reads(_AP_COLUMNS, _AP_OPTIONAL) for kind in _AP_KINDS}
 
 
 @functools.lru_cache(maxsize=64)
-def _ap_schema(message: bytes) -> tuple[int, tuple[str, ...]] | None:
-    """``(max_rows, column names in order)`` of a schema message of an AP payload whose columns are
-    exactly the AP columns (the optional ones may be absent) of exactly their types, else None."""
+def _columns_schema(message: bytes) -> tuple[str, int, tuple[str, ...], dict] | None:
+    """``(kind, max_rows, column names in order, how each is read)`` of a schema message whose
+    columns are exactly those of a kind the column reader reads (the optional ones may be absent),
+    of exactly their types, else None."""
     plan = _schema_plan(message)
     if plan is None:
         return None
     schema, kind, version, max_rows = plan
-    if kind not in (ApSegment.KIND, ApBatch.KIND) or version != SCHEMA_VERSION:
+    if kind not in _COLUMN_READS or version != SCHEMA_VERSION:
         return None
+    table, required = _COLUMN_READS[kind]
     names = tuple(schema.names)
-    if not _AP_REQUIRED <= set(names) <= set(_AP_NAMES):
+    if not required <= set(names) <= table.keys():
         return None
-    if any(not f.type.equals(_AP_WIRE_TYPES[f.name]) for f in schema):
+    if any(not f.type.equals(table[f.name][0]) for f in schema):
         return None
-    return max_rows, names
+    return kind, max_rows, names, table
 
 
 def _fb_structs(buf, table: int, field: int) -> list[tuple[int, int]]:
@@ -1214,27 +1222,29 @@ def _fb_structs(buf, table: int, field: int) -> list[tuple[int, int]]:
 
 
 @dataclass(frozen=True)
-class _ApPlan:
-    """Where an AP batch's values lie in its message body (see :func:`_ap_plan`)."""
+class _ColumnPlan:
+    """Where a batch's values lie in its message body (see :func:`_column_plan`)."""
 
+    kind: str
     rows: int
     body_length: int
     start: int  # body offset of the first number ``numbers`` reads
     numbers: struct.Struct  # every scalar and every offset of the body, in one read
     # name → (layout, first index in what ``numbers`` reads, data buffer offset, data length)
     columns: dict
+    types: dict  # name → numpy type of a list column's values
 
 
 @functools.lru_cache(maxsize=256)
-def _ap_plan(schema_message: bytes, meta: bytes) -> _ApPlan | None:
-    """Where an AP batch's columns lie in its message body, with every check the metadata alone
-    decides done (uncompressed, no nulls, every buffer inside the body, aligned, large enough for
-    its length, none overlapping); None if any fails (cached: the metadata repeats across payloads
-    of a layout)."""
-    schema = _ap_schema(schema_message)
+def _column_plan(schema_message: bytes, meta: bytes) -> _ColumnPlan | None:
+    """Where a batch's columns lie in its message body, with every check the metadata alone
+    decides done (uncompressed, no nulls but all-null maps, every buffer inside the body, aligned,
+    large enough for its length, none overlapping); None if any fails (cached: the metadata repeats
+    across payloads of a layout)."""
+    schema = _columns_schema(schema_message)
     if schema is None:
         return None
-    max_rows, names = schema
+    kind, max_rows, names, table = schema
     try:
         root = _fb(_U32, meta, 0)
         version, header_type = _fb_field(meta, root, 0), _fb_field(meta, root, 1)
@@ -1243,12 +1253,12 @@ def _ap_plan(schema_message: bytes, meta: bytes) -> _ApPlan | None:
             return None
         if header_type is None or _fb(_U8, meta, header_type) != _RECORD_BATCH or header is None or body is None:
             return None
-        table = header + _fb(_U32, meta, header)
-        if _fb_field(meta, table, 3) is not None or _fb_field(meta, table, 4) is not None:
+        batch = header + _fb(_U32, meta, header)
+        if _fb_field(meta, batch, 3) is not None or _fb_field(meta, batch, 4) is not None:
             return None  # compressed, or variadic buffers: not ours
-        length = _fb_field(meta, table, 0)
+        length = _fb_field(meta, batch, 0)
         rows = _fb(_I64, meta, length) if length is not None else 0
-        nodes, buffers = _fb_structs(meta, table, 1), _fb_structs(meta, table, 2)
+        nodes, buffers = _fb_structs(meta, batch, 1), _fb_structs(meta, batch, 2)
         body_length = _fb(_I64, meta, body)
     except ValueError:
         return None
@@ -1269,10 +1279,10 @@ def _ap_plan(schema_message: bytes, meta: bytes) -> _ApPlan | None:
     node, buf = iter(nodes), iter(buffers)
     try:
         for name in names:
-            layout, code = _AP_LAYOUT[name]
-            if next(node) != (rows, 0):
+            _, layout, code = table[name]
+            if next(node) != (rows, rows if layout == "nullmap" else 0):
                 return None
-            next(buf)  # validity: no data to read when there are no nulls
+            validity = next(buf)  # no data to read when there are no nulls
             off, size = next(buf)
             if layout == "scalar":
                 if size < rows * 8:
@@ -1286,6 +1296,21 @@ def _ap_plan(schema_message: bytes, meta: bytes) -> _ApPlan | None:
             if layout == "text":
                 data, data_size = next(buf)
                 columns[name] = (layout, None, data, data_size)
+                continue
+            if layout == "nullmap":  # entries (struct: validity), keys (text), values (scalars): none
+                entries = [next(node) for _ in range(3)]
+                _, _, (key_offsets, size), _, _, _ = [next(buf) for _ in range(6)]
+                if any(length for length, _ in entries):
+                    return None
+                columns[name] = (layout, None, 0, 0)
+                n_bytes = (rows + 7) // 8
+                if validity[1] < n_bytes:
+                    return None
+                reads.append((validity[0], "B", n_bytes, name + "/valid"))  # every bit 0: null
+                columns[name + "/valid"] = ("nulls", None, 0, rows)
+                if size:  # the keys' one offset: 0, as Arrow writes it (so its validation passes)
+                    reads.append((key_offsets, "i", 1, name + "/keys"))
+                    columns[name + "/keys"] = ("zero", None, 0, 0)
                 continue
             n_values, nulls = next(node)
             next(buf)
@@ -1307,13 +1332,14 @@ def _ap_plan(schema_message: bytes, meta: bytes) -> _ApPlan | None:
         layout, _, data, limit = columns[name]
         columns[name] = (layout, index, data, limit)
         index += count
-    return _ApPlan(rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns)
+    types = {name: table[name][2] for name, c in columns.items() if c[0] == "list"}
+    return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types)
 
 
-def _ap_columns_of(payload) -> tuple[int, dict] | None:
-    """``(rows, {name: per-row values})`` of an AP payload laid out as ours, read from its buffers
-    (texts as str, scalars as Python numbers, lists as ``(flat values, offsets)``), if Arrow's
-    full validation would accept them; else None."""
+def _columns_of(payload) -> tuple[str, int, dict] | None:
+    """``(kind, rows, {name: per-row values})`` of a payload laid out as ours, of a kind the column
+    reader reads, from its buffers (texts as str, scalars as Python numbers, lists as ``(flat
+    values, offsets)``, null maps as None), if Arrow's full validation would accept them; else None."""
     n = len(payload)
     if n < 24 or _fb(_U32, payload, 0) != _CONTINUATION:
         return None
@@ -1325,7 +1351,7 @@ def _ap_columns_of(payload) -> tuple[int, dict] | None:
     if meta_length > _MAX_CACHED_BATCH_META_BYTES or start + meta_length > n:
         return None
     view = memoryview(payload)
-    plan = _ap_plan(view[:schema_end].tobytes(), view[start : start + meta_length].tobytes())
+    plan = _column_plan(view[:schema_end].tobytes(), view[start : start + meta_length].tobytes())
     if plan is None:
         return None
     rows = plan.rows
@@ -1339,7 +1365,21 @@ def _ap_columns_of(payload) -> tuple[int, dict] | None:
         if layout == "scalar":
             out[name] = numbers[i : i + rows]
             continue
+        if layout == "zero":
+            if numbers[i]:
+                return None
+            continue
+        if layout == "nulls":  # a validity bitmap saying every row is null
+            bits = numbers[i : i + (rows + 7) // 8]
+            if any(bits[:-1]) or bits[-1] & ((1 << (rows % 8 or 8)) - 1):
+                return None
+            continue
         bounds = numbers[i : i + rows + 1]
+        if layout == "nullmap":
+            if any(bounds):  # (no entries: every offset 0)
+                return None
+            out[name] = [None] * rows
+            continue
         # Arrow's full validation: offsets non-decreasing and within the data
         if bounds[0] < 0 or bounds[-1] > limit or any(a > b for a, b in zip(bounds, bounds[1:])):
             return None
@@ -1350,8 +1390,8 @@ def _ap_columns_of(payload) -> tuple[int, dict] | None:
             except UnicodeDecodeError:
                 return None
         else:
-            out[name] = (np.frombuffer(payload, _AP_LAYOUT[name][1], limit, body + data), bounds)
-    return rows, out
+            out[name] = (np.frombuffer(payload, plan.types[name], limit, body + data), bounds)
+    return plan.kind, rows, out
 
 
 # ApSegment's rules on its numeric fields, per column: (low, high, low open).
@@ -1425,8 +1465,8 @@ def decode_ap(payload: bytes) -> list[ApSegment]:
     subscriber to AP keys calls. Raises :class:`DecodeError` (``wrong_kind`` for other kinds)."""
     payload = _payload_bytes(payload)
     try:
-        columns = _ap_columns_of(payload)
-        segments = _ap_segments_of(*columns) if columns is not None else None
+        columns = _columns_of(payload)
+        segments = _ap_segments_of(*columns[1:]) if columns is not None and columns[0] in _AP_KINDS else None
     except ValueError:  # an offset out of range (_fb): the general path reports it
         segments = None
     if segments is not None:
@@ -1510,8 +1550,21 @@ def _build_pass_done(r: _Row) -> PassDone:
 
 
 
+_PASS_DONE_COLUMNS = (("vehicle_id", pa.string()), ("pass_id", pa.string()), ("route_id", pa.string()),
+                      ("calib_version", pa.int64()), ("n_segments", pa.int64()), ("vehicle_model", pa.string()),
+                      ("params", _PARAMS_TYPE), ("sample_interval_s", pa.float64()))
+_COLUMN_READS[PassDone.KIND] = _reads(_PASS_DONE_COLUMNS, ("vehicle_model", "params", "sample_interval_s"))
+
+
 def decode_pass_done(payload: bytes) -> PassDone:
     """Decode and validate a :class:`PassDone` payload; raises :class:`DecodeError`."""
+    payload = _payload_bytes(payload)
+    try:  # the column reader (as decode_ap's), for one laid out as ours without parameters
+        columns = _columns_of(payload)
+        if columns is not None and columns[0] == PassDone.KIND:
+            return PassDone(**{name: values[0] for name, values in columns[2].items()})
+    except (ValueError, InvalidMessage):  # (a ValueError: an offset out of range) the general path says why
+        pass
     return _decoding(PassDone.KIND, payload, _build_pass_done)
 
 

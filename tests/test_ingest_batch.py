@@ -24,7 +24,7 @@ from cloud.road.mean_profile import MeanProfile
 from shared import keys
 from shared.registry import parse_site
 from shared import schema
-from shared.schema import Ack, ApBatch, ApSegment, DecodeError, PassDone, decode_ack, decode_ap
+from shared.schema import Ack, ApBatch, ApSegment, DecodeError, PassDone, decode_ack, decode_ap, decode_pass_done
 
 ROUTE_M = 200.0
 SPACING = 0.05
@@ -190,13 +190,13 @@ def _outcome(decode, payload):
 
 
 def test_the_column_reader_equals_the_general_path():
-    """decode_ap reads payloads laid out as ours from their buffers (schema._ap_columns_of); every
+    """decode_ap reads payloads laid out as ours from their buffers (schema._columns_of); every
     payload gives what the general path gives: the same segments, or the same reason and detail."""
     segs = _mixed_segments(11)
     payloads = [ApBatch(tuple(segs[:6])).encode(), ApBatch(tuple(segs[6:9])).encode(), segs[12].encode(),
                 segs[13].encode(), ApBatch((segs[1],)).encode()]
     for p in payloads:  # our encoder's payloads take the fast path
-        assert schema._ap_columns_of(p) is not None and schema._ap_segments_of(*schema._ap_columns_of(p)) is not None
+        assert schema._columns_of(p) is not None and schema._ap_segments_of(*schema._columns_of(p)[1:]) is not None
         assert decode_ap(p) == _general(p)
     rng = np.random.default_rng(12)
     bad = [("speed_mps", 151.0), ("speed_mps", float("nan")), ("t_first", float("inf")), ("axle", 17),
@@ -218,5 +218,30 @@ def test_the_column_reader_equals_the_general_path():
     fast = 0
     for p in payloads:
         assert _outcome(decode_ap, p) == _outcome(_general, p)
-        fast += schema._ap_columns_of(p) is not None
+        fast += schema._columns_of(p) is not None
     assert fast > len(payloads) // 4  # (most damage lands in the values: read by the fast path)
+
+
+def test_pass_done_column_reader_equals_the_general_path():
+    """decode_pass_done reads one laid out as ours (no parameters: a null map) from its buffers; every
+    payload, damaged or not, gives what the general path gives."""
+    dones = [PassDone(vehicle_id="veh-1", pass_id=f"pass {k}", route_id="R1", calib_version=k, n_segments=4 * k,
+                      vehicle_model=["", "quarter_car", "half_car"][k % 3], sample_interval_s=0.002 * (1 + k % 2))
+             for k in range(6)]
+    with_params = PassDone(vehicle_id="v", pass_id="p", route_id="R1", calib_version=1, n_segments=2,
+                           vehicle_model="quarter_car", params={"K": 1.0})
+    payloads = [d.encode() for d in dones]
+    for p in payloads:
+        assert schema._columns_of(p) is not None
+    assert schema._columns_of(with_params.encode()) is None  # (parameters: the general path)
+    payloads.append(with_params.encode())
+    general = lambda p: schema._decoding(PassDone.KIND, p, schema._build_pass_done)  # noqa: E731
+    rng = np.random.default_rng(13)
+    for p in list(payloads):
+        for _ in range(150):
+            b = bytearray(p)
+            b[int(rng.integers(len(b)))] ^= 1 << int(rng.integers(8))
+            payloads.append(bytes(b))
+    for p in payloads:
+        assert _outcome(decode_pass_done, p) == _outcome(general, p)
+    assert [decode_pass_done(d.encode()) for d in dones] == dones

@@ -39,7 +39,7 @@ from cloud.export import (FLEET_FRAME, REGISTRY_FRAME, bridge_bearings_table, br
                           bridge_summary_table, profile_draws, profile_table, roughness_table, track_quality_table,
                           vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
-from cloud.ingest.segment_store import SegmentStore
+from cloud.ingest.segment_store import SegmentEncoder, SegmentStore
 from cloud.ingest.wire import encode_flat
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
 from cloud.road.fleet_calibration import FleetCalibrator
@@ -78,15 +78,17 @@ class Cloud:
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, s.spacing_m)
         # Segments and passes beyond the resident bounds live on disk, read back when needed, so
-        # memory does not grow with the passes.
+        # memory does not grow with the passes. The profile's store holds the same segments: each is
+        # encoded once for both.
+        encoder = SegmentEncoder()
         self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign,
-                                     store=SegmentStore(s.max_resident, s.spill_dir),
+                                     store=SegmentStore(s.max_resident, s.spill_dir, encoder),
                                      max_resident_passes=s.max_resident_passes, spill_dir=s.spill_dir,
                                      fused=self.profile if s.continuous_aps else None)
         if s.max_resident is not None and isinstance(getattr(self.profile, "segments", None), dict):
             # The profile estimator keeps each segment it holds too (exact retraction, the per-pass
             # drift assembled at snapshot time): bounded the same way.
-            self.profile.segments = SegmentStore(s.max_resident, s.spill_dir)
+            self.profile.segments = SegmentStore(s.max_resident, s.spill_dir, encoder)
         self.calibrator = FleetCalibrator(site, self.consensus) if s.calibration == "fleet" else None
         if self.calibrator is not None:
             self.calibrator.continuous_aps = s.continuous_aps
