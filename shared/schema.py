@@ -1233,6 +1233,8 @@ class _ColumnPlan:
     # name → (layout, first index in what ``numbers`` reads, data buffer offset, data length)
     columns: dict
     types: dict  # name → numpy type of a list column's values
+    # (positions in what ``numbers`` reads, lowest, highest) of the scalars the kind's rules bound
+    ranges: tuple[np.ndarray, np.ndarray, np.ndarray] | None
 
 
 @functools.lru_cache(maxsize=256)
@@ -1333,7 +1335,12 @@ def _column_plan(schema_message: bytes, meta: bytes) -> _ColumnPlan | None:
         columns[name] = (layout, index, data, limit)
         index += count
     types = {name: table[name][2] for name, c in columns.items() if c[0] == "list"}
-    return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types)
+    ranges = _RANGES_OF.get(kind)
+    if ranges is not None:  # each bounded scalar's place and bounds (closed: an open end is the next float)
+        ranges = [(columns[name][1] + r, lo if not lo_open else math.nextafter(lo, math.inf), hi)
+                  for name, (lo, hi, lo_open) in ranges.items() for r in range(rows)]
+        ranges = tuple(np.array(v) for v in zip(*ranges))
+    return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types, ranges)
 
 
 def _columns_of(payload) -> tuple[str, int, dict] | None:
@@ -1360,6 +1367,12 @@ def _columns_of(payload) -> tuple[str, int, dict] | None:
     if end + len(_END_OF_STREAM) != n or view[end:] != _END_OF_STREAM:
         return None
     numbers = plan.numbers.unpack_from(payload, body + plan.start)
+    if plan.ranges is not None:
+        at, lo, hi = plan.ranges
+        # (as floats: the integer bounds are below 2⁵³, so no value is misjudged; NaN fails both)
+        a = np.array(numbers, dtype=np.float64)[at]
+        if not ((a >= lo) & (a <= hi)).all():
+            return None
     out = {}
     for name, (layout, i, data, limit) in plan.columns.items():
         if layout == "scalar":
@@ -1399,22 +1412,16 @@ _AP_RANGES = {"tile": (0, MAX_INT32, False), "axle": (1, 16, False), "start_inde
               "spacing_m": (0.0, 100.0, True), "scale_m": (0.0, 1.0, True),
               "offset_m": (-MAX_ABS_AP_M, MAX_ABS_AP_M, False), "sigma_ref_m": (0.0, MAX_ABS_AP_M, True),
               "calib_version": (0, MAX_INT32, False), "speed_mps": (0.0, MAX_SPEED_MPS, False),
-              "t_first": (-math.inf, math.inf, False), "t_last": (-math.inf, math.inf, False),
+              "t_first": (-sys.float_info.max, sys.float_info.max, False),  # (finite)
+              "t_last": (-sys.float_info.max, sys.float_info.max, False),
               "seq": (0, MAX_INT32, False), "n_segments_in_pass": (-1, MAX_INT32, False), "flags": (0, MAX_INT32, False)}
-_AP_FLOATS = frozenset(name for name, t in _AP_COLUMNS if t == pa.float64())
+_RANGES_OF = {kind: _AP_RANGES for kind in _AP_KINDS}  # the scalar ranges _columns_of checks, per kind
 
 
 def _ap_segments_of(rows: int, c: dict) -> list[ApSegment] | None:
     """The segments of the columns, if every one passes :class:`ApSegment`'s rules (checked per
-    column), built without running them again; else None (the general path says which failed)."""
-    for name, (lo, hi, lo_open) in _AP_RANGES.items():
-        v = c[name]
-        # (a sum of floats is finite only if every one is: min and max are then well defined)
-        if name in _AP_FLOATS and not math.isfinite(sum(v)):
-            return None
-        low = min(v)
-        if low < lo or (lo_open and low == lo) or max(v) > hi:
-            return None
+    column; the ranges of its numbers by :func:`_columns_of`), built without running them again;
+    else None (the general path says which failed)."""
     if any(b < a for a, b in zip(c["t_first"], c["t_last"])):
         return None
     if any(0 <= n <= s for s, n in zip(c["seq"], c["n_segments_in_pass"])):
