@@ -35,6 +35,7 @@ import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 
 SCHEMA = pa.schema([
@@ -45,6 +46,24 @@ SCHEMA = pa.schema([
 ])
 SNAPSHOT_BATCH = 1024  # records per batch of a snapshot file at most…
 SNAPSHOT_BATCH_BYTES = 1 << 20  # …and about this many payload bytes: the transient memory of a snapshot
+
+
+_STREAM_HEADER = SCHEMA.serialize().to_pybytes()  # a stream's schema message, as the stream writer writes it
+_END_OF_STREAM = b"\xff\xff\xff\xff\x00\x00\x00\x00"
+_SEQ, _KIND, _KEY, _PAYLOAD = (f.type for f in SCHEMA)
+
+
+def _one(t: pa.DataType, raw: bytes) -> pa.Array:
+    """A one-value string or binary array over ``raw`` (no copy, no conversion)."""
+    return pa.Array.from_buffers(t, 1, [None, pa.py_buffer(np.array([0, len(raw)], np.int32)), pa.py_buffer(raw)])
+
+
+def _record(seq: int, kind: str, key: str, payload: bytes) -> bytes:
+    """One record as the stream writer writes it: an encapsulated record-batch message of one row."""
+    seqs = pa.Array.from_buffers(_SEQ, 1, [None, pa.py_buffer(np.array([seq], np.uint64))])
+    batch = pa.RecordBatch.from_arrays([seqs, _one(_KIND, kind.encode()), _one(_KEY, key.encode()),
+                                        _one(_PAYLOAD, bytes(payload))], schema=SCHEMA)
+    return batch.serialize().to_pybytes()
 
 
 def _batch(seq0: int, rows: list[tuple[str, str, bytes]]) -> pa.RecordBatch:
@@ -103,7 +122,6 @@ class Journal:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.fsync_interval_s = fsync_interval_s
         self._file = None
-        self._writer = None
         self._dirty = False
         self._synced_at = time.monotonic()
         # Past every file there (a snapshot may be newer than the last journal), so this lifetime's
@@ -165,17 +183,16 @@ class Journal:
         path = self.dir / f"journal-{self.generation:06d}.arrows"
         # buffering=0: every write goes straight to the OS, so a killed process loses nothing written.
         self._file = open(path, "ab", buffering=0)
-        self._writer = pa.ipc.new_stream(self._file, SCHEMA)
+        self._file.write(_STREAM_HEADER)
+        # (the stream is written here, not by a stream writer: a whole record per write, one system call)
 
     def append(self, kind: str, key: str, payload: bytes) -> int:
         """Write one record through to the OS; returns its ``seq``."""
-        if self._writer is None:
+        if self._file is None:
             self._open_writer()
         seq = self.next_seq
         self.next_seq += 1
-        batch = pa.record_batch([pa.array([seq], pa.uint64()), pa.array([kind]), pa.array([key]),
-                                 pa.array([payload], pa.binary())], schema=SCHEMA)
-        self._writer.write_batch(batch)
+        self._file.write(_record(seq, kind, key, payload))
         self._dirty = True
         if time.monotonic() - self._synced_at >= self.fsync_interval_s:
             self.sync()
@@ -236,13 +253,13 @@ class Journal:
         return final
 
     def close(self) -> None:
-        if self._writer is not None:
+        if self._file is not None:
             try:
-                self._writer.close()
+                self._file.write(_END_OF_STREAM)
             finally:
                 self.sync()
                 self._file.close()
-                self._writer = self._file = None
+                self._file = None
 
     def __enter__(self) -> "Journal":
         return self
