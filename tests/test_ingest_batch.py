@@ -10,6 +10,8 @@ through templates of a message's layout (:mod:`cloud.ingest.wire`): byte for byt
 from __future__ import annotations
 
 import dataclasses
+import threading
+import time
 
 import numpy as np
 import pyarrow as pa
@@ -18,6 +20,7 @@ import pytest
 
 from cloud.daemon import journal
 from cloud.daemon.core import Cloud
+from cloud.daemon.durable import GroupCommit
 from cloud.daemon.journal import Journal
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.aggregator import Aggregator
@@ -268,3 +271,46 @@ def test_journal_writes_what_the_stream_writer_writes(tmp_path):
     assert path.read_bytes() == sink.getvalue().to_pybytes()
     _, back = Journal(tmp_path / "j").recover()
     assert [(r.kind, r.key, r.payload) for r in back] == records
+
+
+def test_group_commit_publishes_only_what_is_on_disk_in_order(tmp_path):
+    """Acknowledgements held by the group commit leave in order, each only once the journal records
+    written before it was published are fsync'd, and many share one fsync."""
+    j = Journal(tmp_path / "j", fsync_interval_s=1e9)  # (no periodic sync: only the group's)
+    fsyncs = []
+    sync = j.sync
+
+    def counted(upto=None):
+        before = j.synced
+        sync(upto)
+        fsyncs.extend([1] * (j.synced > before))
+
+    j.sync = counted
+    out = []
+    group = GroupCommit(j, lambda key, payload: out.append((key, payload, j.synced)), window_s=0.002)
+    group.grouping = True
+    stop = threading.Event()
+
+    def flusher():
+        while not stop.is_set():
+            group.wait(stop)
+            group.flush()
+
+    thread = threading.Thread(target=flusher)
+    thread.start()
+    sent = []
+    for k in range(300):
+        j.append("ap", f"k{k}", b"x" * 100)  # the input, journalled before it is applied…
+        written = j.written
+        group.publish(f"ack{k}", str(written).encode())  # …and what it causes, published after
+        sent.append(f"ack{k}")
+        if k % 50 == 0:
+            time.sleep(0.01)  # (a quiet moment: the held group leaves)
+    time.sleep(0.05)
+    stop.set()
+    thread.join()
+    group.flush()
+    j.close()
+    assert [key for key, _, _ in out] == sent
+    assert all(synced >= int(payload) for _, payload, synced in out)  # on disk before it left
+    assert 1 < len(fsyncs) < 150 and group.published == 300

@@ -17,7 +17,8 @@ Durability policy (why these two steps):
 * **Write-through before apply.** Each record is written to the OS (unbuffered ``write``) before the
   handler runs, so a process crash (SIGKILL, OOM) at any instant loses nothing the cloud acted on.
 * **fsync before anything leaves the process that promises durability** — an acknowledgement or a
-  calibration — and at most every ``fsync_interval_s`` otherwise. An OS crash or power loss can lose
+  calibration, held meanwhile so that one fsync releases a group of them
+  (:class:`cloud.daemon.durable.GroupCommit`) — and at most every ``fsync_interval_s`` otherwise. An OS crash or power loss can lose
   only records written since the last fsync, none of them acknowledged; the edges keep their raw
   spool until a pass is acknowledged, so they resend exactly those.
 
@@ -31,6 +32,7 @@ import dataclasses
 import json
 import os
 import re
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -122,8 +124,10 @@ class Journal:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.fsync_interval_s = fsync_interval_s
         self._file = None
-        self._dirty = False
+        self.written = 0  # records written through to the OS in this lifetime…
+        self.synced = 0  # …and how many of them are known to be on disk
         self._synced_at = time.monotonic()
+        self._sync_lock = threading.Lock()  # sync may run on another thread than append (group commit)
         # Past every file there (a snapshot may be newer than the last journal), so this lifetime's
         # journal is never older than the snapshot recovery starts from.
         numbers = self._numbers(_JOURNAL) + self._numbers(_SNAPSHOT)
@@ -193,17 +197,23 @@ class Journal:
         seq = self.next_seq
         self.next_seq += 1
         self._file.write(_record(seq, kind, key, payload))
-        self._dirty = True
+        self.written += 1
         if time.monotonic() - self._synced_at >= self.fsync_interval_s:
             self.sync()
         return seq
 
-    def sync(self) -> None:
-        """fsync the current journal file (before anything durable-sounding leaves the process)."""
-        if self._file is not None and self._dirty:
-            os.fsync(self._file.fileno())
-        self._dirty = False
-        self._synced_at = time.monotonic()
+    def sync(self, upto: int | None = None) -> None:
+        """fsync the current journal file (before anything durable-sounding leaves the process), so
+        that the first ``upto`` records written (None: all so far) are on disk.
+
+        Safe while another thread appends: what it writes meanwhile is synced by a later call."""
+        with self._sync_lock:
+            written = self.written
+            if self.synced < (written if upto is None else min(upto, written)):
+                if self._file is not None:
+                    os.fsync(self._file.fileno())
+                self.synced = written
+            self._synced_at = time.monotonic()
 
     def write_snapshot(self, records: Iterable[tuple[str, str, bytes]], meta: dict) -> Path:
         """Compact: ``records`` (kind, key, payload) rebuild the current state; older files go.
@@ -257,9 +267,11 @@ class Journal:
             try:
                 self._file.write(_END_OF_STREAM)
             finally:
-                self.sync()
-                self._file.close()
-                self._file = None
+                with self._sync_lock:
+                    os.fsync(self._file.fileno())
+                    self.synced = self.written
+                    self._file.close()
+                    self._file = None
 
     def __enter__(self) -> "Journal":
         return self
