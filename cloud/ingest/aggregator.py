@@ -305,8 +305,9 @@ class Aggregator:
         return ok
 
     def _reject(self, reason: str, detail: str) -> list[Ack]:
-        self.rejected[reason] += 1
-        log.warning("rejected segment (%s): %s", reason, detail)
+        n = self.rejected[reason] = self.rejected[reason] + 1
+        if not n & (n - 1):  # logged at the 1st, 2nd, 4th, 8th … of a reason: a flood costs no log per message
+            log.warning("rejected segment (%s, %d so far): %s", reason, n, detail)
         return []
 
     def _release(self, slot: tuple) -> None:
