@@ -49,6 +49,7 @@ from cloud.road.mean_profile import MeanProfile
 
 log = logging.getLogger("driveby.cloud")
 VIEW_IRI_DRAWS = 20  # profile draws behind the view's IRI bars at every pass (the export's take 100)
+AP_KEY_MEMO = 4096  # AP keys whose vehicle is remembered (a key repeats for every segment of its tile)
 
 
 
@@ -102,6 +103,7 @@ class Cloud:
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
+        self._ap_keys: dict[str, str] = {}  # valid AP key → its vehicle (parsed once: up to AP_KEY_MEMO)
         self.status_due = False  # acks were published since the last status
         # Bridges are fed and estimated when the bus is quiet (maybe_estimate_bridges), never per segment.
         self.bridges = BridgeMonitor(site, s.bridge)
@@ -120,11 +122,16 @@ class Cloud:
 
     # -- input -----------------------------------------------------------------------------------
     def on_segment(self, key: str, payload: bytes) -> None:
-        try:
-            _, _, _, vehicle = keys.parse_ap_key(key)
-        except ValueError:
-            self.aggregator.rejected["bad_key"] += 1
-            return
+        vehicle = self._ap_keys.get(key)
+        if vehicle is None:
+            try:
+                _, _, _, vehicle = keys.parse_ap_key(key)
+            except ValueError:
+                self.aggregator.rejected["bad_key"] += 1
+                return
+            if len(self._ap_keys) >= AP_KEY_MEMO:
+                self._ap_keys.clear()
+            self._ap_keys[key] = vehicle
         self._acks(self.aggregator.on_segment(payload, vehicle))
 
     def on_done(self, key: str, payload: bytes) -> None:
