@@ -393,7 +393,8 @@ def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, b
     targets = {"target_5000": rate / TARGET_SEGMENTS_PER_S}
     if batch:
         targets["target_20000"] = rate / TARGET_BATCHED_SEGMENTS_PER_S
-    yield {"name": "bus.segments_per_s.synthetic" + ("" if batch else "_single") + suffix, "value": rate, "unit": "segments/s",
+    yield {"name": "bus.segments_per_s.synthetic" + ("" if batch else "_single") + suffix, "value": rate,
+           "unit": "segments/s",
            "ratio_to": targets, "segments": n, "publishers": PUBLISHERS,
            "segments_per_message": tiles if batch else 1, "publish_segments_per_s": n / max(sent),
            "cloud_cpu_us_per_segment": (cpu1 - cpu0) / n * 1e6 if cpu0 is not None and cpu1 is not None else None,

@@ -1414,7 +1414,8 @@ _AP_RANGES = {"tile": (0, MAX_INT32, False), "axle": (1, 16, False), "start_inde
               "calib_version": (0, MAX_INT32, False), "speed_mps": (0.0, MAX_SPEED_MPS, False),
               "t_first": (-sys.float_info.max, sys.float_info.max, False),  # (finite)
               "t_last": (-sys.float_info.max, sys.float_info.max, False),
-              "seq": (0, MAX_INT32, False), "n_segments_in_pass": (-1, MAX_INT32, False), "flags": (0, MAX_INT32, False)}
+              "seq": (0, MAX_INT32, False), "n_segments_in_pass": (-1, MAX_INT32, False),
+              "flags": (0, MAX_INT32, False)}
 _RANGES_OF = {kind: _AP_RANGES for kind in _AP_KINDS}  # the scalar ranges _columns_of checks, per kind
 
 

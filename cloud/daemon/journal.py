@@ -18,9 +18,10 @@ Durability policy (why these two steps):
   handler runs, so a process crash (SIGKILL, OOM) at any instant loses nothing the cloud acted on.
 * **fsync before anything leaves the process that promises durability** — an acknowledgement or a
   calibration, held meanwhile so that one fsync releases a group of them
-  (:class:`cloud.daemon.durable.GroupCommit`) — and at most every ``fsync_interval_s`` otherwise. An OS crash or power loss can lose
-  only records written since the last fsync, none of them acknowledged; the edges keep their raw
-  spool until a pass is acknowledged, so they resend exactly those.
+  (:class:`cloud.daemon.durable.GroupCommit`) — and at most every ``fsync_interval_s`` otherwise.
+  An OS crash or power loss can lose only records written since the last fsync, none of them
+  acknowledged; the edges keep their raw spool until a pass is acknowledged, so they resend
+  exactly those.
 
 A torn tail (a crash in the middle of a write) is detected on open and ignored: the stream reader
 stops at the last complete record batch.
