@@ -1161,17 +1161,19 @@ def decode_ap_batch(payload: bytes) -> ApBatch:
     return _decoding(ApBatch.KIND, payload, _build_ap_batch)
 
 
-# -- AP payloads read as columns: the fast path of decode_ap ----------------------------------
+# -- payloads read as columns: the fast path of decode_ap and decode_pass_done ----------------
 #
 # The general path builds a pyarrow array per column and a Python object per value, and runs every
 # field's validator per segment: most of the cloud's cost per segment. A payload laid out as ours
-# (the schema message, one uncompressed record batch of exactly the AP columns' types, the end
-# marker) is read here straight from its buffers with numpy, the positions of the buffers coming
-# from the batch's metadata (the same bytes for every payload of a layout: parsed once), and each
-# rule of ApSegment checked once per column for the whole batch. Arrow's full validation of what the
-# metadata cannot vouch for (offsets, UTF-8) is done on the values. Anything else, and any payload
-# failing any check, goes to the general path, which decides: accepted payloads give the same
-# segments either way, and refused ones the same reason.
+# (the schema message, one uncompressed record batch of exactly a kind's columns and types, the
+# end marker) is read here straight from its buffers: every number and offset in one struct read at
+# positions taken from the batch's metadata (the same bytes for every payload of a layout: parsed,
+# and checked by Arrow, once), list values as numpy views, and each rule of ApSegment checked once
+# per column for the whole batch. Arrow's full validation of what the metadata cannot vouch for
+# (offsets, UTF-8, validity bits) is done on the values. Anything else, and any payload failing
+# any check, goes to the general path, which decides: accepted payloads give the same messages
+# either way, and refused ones the same reason.
+
 
 def _reads(columns, optional) -> tuple[dict, frozenset]:
     """How a kind's columns are read: name → (Arrow type, layout, struct code of scalars or numpy
