@@ -16,6 +16,9 @@ Measured in one run, each on the same daemons:
   Both report the cloud's CPU per segment (``cloud_cpu_us_per_segment``: the whole process, from
   ``/proc``; ``cloud_ingest_cpu_us_per_segment``: inside its message callbacks, decode to acknowledgement),
   which a loaded machine disturbs much less than the rate.
+* ``bus.segments_per_s.synthetic_durable``: the batched run again into a cloud that journals its
+  input (``--state``), so an acknowledgement waits until its input is fsync'd (a group of them per
+  fsync: :class:`cloud.daemon.durable.GroupCommit`). It runs last, on a cloud of its own.
 * ``bus.latency_p50|p99.segment_hop``: one AP segment from ``put`` to applied, unloaded (a
   synthetic ``ap_segment`` every 5 ms): the bus and the cloud's per-segment work without the edge.
 * For 1, 10 and 100 replayed vehicles (chunks of 0.1 s at 500 Hz from ``road-qc`` drive logs,
@@ -134,7 +137,7 @@ class BenchError(RuntimeError):
 class Deployment:
     """Cloud and edge daemons on a router, and this process's session: acks, stats, latency records."""
 
-    def __init__(self, endpoint: str, site: Path, workdir: Path, edges: int = EDGE_SHARDS):
+    def __init__(self, endpoint: str, site: Path, workdir: Path, edges: int = EDGE_SHARDS, state: Path | None = None):
         self.workdir = workdir
         self.session = zenoh.open(zenoh_config("client", connect=[endpoint]))
         common = ["--connect", endpoint, "--net", NET, "--site", str(site)]
@@ -142,8 +145,10 @@ class Deployment:
         # and measure itself, not the bus. The edge cold-starts every vehicle from the class mean. Nor does
         # it align passes in chainage: a sweep between two runs is idle work over every pass held, longer
         # than zenoh's limit on a blocked link once thousands are held, which the next run would wait for.
+        # ``state``: the cloud journals its input there (an acknowledgement then waits for its fsync).
+        durable = ["--state", str(state)] if state is not None else []
         self.procs = {"cloud": spawn_daemon([sys.executable, "-m", "cloud", *common, "--id", CLOUD_ID,
-                                       "--calibration", "nominal", "--no-align"], workdir / "cloud.log")}
+                                       "--calibration", "nominal", "--no-align", *durable], workdir / "cloud.log")}
         self.edge_ids = [EDGE_ID if edges == 1 else f"{EDGE_ID}{i}" for i in range(edges)]
         for i, edge_id in enumerate(self.edge_ids):
             shard = ["--shard", f"{i}/{edges}"]
@@ -355,7 +360,8 @@ class _Worker:
         stop_daemons([self.proc])
 
 
-def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, batch: bool = True) -> Iterator[dict]:
+def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, batch: bool = True,
+                    suffix: str = "") -> Iterator[dict]:
     passes = SYNTHETIC_SEGMENTS // (tiles * PUBLISHERS)
     n = passes * tiles * PUBLISHERS
     first = 0 if batch else PUBLISHERS + 1  # worker numbers: distinct passes in each run (and the hop's)
@@ -387,7 +393,8 @@ def bench_synthetic(dep: Deployment, endpoint: str, tiles: int, workdir: Path, b
     targets = {"target_5000": rate / TARGET_SEGMENTS_PER_S}
     if batch:
         targets["target_20000"] = rate / TARGET_BATCHED_SEGMENTS_PER_S
-    yield {"name": "bus.segments_per_s.synthetic" + ("" if batch else "_single"), "value": rate, "unit": "segments/s",
+    yield {"name": "bus.segments_per_s.synthetic" + ("" if batch else "_single") + suffix, "value": rate,
+           "unit": "segments/s",
            "ratio_to": targets, "segments": n, "publishers": PUBLISHERS,
            "segments_per_message": tiles if batch else 1, "publish_segments_per_s": n / max(sent),
            "cloud_cpu_us_per_segment": (cpu1 - cpu0) / n * 1e6 if cpu0 is not None and cpu1 is not None else None,
@@ -543,22 +550,32 @@ def run() -> Iterator[dict]:
                 dep.wait_up()
                 if synthetic:
                     for batch in (True, False):
-                        for result in bench_synthetic(dep, endpoint, tiles, work, batch=batch):
-                            for key in ("cloud_cpu_us_per_segment", "cloud_ingest_cpu_us_per_segment"):
-                                if result.get(key) is not None:
-                                    result["ratio_to"][key.replace("_us_per_segment", "") + "_over_kernel"] = \
-                                        result[key] / floor["value"]
-                            yield result
+                        yield from _over_kernel(bench_synthetic(dep, endpoint, tiles, work, batch=batch), floor)
                     yield from bench_segment_hop(dep, tiles)
-                if only == []:
-                    return
-                # warm-up (numba, the edge's caches); alone, over every base log, as the skipped parts would
-                warm = 2 if only is None else len(logs)
-                yield from bench_pipeline(dep, logs, realtime=False, n_vehicles=warm, report=False)
-                for realtime, n in only or [(rt, n) for rt in (False, True) for n in VEHICLES]:
-                    yield from bench_pipeline(dep, logs, realtime, n)
+                if only != []:
+                    # warm-up (numba, the edge's caches); alone, over every base log, as the skipped parts would
+                    warm = 2 if only is None else len(logs)
+                    yield from bench_pipeline(dep, logs, realtime=False, n_vehicles=warm, report=False)
+                    for realtime, n in only or [(rt, n) for rt in (False, True) for n in VEHICLES]:
+                        yield from bench_pipeline(dep, logs, realtime, n)
             finally:
                 dep.close()
+            if synthetic:  # a cloud that journals its input (--state): batched, an fsync before acknowledging
+                dep = Deployment(endpoint, work / "site.toml", work, edges=0, state=work / "state")
+                try:
+                    dep.wait_up()
+                    yield from _over_kernel(bench_synthetic(dep, endpoint, tiles, work, suffix="_durable"), floor)
+                finally:
+                    dep.close()
+
+
+def _over_kernel(results: Iterator[dict], floor: dict) -> Iterator[dict]:
+    """The results with their cloud CPU per segment over the kernel's (``ratio_to``)."""
+    for result in results:
+        for key in ("cloud_cpu_us_per_segment", "cloud_ingest_cpu_us_per_segment"):
+            if result.get(key) is not None:
+                result["ratio_to"][key.replace("_us_per_segment", "") + "_over_kernel"] = result[key] / floor["value"]
+        yield result
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -284,8 +284,8 @@ def _encode(kind: str, columns: dict[str, pa.Array]) -> bytes:
     return payload
 
 
-def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
-    """Parse the framing and header; returns ``(kind, version, batch)`` or raises DecodeError."""
+def _payload_bytes(payload: object) -> bytes | bytearray | memoryview:
+    """The payload's bytes, of an acceptable size, or DecodeError."""
     zenoh = sys.modules.get("zenoh")  # accept sample.payload as is, without importing zenoh here
     if zenoh is not None and isinstance(payload, zenoh.ZBytes):
         payload = payload.to_bytes()
@@ -295,6 +295,12 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
         raise DecodeError("oversize", f"payload of {len(payload)} B > {MAX_PAYLOAD_BYTES} B")
     if len(payload) == 0:
         raise DecodeError("not_arrow", "empty payload")
+    return payload
+
+
+def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
+    """Parse the framing and header; returns ``(kind, version, batch)`` or raises DecodeError."""
+    payload = _payload_bytes(payload)
     fast = _read_our_batch(payload)
     if fast is not None:
         return fast
@@ -335,6 +341,7 @@ def _read_batch(payload: object) -> tuple[str, int, pa.RecordBatch]:
 _U8, _U16, _U32, _I32, _I64 = (struct.Struct(f) for f in ("<B", "<H", "<I", "<i", "<q"))
 _SCHEMA, _DICTIONARY_BATCH, _RECORD_BATCH = 1, 2, 3  # Arrow's MessageHeader union
 _CONTINUATION = 0xFFFFFFFF
+_METADATA_V5 = 4  # Arrow's MetadataVersion of what pyarrow writes
 _MAX_CACHED_SCHEMA_BYTES = 64 * 1024  # bounds what the schema cache holds (64 entries)
 
 
@@ -1154,9 +1161,326 @@ def decode_ap_batch(payload: bytes) -> ApBatch:
     return _decoding(ApBatch.KIND, payload, _build_ap_batch)
 
 
+# -- payloads read as columns: the fast path of decode_ap and decode_pass_done ----------------
+#
+# The general path builds a pyarrow array per column and a Python object per value, and runs every
+# field's validator per segment: most of the cloud's cost per segment. A payload laid out as ours
+# (the schema message, one uncompressed record batch of exactly a kind's columns and types, the
+# end marker) is read here straight from its buffers: every number and offset in one struct read at
+# positions taken from the batch's metadata (the same bytes for every payload of a layout: parsed,
+# and checked by Arrow, once), list values as numpy views, and each rule of ApSegment checked once
+# per column for the whole batch. Arrow's full validation of what the metadata cannot vouch for
+# (offsets, UTF-8, validity bits) is done on the values. Anything else, and any payload failing
+# any check, goes to the general path, which decides: accepted payloads give the same messages
+# either way, and refused ones the same reason.
+
+
+def _reads(columns, optional) -> tuple[dict, frozenset]:
+    """How a kind's columns are read: name → (Arrow type, layout, struct code of scalars or numpy
+    type of list values), and the names a payload must have."""
+    table = {name: (t, "list", np.dtype(_NUMPY_OF[t.value_type]).newbyteorder("<")) if pa.types.is_list(t) else
+             (t, "text", None) if pa.types.is_string(t) else
+             (t, "nullmap", None) if t.equals(_PARAMS_TYPE) else  # (read when null: else the general path)
+             (t, "scalar", "q" if t == pa.int64() else "d")
+             for name, t in columns}
+    return table, frozenset(table) - frozenset(optional)
+
+
+# Kinds read by the column reader: their columns' types and layouts, and required names.
+_AP_KINDS = (ApSegment.KIND, ApBatch.KIND)
+_COLUMN_READS = {kind: _reads(_AP_COLUMNS, _AP_OPTIONAL) for kind in _AP_KINDS}
+
+
+@functools.lru_cache(maxsize=64)
+def _columns_schema(message: bytes) -> tuple[str, int, tuple[str, ...], dict] | None:
+    """``(kind, max_rows, column names in order, how each is read)`` of a schema message whose
+    columns are exactly those of a kind the column reader reads (the optional ones may be absent),
+    of exactly their types, else None."""
+    plan = _schema_plan(message)
+    if plan is None:
+        return None
+    schema, kind, version, max_rows = plan
+    if kind not in _COLUMN_READS or version != SCHEMA_VERSION:
+        return None
+    table, required = _COLUMN_READS[kind]
+    names = tuple(schema.names)
+    if not required <= set(names) <= table.keys():
+        return None
+    if any(not f.type.equals(table[f.name][0]) for f in schema):
+        return None
+    return kind, max_rows, names, table
+
+
+def _fb_structs(buf, table: int, field: int) -> list[tuple[int, int]]:
+    """A flatbuffer table's vector of two-int64 structs (Arrow's FieldNode and Buffer)."""
+    pos = _fb_field(buf, table, field)
+    if pos is None:
+        return []
+    vec = pos + _fb(_U32, buf, pos)
+    count = _fb(_U32, buf, vec)
+    if count > 4096:
+        raise ValueError("implausible vector length")
+    return [(_fb(_I64, buf, vec + 4 + 16 * i), _fb(_I64, buf, vec + 12 + 16 * i)) for i in range(count)]
+
+
+@dataclass(frozen=True)
+class _ColumnPlan:
+    """Where a batch's values lie in its message body (see :func:`_column_plan`)."""
+
+    kind: str
+    rows: int
+    body_length: int
+    start: int  # body offset of the first number ``numbers`` reads
+    numbers: struct.Struct  # every scalar and every offset of the body, in one read
+    # name → (layout, first index in what ``numbers`` reads, data buffer offset, data length)
+    columns: dict
+    types: dict  # name → numpy type of a list column's values
+    # (positions in what ``numbers`` reads, lowest, highest) of the scalars the kind's rules bound
+    ranges: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+
+
+@functools.lru_cache(maxsize=256)
+def _column_plan(schema_message: bytes, meta: bytes) -> _ColumnPlan | None:
+    """Where a batch's columns lie in its message body, with every check the metadata alone
+    decides done (uncompressed, no nulls but all-null maps, every buffer inside the body, aligned,
+    large enough for its length, none overlapping); None if any fails (cached: the metadata repeats
+    across payloads of a layout)."""
+    schema = _columns_schema(schema_message)
+    if schema is None:
+        return None
+    kind, max_rows, names, table = schema
+    try:
+        root = _fb(_U32, meta, 0)
+        version, header_type = _fb_field(meta, root, 0), _fb_field(meta, root, 1)
+        header, body = _fb_field(meta, root, 2), _fb_field(meta, root, 3)
+        if version is None or _fb(_U16, meta, version) != _METADATA_V5:
+            return None
+        if header_type is None or _fb(_U8, meta, header_type) != _RECORD_BATCH or header is None or body is None:
+            return None
+        batch = header + _fb(_U32, meta, header)
+        if _fb_field(meta, batch, 3) is not None or _fb_field(meta, batch, 4) is not None:
+            return None  # compressed, or variadic buffers: not ours
+        length = _fb_field(meta, batch, 0)
+        rows = _fb(_I64, meta, length) if length is not None else 0
+        nodes, buffers = _fb_structs(meta, batch, 1), _fb_structs(meta, batch, 2)
+        body_length = _fb(_I64, meta, body)
+    except ValueError:
+        return None
+    if not 1 <= rows <= max_rows or not 0 <= body_length <= MAX_PAYLOAD_BYTES:
+        return None
+    try:  # Arrow's own checks of the metadata (its flatbuffer verifier, buffers against lengths): once per layout
+        framing = _U32.pack(_CONTINUATION) + _U32.pack(len(meta))
+        message = pa.ipc.read_message(pa.py_buffer(framing + meta + bytes(body_length)))
+        pa.ipc.read_record_batch(message, _schema_plan(schema_message)[0]).validate()
+    except Exception:  # noqa: BLE001 -- not ours: the general path reports it
+        return None
+    if any(off < 0 or size < 0 or off % 8 or off + size > body_length for off, size in buffers):
+        return None
+    if sum(size for _, size in buffers) > MAX_DECODED_BYTES:
+        return None
+    reads = []  # (body offset, struct code, count, column)
+    columns = {}
+    node, buf = iter(nodes), iter(buffers)
+    try:
+        for name in names:
+            _, layout, code = table[name]
+            if next(node) != (rows, rows if layout == "nullmap" else 0):
+                return None
+            validity = next(buf)  # no data to read when there are no nulls
+            off, size = next(buf)
+            if layout == "scalar":
+                if size < rows * 8:
+                    return None
+                reads.append((off, code, rows, name))
+                columns[name] = (layout, None, 0, 0)
+                continue
+            if size < (rows + 1) * 4:  # int32 offsets
+                return None
+            reads.append((off, "i", rows + 1, name))
+            if layout == "text":
+                data, data_size = next(buf)
+                columns[name] = (layout, None, data, data_size)
+                continue
+            if layout == "nullmap":  # entries (struct: validity), keys (text), values (scalars): none
+                entries = [next(node) for _ in range(3)]
+                _, _, (key_offsets, size), _, _, _ = [next(buf) for _ in range(6)]
+                if any(length for length, _ in entries):
+                    return None
+                columns[name] = (layout, None, 0, 0)
+                n_bytes = (rows + 7) // 8
+                if validity[1] < n_bytes:
+                    return None
+                reads.append((validity[0], "B", n_bytes, name + "/valid"))  # every bit 0: null
+                columns[name + "/valid"] = ("nulls", None, 0, rows)
+                if size:  # the keys' one offset: 0, as Arrow writes it (so its validation passes)
+                    reads.append((key_offsets, "i", 1, name + "/keys"))
+                    columns[name + "/keys"] = ("zero", None, 0, 0)
+                continue
+            n_values, nulls = next(node)
+            next(buf)
+            data, data_size = next(buf)
+            if nulls or data_size < n_values * code.itemsize:
+                return None
+            columns[name] = (layout, None, data, n_values)
+    except StopIteration:
+        return None
+    if next(node, None) is not None or next(buf, None) is not None:
+        return None
+    reads.sort()
+    fmt, at, index = ["<"], reads[0][0], 0
+    for off, code, count, name in reads:
+        if off < at:
+            return None  # overlapping buffers: read by the general path
+        fmt.append(f"{off - at}x{count}{code}")
+        at = off + count * struct.calcsize(code)
+        layout, _, data, limit = columns[name]
+        columns[name] = (layout, index, data, limit)
+        index += count
+    types = {name: table[name][2] for name, c in columns.items() if c[0] == "list"}
+    ranges = _RANGES_OF.get(kind)
+    if ranges is not None:  # each bounded scalar's place and bounds (closed: an open end is the next float)
+        ranges = [(columns[name][1] + r, lo if not lo_open else math.nextafter(lo, math.inf), hi)
+                  for name, (lo, hi, lo_open) in ranges.items() for r in range(rows)]
+        ranges = tuple(np.array(v) for v in zip(*ranges))
+    return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types, ranges)
+
+
+def _columns_of(payload) -> tuple[str, int, dict] | None:
+    """``(kind, rows, {name: per-row values})`` of a payload laid out as ours, of a kind the column
+    reader reads, from its buffers (texts as str, scalars as Python numbers, lists as ``(flat
+    values, offsets)``, null maps as None), if Arrow's full validation would accept them; else None."""
+    n = len(payload)
+    if n < 24 or _fb(_U32, payload, 0) != _CONTINUATION:
+        return None
+    schema_end = 8 + _fb(_U32, payload, 4)
+    if schema_end > _MAX_CACHED_SCHEMA_BYTES or schema_end + 16 > n or _fb(_U32, payload, schema_end) != _CONTINUATION:
+        return None
+    meta_length = _fb(_U32, payload, schema_end + 4)
+    start = schema_end + 8
+    if meta_length > _MAX_CACHED_BATCH_META_BYTES or start + meta_length > n:
+        return None
+    view = memoryview(payload)
+    plan = _column_plan(view[:schema_end].tobytes(), view[start : start + meta_length].tobytes())
+    if plan is None:
+        return None
+    rows = plan.rows
+    body = start + meta_length
+    end = body + plan.body_length
+    if end + len(_END_OF_STREAM) != n or view[end:] != _END_OF_STREAM:
+        return None
+    numbers = plan.numbers.unpack_from(payload, body + plan.start)
+    if plan.ranges is not None:
+        at, lo, hi = plan.ranges
+        # (as floats: the integer bounds are below 2⁵³, so no value is misjudged; NaN fails both)
+        a = np.array(numbers, dtype=np.float64)[at]
+        if not ((a >= lo) & (a <= hi)).all():
+            return None
+    out = {}
+    for name, (layout, i, data, limit) in plan.columns.items():
+        if layout == "scalar":
+            out[name] = numbers[i : i + rows]
+            continue
+        if layout == "zero":
+            if numbers[i]:
+                return None
+            continue
+        if layout == "nulls":  # a validity bitmap saying every row is null
+            bits = numbers[i : i + (rows + 7) // 8]
+            if any(bits[:-1]) or bits[-1] & ((1 << (rows % 8 or 8)) - 1):
+                return None
+            continue
+        bounds = numbers[i : i + rows + 1]
+        if layout == "nullmap":
+            if any(bounds):  # (no entries: every offset 0)
+                return None
+            out[name] = [None] * rows
+            continue
+        # Arrow's full validation: offsets non-decreasing and within the data
+        if bounds[0] < 0 or bounds[-1] > limit or any(a > b for a, b in zip(bounds, bounds[1:])):
+            return None
+        if layout == "text":
+            raw = view[body + data : body + data + limit]
+            try:
+                out[name] = [str(raw[a:b], "utf-8") for a, b in zip(bounds, bounds[1:])]
+            except UnicodeDecodeError:
+                return None
+        else:
+            out[name] = (np.frombuffer(payload, plan.types[name], limit, body + data), bounds)
+    return plan.kind, rows, out
+
+
+# ApSegment's rules on its numeric fields, per column: (low, high, low open).
+_AP_RANGES = {"tile": (0, MAX_INT32, False), "axle": (1, 16, False), "start_index": (-MAX_INDEX, MAX_INDEX, False),
+              "spacing_m": (0.0, 100.0, True), "scale_m": (0.0, 1.0, True),
+              "offset_m": (-MAX_ABS_AP_M, MAX_ABS_AP_M, False), "sigma_ref_m": (0.0, MAX_ABS_AP_M, True),
+              "calib_version": (0, MAX_INT32, False), "speed_mps": (0.0, MAX_SPEED_MPS, False),
+              "t_first": (-sys.float_info.max, sys.float_info.max, False),  # (finite)
+              "t_last": (-sys.float_info.max, sys.float_info.max, False),
+              "seq": (0, MAX_INT32, False), "n_segments_in_pass": (-1, MAX_INT32, False),
+              "flags": (0, MAX_INT32, False)}
+_RANGES_OF = {kind: _AP_RANGES for kind in _AP_KINDS}  # the scalar ranges _columns_of checks, per kind
+
+
+def _ap_segments_of(rows: int, c: dict) -> list[ApSegment] | None:
+    """The segments of the columns, if every one passes :class:`ApSegment`'s rules (checked per
+    column; the ranges of its numbers by :func:`_columns_of`), built without running them again;
+    else None (the general path says which failed)."""
+    if any(b < a for a, b in zip(c["t_first"], c["t_last"])):
+        return None
+    if any(0 <= n <= s for s, n in zip(c["seq"], c["n_segments_in_pass"])):
+        return None
+    vehicles, routes = set(c["vehicle_id"]), set(c["route_id"])
+    if len(vehicles) != 1 or len(routes) != 1 or not (is_valid_id(*vehicles) and is_valid_id(*routes)):
+        return None  # (a batch holds the segments of one vehicle on one route)
+    for p in set(c["pass_id"]):
+        if not p or len(p) > MAX_TEXT or not p.isprintable():
+            return None
+    (values, vb), (sigmas, sb) = c["values_q"], c["sigma_q"]
+    sizes = [b - a for a, b in zip(vb, vb[1:])]
+    if min(sizes) < 1 or max(sizes) > MAX_SAMPLES or sizes != [b - a for a, b in zip(sb, sb[1:])]:
+        return None
+    if sigmas[sb[0] : sb[-1]].max() > 0:
+        return None
+    models = c.get("error_model")
+    try:
+        if models is None:
+            models = [ERROR_MODEL_NONE] * rows
+        else:
+            flat, mb = models
+            models = [ERROR_MODEL_NONE if a == b else _error_model(flat[a:b]) for a, b in zip(mb, mb[1:])]
+    except InvalidMessage:
+        return None
+    columns = dict(c, values_q=_frozen_copies(values, vb), sigma_q=_frozen_copies(sigmas, sb), error_model=models)
+    out = []
+    new, cls, names = object.__new__, ApSegment, _AP_NAMES
+    for row in zip(*(columns[name] for name in names)):
+        seg = new(cls)
+        object.__setattr__(seg, "__dict__", dict(zip(names, row)))
+        out.append(seg)
+    return out
+
+
+def _frozen_copies(flat: np.ndarray, bounds) -> list[np.ndarray]:
+    """Each row's values, a read-only copy (a segment holds its own arrays, not the payload)."""
+    out = []
+    for a, b in zip(bounds, bounds[1:]):
+        a = flat[a:b].copy()
+        a.flags.writeable = False
+        out.append(a)
+    return out
+
+
 def decode_ap(payload: bytes) -> list[ApSegment]:
     """The segments of an AP payload of either kind (``ap_segment`` or ``ap_batch``); what a
     subscriber to AP keys calls. Raises :class:`DecodeError` (``wrong_kind`` for other kinds)."""
+    payload = _payload_bytes(payload)
+    try:
+        columns = _columns_of(payload)
+        segments = _ap_segments_of(*columns[1:]) if columns is not None and columns[0] in _AP_KINDS else None
+    except ValueError:  # an offset out of range (_fb): the general path reports it
+        segments = None
+    if segments is not None:
+        return segments
     kind, version, batch = _read_batch(payload)
     if kind == ApSegment.KIND:
         return [_build(kind, version, batch, _build_ap_segment)]
@@ -1236,8 +1560,21 @@ def _build_pass_done(r: _Row) -> PassDone:
 
 
 
+_PASS_DONE_COLUMNS = (("vehicle_id", pa.string()), ("pass_id", pa.string()), ("route_id", pa.string()),
+                      ("calib_version", pa.int64()), ("n_segments", pa.int64()), ("vehicle_model", pa.string()),
+                      ("params", _PARAMS_TYPE), ("sample_interval_s", pa.float64()))
+_COLUMN_READS[PassDone.KIND] = _reads(_PASS_DONE_COLUMNS, ("vehicle_model", "params", "sample_interval_s"))
+
+
 def decode_pass_done(payload: bytes) -> PassDone:
     """Decode and validate a :class:`PassDone` payload; raises :class:`DecodeError`."""
+    payload = _payload_bytes(payload)
+    try:  # the column reader (as decode_ap's), for one laid out as ours without parameters
+        columns = _columns_of(payload)
+        if columns is not None and columns[0] == PassDone.KIND:
+            return PassDone(**{name: values[0] for name, values in columns[2].items()})
+    except (ValueError, InvalidMessage):  # (a ValueError: an offset out of range) the general path says why
+        pass
     return _decoding(PassDone.KIND, payload, _build_pass_done)
 
 

@@ -39,7 +39,7 @@ from cloud.export import (FLEET_FRAME, REGISTRY_FRAME, bridge_bearings_table, br
                           bridge_summary_table, profile_draws, profile_table, roughness_table, track_quality_table,
                           vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
-from cloud.ingest.segment_store import SegmentStore
+from cloud.ingest.segment_store import SegmentEncoder, SegmentStore
 from cloud.ingest.wire import encode_flat
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
 from cloud.road.fleet_calibration import FleetCalibrator
@@ -49,6 +49,7 @@ from cloud.road.mean_profile import MeanProfile
 
 log = logging.getLogger("driveby.cloud")
 VIEW_IRI_DRAWS = 20  # profile draws behind the view's IRI bars at every pass (the export's take 100)
+AP_KEY_MEMO = 4096  # AP keys whose vehicle is remembered (a key repeats for every segment of its tile)
 
 
 
@@ -78,15 +79,17 @@ class Cloud:
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, s.spacing_m)
         # Segments and passes beyond the resident bounds live on disk, read back when needed, so
-        # memory does not grow with the passes.
+        # memory does not grow with the passes. The profile's store holds the same segments: each is
+        # encoded once for both.
+        encoder = SegmentEncoder()
         self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign,
-                                     store=SegmentStore(s.max_resident, s.spill_dir),
+                                     store=SegmentStore(s.max_resident, s.spill_dir, encoder),
                                      max_resident_passes=s.max_resident_passes, spill_dir=s.spill_dir,
                                      fused=self.profile if s.continuous_aps else None)
         if s.max_resident is not None and isinstance(getattr(self.profile, "segments", None), dict):
             # The profile estimator keeps each segment it holds too (exact retraction, the per-pass
             # drift assembled at snapshot time): bounded the same way.
-            self.profile.segments = SegmentStore(s.max_resident, s.spill_dir)
+            self.profile.segments = SegmentStore(s.max_resident, s.spill_dir, encoder)
         self.calibrator = FleetCalibrator(site, self.consensus) if s.calibration == "fleet" else None
         if self.calibrator is not None:
             self.calibrator.continuous_aps = s.continuous_aps
@@ -100,6 +103,7 @@ class Cloud:
         self.vehicles: dict[str, dict] = collections.defaultdict(
             lambda: {"passes": 0, "last_pass": "", "calib_version": 0, "segments": 0})
         self.passes_complete = 0
+        self._ap_keys: dict[str, str] = {}  # valid AP key → its vehicle (parsed once: up to AP_KEY_MEMO)
         self.status_due = False  # acks were published since the last status
         # Bridges are fed and estimated when the bus is quiet (maybe_estimate_bridges), never per segment.
         self.bridges = BridgeMonitor(site, s.bridge)
@@ -118,11 +122,16 @@ class Cloud:
 
     # -- input -----------------------------------------------------------------------------------
     def on_segment(self, key: str, payload: bytes) -> None:
-        try:
-            _, _, _, vehicle = keys.parse_ap_key(key)
-        except ValueError:
-            self.aggregator.rejected["bad_key"] += 1
-            return
+        vehicle = self._ap_keys.get(key)
+        if vehicle is None:
+            try:
+                _, _, _, vehicle = keys.parse_ap_key(key)
+            except ValueError:
+                self.aggregator.rejected["bad_key"] += 1
+                return
+            if len(self._ap_keys) >= AP_KEY_MEMO:
+                self._ap_keys.clear()
+            self._ap_keys[key] = vehicle
         self._acks(self.aggregator.on_segment(payload, vehicle))
 
     def on_done(self, key: str, payload: bytes) -> None:

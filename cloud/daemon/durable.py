@@ -26,8 +26,9 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 
 from shared import keys
 from shared.schema import Calibration, DecodeError, decode_calibration
@@ -47,6 +48,10 @@ RAIL_BASELINE = "rail_baseline"
 #: trigger would rewrite the same live state for nothing when nothing is superseded.)
 COMPACT_RATIO = 2.0
 SNAPSHOT_MIN_RECORDS = 10_000
+#: Group commit (:class:`GroupCommit`): what the cloud publishes waits at most this long (s) to leave
+#: after one fsync with the rest of its group, and at most this many messages are held.
+GROUP_COMMIT_S = 0.005
+GROUP_COMMIT_MAX = 256
 
 
 def replay(cloud, records: Iterable[Record]) -> int:
@@ -217,3 +222,78 @@ class Durability:
 
     def close(self) -> None:
         self.journal.close()
+
+
+class GroupCommit:
+    """What a journalling cloud publishes (acknowledgements, calibrations, status, alarms), held
+    until the input it follows is on disk, then published in order: a group after one fsync.
+
+    An acknowledgement still implies fsync'd input: each message held remembers how many journal
+    records had been written when it was published (its input among them), and leaves only once
+    :meth:`Journal.sync` has put that many on disk. An fsync costs milliseconds; one per
+    acknowledgement bounded a durable cloud to a few hundred passes per second, one per group
+    costs at most ``window_s`` of latency. The fsync runs outside the cloud's lock (the serve loop's
+    flusher thread, :meth:`wait` then :meth:`flush`), so input goes on being applied meanwhile.
+
+    Until :attr:`grouping` is set (recovery, and after the serve loop ends) a message is synced and
+    published at once.
+    """
+
+    def __init__(self, journal: Journal, put: Callable[[str, bytes], None], clock: Callable[[], float] = time.monotonic,
+                 window_s: float = GROUP_COMMIT_S, max_pending: int = GROUP_COMMIT_MAX):
+        if not window_s >= 0 or max_pending < 1:
+            raise ValueError(f"GroupCommit: expected window_s >= 0 and max_pending >= 1, got {window_s}, {max_pending}")
+        self.journal, self.put, self.clock = journal, put, clock
+        self.window_s, self.max_pending = window_s, max_pending
+        self.grouping = False
+        self._pending: list[tuple[str, bytes]] = []
+        self._upto = 0  # journal records the pending messages follow
+        self._first_at = 0.0  # when the oldest pending message was published
+        self._cond = threading.Condition()
+        self._flush_lock = threading.Lock()  # groups leave one at a time, in order
+        self.groups = 0  # fsyncs that published something
+        self.published = 0
+
+    def publish(self, key: str, payload: bytes) -> None:
+        if not self.grouping:
+            with self._flush_lock:
+                self.journal.sync()
+                self.put(key, payload)
+            self.groups += 1
+            self.published += 1
+            return
+        with self._cond:
+            if not self._pending:
+                self._first_at = self.clock()
+                self._cond.notify()
+            self._pending.append((key, payload))
+            self._upto = self.journal.written
+
+    def full(self) -> bool:
+        """Whether the held messages reach ``max_pending`` (the caller flushes: memory stays bounded)."""
+        return len(self._pending) >= self.max_pending
+
+    def wait(self, stop: threading.Event) -> None:
+        """Until the oldest held message has waited ``window_s`` (or ``stop`` is set)."""
+        with self._cond:
+            while not self._pending and not stop.is_set():
+                self._cond.wait(0.1)
+            first = self._first_at
+        stop.wait(max(0.0, first + self.window_s - self.clock()))
+
+    def flush(self) -> None:
+        """Sync the journal as far as the held messages need, then publish them, in order."""
+        with self._flush_lock:
+            with self._cond:
+                batch, upto = self._pending, self._upto
+                self._pending = []
+            if not batch:
+                return
+            self.journal.sync(upto)
+            for key, payload in batch:
+                self.put(key, payload)
+            self.groups += 1
+            self.published += len(batch)
+
+    def stats(self) -> dict:
+        return {"group_commits": self.groups, "published": self.published}

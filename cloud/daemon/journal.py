@@ -17,9 +17,11 @@ Durability policy (why these two steps):
 * **Write-through before apply.** Each record is written to the OS (unbuffered ``write``) before the
   handler runs, so a process crash (SIGKILL, OOM) at any instant loses nothing the cloud acted on.
 * **fsync before anything leaves the process that promises durability** — an acknowledgement or a
-  calibration — and at most every ``fsync_interval_s`` otherwise. An OS crash or power loss can lose
-  only records written since the last fsync, none of them acknowledged; the edges keep their raw
-  spool until a pass is acknowledged, so they resend exactly those.
+  calibration, held meanwhile so that one fsync releases a group of them
+  (:class:`cloud.daemon.durable.GroupCommit`) — and at most every ``fsync_interval_s`` otherwise.
+  An OS crash or power loss can lose only records written since the last fsync, none of them
+  acknowledged; the edges keep their raw spool until a pass is acknowledged, so they resend
+  exactly those.
 
 A torn tail (a crash in the middle of a write) is detected on open and ignored: the stream reader
 stops at the last complete record batch.
@@ -31,10 +33,12 @@ import dataclasses
 import json
 import os
 import re
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 
 SCHEMA = pa.schema([
@@ -45,6 +49,24 @@ SCHEMA = pa.schema([
 ])
 SNAPSHOT_BATCH = 1024  # records per batch of a snapshot file at most…
 SNAPSHOT_BATCH_BYTES = 1 << 20  # …and about this many payload bytes: the transient memory of a snapshot
+
+
+_STREAM_HEADER = SCHEMA.serialize().to_pybytes()  # a stream's schema message, as the stream writer writes it
+_END_OF_STREAM = b"\xff\xff\xff\xff\x00\x00\x00\x00"
+_SEQ, _KIND, _KEY, _PAYLOAD = (f.type for f in SCHEMA)
+
+
+def _one(t: pa.DataType, raw: bytes) -> pa.Array:
+    """A one-value string or binary array over ``raw`` (no copy, no conversion)."""
+    return pa.Array.from_buffers(t, 1, [None, pa.py_buffer(np.array([0, len(raw)], np.int32)), pa.py_buffer(raw)])
+
+
+def _record(seq: int, kind: str, key: str, payload: bytes) -> bytes:
+    """One record as the stream writer writes it: an encapsulated record-batch message of one row."""
+    seqs = pa.Array.from_buffers(_SEQ, 1, [None, pa.py_buffer(np.array([seq], np.uint64))])
+    batch = pa.RecordBatch.from_arrays([seqs, _one(_KIND, kind.encode()), _one(_KEY, key.encode()),
+                                        _one(_PAYLOAD, bytes(payload))], schema=SCHEMA)
+    return batch.serialize().to_pybytes()
 
 
 def _batch(seq0: int, rows: list[tuple[str, str, bytes]]) -> pa.RecordBatch:
@@ -103,9 +125,10 @@ class Journal:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.fsync_interval_s = fsync_interval_s
         self._file = None
-        self._writer = None
-        self._dirty = False
+        self.written = 0  # records written through to the OS in this lifetime…
+        self.synced = 0  # …and how many of them are known to be on disk
         self._synced_at = time.monotonic()
+        self._sync_lock = threading.Lock()  # sync may run on another thread than append (group commit)
         # Past every file there (a snapshot may be newer than the last journal), so this lifetime's
         # journal is never older than the snapshot recovery starts from.
         numbers = self._numbers(_JOURNAL) + self._numbers(_SNAPSHOT)
@@ -165,28 +188,33 @@ class Journal:
         path = self.dir / f"journal-{self.generation:06d}.arrows"
         # buffering=0: every write goes straight to the OS, so a killed process loses nothing written.
         self._file = open(path, "ab", buffering=0)
-        self._writer = pa.ipc.new_stream(self._file, SCHEMA)
+        self._file.write(_STREAM_HEADER)
+        # (the stream is written here, not by a stream writer: a whole record per write, one system call)
 
     def append(self, kind: str, key: str, payload: bytes) -> int:
         """Write one record through to the OS; returns its ``seq``."""
-        if self._writer is None:
+        if self._file is None:
             self._open_writer()
         seq = self.next_seq
         self.next_seq += 1
-        batch = pa.record_batch([pa.array([seq], pa.uint64()), pa.array([kind]), pa.array([key]),
-                                 pa.array([payload], pa.binary())], schema=SCHEMA)
-        self._writer.write_batch(batch)
-        self._dirty = True
+        self._file.write(_record(seq, kind, key, payload))
+        self.written += 1
         if time.monotonic() - self._synced_at >= self.fsync_interval_s:
             self.sync()
         return seq
 
-    def sync(self) -> None:
-        """fsync the current journal file (before anything durable-sounding leaves the process)."""
-        if self._file is not None and self._dirty:
-            os.fsync(self._file.fileno())
-        self._dirty = False
-        self._synced_at = time.monotonic()
+    def sync(self, upto: int | None = None) -> None:
+        """fsync the current journal file (before anything durable-sounding leaves the process), so
+        that the first ``upto`` records written (None: all so far) are on disk.
+
+        Safe while another thread appends: what it writes meanwhile is synced by a later call."""
+        with self._sync_lock:
+            written = self.written
+            if self.synced < (written if upto is None else min(upto, written)):
+                if self._file is not None:
+                    os.fsync(self._file.fileno())
+                self.synced = written
+            self._synced_at = time.monotonic()
 
     def write_snapshot(self, records: Iterable[tuple[str, str, bytes]], meta: dict) -> Path:
         """Compact: ``records`` (kind, key, payload) rebuild the current state; older files go.
@@ -236,13 +264,15 @@ class Journal:
         return final
 
     def close(self) -> None:
-        if self._writer is not None:
+        if self._file is not None:
             try:
-                self._writer.close()
+                self._file.write(_END_OF_STREAM)
             finally:
-                self.sync()
-                self._file.close()
-                self._writer = self._file = None
+                with self._sync_lock:
+                    os.fsync(self._file.fileno())
+                    self.synced = self.written
+                    self._file.close()
+                    self._file = None
 
     def __enter__(self) -> "Journal":
         return self

@@ -28,7 +28,7 @@ from shared.transport import (LOG_LEVELS, IdInUseError, Presence, add_zenoh_argu
                               zenoh_message)
 
 from cloud.daemon.core import Cloud
-from cloud.daemon.durable import AP, CALIB, DONE, Durability
+from cloud.daemon.durable import AP, CALIB, DONE, Durability, GroupCommit
 from cloud.daemon.journal import Journal, JournalError
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.aggregator import DEFAULT_MAX_RESIDENT_PASSES, MIN_RESIDENT_PASSES
@@ -84,7 +84,7 @@ def status_body(cloud: Cloud, node_id: str) -> dict:
 
 
 def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_export: Path | None = None,
-          durability: Durability | None = None) -> None:
+          durability: Durability | None = None, group: GroupCommit | None = None) -> None:
     """Apply each message on the zenoh thread that delivers it, one at a time under a lock.
 
     No queue between the subscription and the aggregator: a hand-off per message cost as much as
@@ -102,6 +102,9 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
     back and every edge resends what it has not had acknowledged (duplicates are idempotent), so
     even then nothing is lost, at the price of a resend; so work that holds the lock (the quiet-bus
     work below) must be bounded well under those 5 s.
+
+    With a journal, what the cloud publishes goes through ``group`` (:class:`GroupCommit`): a thread
+    here publishes each group once the journal is synced for it, outside the lock.
     """
     settings, node_id, shard = cloud.settings, cloud.node_id, cloud.settings.shard
     lock = threading.Lock()
@@ -137,6 +140,19 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
             cpu["messages"] += 1
             cpu["apply_s"] += t2 - t1
             cpu["callback_s"] += t2 - t0
+        if group is not None and group.full():  # (the flusher is behind: this thread waits for it)
+            flush_group()
+
+    def flush_group() -> None:
+        try:
+            group.flush()
+        except Exception:  # a daemon never dies of a publication; an edge resends what it has not had acknowledged
+            log.exception("publishing a group of messages failed")
+
+    def flusher() -> None:
+        while not flusher_stop.is_set():
+            group.wait(flusher_stop)
+            flush_group()
 
     def on_state(query):
         with query:
@@ -197,7 +213,8 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
         with query:
             with lock:
                 body = {"stats": cloud.aggregator.stats(), "passes_complete": cloud.passes_complete, "cpu": cpu,
-                        **({"durability": durability.stats()} if durability is not None else {})}
+                        **({"durability": {**durability.stats(), **(group.stats() if group is not None else {})}}
+                           if durability is not None else {})}
             query.reply(keys.control_key(cloud.net, node_id, "stats"), json.dumps(body).encode())
 
     def on_latency(query):  # ?since=T: the traced segments whose raw chunk was published at T or later
@@ -241,6 +258,12 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
     for bid in cloud.bridges.bridges:  # this aggregator's bridges (a shard's: those on its routes)
         decl.append(session.declare_queryable(keys.state_bridge_key(cloud.net, bid),
                                               lambda query, bid=bid: on_bridge_state(query, bid)))
+    flusher_stop = threading.Event()
+    flushing = None
+    if group is not None:
+        group.grouping = True
+        flushing = threading.Thread(target=flusher, name="group-commit", daemon=True)
+        flushing.start()
     token = session.liveliness().declare_token(keys.alive_key(cloud.net, "cloud", node_id))
     # While alignment has slices to run, the loop comes back after a short gap rather than a whole
     # status interval: input waiting on the lock takes it in the gap, and a long sweep on a quiet bus
@@ -278,6 +301,11 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
         token.undeclare()
         for d in decl:
             d.undeclare()
+        if group is not None:
+            flusher_stop.set()
+            flushing.join()
+            group.grouping = False  # (from here on, published at once)
+            flush_group()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -365,12 +393,18 @@ def main(argv: list[str] | None = None) -> int:
             presence = Presence(session, args.net, "cloud", args.id, args.connect + args.listen, args.log_level)
             calib_prefix = keys.calib_key(args.net, "x")[:-1]
 
-            def publish(key, payload):
-                if durability is not None:
-                    if durability.live and key.startswith(calib_prefix):
-                        durability.record(CALIB, key, payload)  # the cloud's own decisions are state too
-                    durability.before_publish()  # nothing leaves that promises more than is on disk
+            def put(key, payload):
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+            group = GroupCommit(journal, put) if journal is not None else None
+
+            def publish(key, payload):
+                if durability is None:
+                    put(key, payload)
+                    return
+                if durability.live and key.startswith(calib_prefix):
+                    durability.record(CALIB, key, payload)  # the cloud's own decisions are state too
+                group.publish(key, payload)  # nothing leaves that promises more than is on disk
 
             cloud = Cloud(args.net, site, publish, settings, view, clock=time.monotonic, node_id=args.id)
             if journal is not None:
@@ -384,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
             gc.collect()
             gc.freeze()
             try:
-                serve(session, cloud, stop, args.export, durability)
+                serve(session, cloud, stop, args.export, durability, group)
             finally:
                 presence.close()
             if durability is not None:

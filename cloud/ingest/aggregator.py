@@ -214,15 +214,23 @@ class Aggregator:
         ps.slots.add(slot)
         if seg.calib_version == ps.calib_version:
             ps.seqs.add(seg.seq)
-        return self._maybe_ack(seg.vehicle_id, seg.pass_id)
+        return self._maybe_ack(seg.vehicle_id, seg.pass_id, ps)
 
     def _pass_of(self, seg: ApSegment) -> PassState:
         """The pass ``seg`` belongs to; a segment under a newer calibration starts the pass afresh
         (unacknowledged, its segments counted again from that version)."""
-        ps = self.passes.setdefault((seg.vehicle_id, seg.pass_id), PassState(seg.vehicle_id, seg.route_id))
+        ps = self._pass(seg.vehicle_id, seg.pass_id, seg.route_id)
         if seg.calib_version > ps.calib_version:
             self._unack(ps)
             ps.calib_version, ps.seqs, ps.refused, ps.expected = seg.calib_version, set(), set(), None
+        return ps
+
+    def _pass(self, vehicle_id: str, pass_id: str, route_id: str) -> PassState:
+        """The pass's state, new if it has none (made only then: a state is a few sets)."""
+        key = (vehicle_id, pass_id)
+        ps = self.passes.get(key)
+        if ps is None:
+            ps = self.passes[key] = PassState(vehicle_id, route_id)
         return ps
 
     def on_pass_done(self, payload: bytes) -> list[Ack]:
@@ -240,7 +248,7 @@ class Aggregator:
             return []
         if done.route_id not in self.routes:
             return self._reject("unknown_route", done.route_id)
-        ps = self.passes.setdefault((done.vehicle_id, done.pass_id), PassState(done.vehicle_id, done.route_id))
+        ps = self._pass(done.vehicle_id, done.pass_id, done.route_id)
         if done.calib_version < ps.calib_version:
             return self._reject("stale_calibration", f"done {done.pass_id} v{done.calib_version}")
         if done.calib_version > ps.calib_version:
@@ -252,7 +260,7 @@ class Aggregator:
         ps.done_payload = bytes(payload)
         ps.params = dict(done.params) if done.params is not None else None
         ps.sample_interval_s = done.sample_interval_s
-        return self._maybe_ack(done.vehicle_id, done.pass_id)
+        return self._maybe_ack(done.vehicle_id, done.pass_id, ps)
 
     def repeat_ack(self, payload: bytes) -> Ack | None:
         """The acknowledgement again, if ``payload`` is the pass-done of a pass acknowledged already.
@@ -297,8 +305,9 @@ class Aggregator:
         return ok
 
     def _reject(self, reason: str, detail: str) -> list[Ack]:
-        self.rejected[reason] += 1
-        log.warning("rejected segment (%s): %s", reason, detail)
+        n = self.rejected[reason] = self.rejected[reason] + 1
+        if not n & (n - 1):  # logged at the 1st, 2nd, 4th, 8th … of a reason: a flood costs no log per message
+            log.warning("rejected segment (%s, %d so far): %s", reason, n, detail)
         return []
 
     def _release(self, slot: tuple) -> None:
@@ -356,9 +365,13 @@ class Aggregator:
             for h in held:
                 estimator.update(h)
 
-    def _maybe_ack(self, vehicle_id: str, pass_id: str) -> list[Ack]:
-        ps = self.passes.get((vehicle_id, pass_id))
-        if ps is None or ps.acked or ps.expected is None or len(ps.seqs | ps.refused) < ps.expected:
+    def _maybe_ack(self, vehicle_id: str, pass_id: str, ps: PassState | None = None) -> list[Ack]:
+        """The pass's acknowledgement if it has just become complete (``ps``: its state, if the
+        caller has it at hand)."""
+        if ps is None:
+            ps = self.passes.get((vehicle_id, pass_id))
+        if ps is None or ps.acked or ps.expected is None or \
+                (len(ps.seqs | ps.refused) if ps.refused else len(ps.seqs)) < ps.expected:
             return []
         ps.acked = True
         ps.times_acked += 1

@@ -17,6 +17,7 @@ The index belongs to one process lifetime (a restarted cloud rebuilds it from it
 
 from __future__ import annotations
 
+import collections
 from pathlib import Path
 
 from shared.schema import ApSegment, decode_ap
@@ -33,12 +34,46 @@ def _decode_one(payload: bytes) -> ApSegment:
     return seg
 
 
-class SegmentStore(SpillMap):
-    """``slot → ApSegment``, at most ``max_resident`` decoded in memory (None: all of them)."""
+#: Segments whose payload a :class:`SegmentEncoder` remembers: more than the stores sharing it spill
+#: between two spills of the same segment (one each, in the same order).
+ENCODER_MEMO = 64
 
-    def __init__(self, max_resident: int | None = None, spill_dir: str | Path | None = None):
-        super().__init__(max_resident, spill_dir, encode=encode_segment, decode=_decode_one,
-                         tag=lambda seg: seg.calib_version, prefix="segments-")
+
+class SegmentEncoder:
+    """A segment's payload (:func:`encode_segment`), encoded once for every store that spills it.
+
+    The aggregator's store and the profile estimator's hold the same segment objects, written in the
+    same order, so each spills a segment soon after the other did: the second takes the payload the
+    first encoded. Remembered by identity (the segment itself is kept with its payload, so its id is
+    not reused while remembered), for the last :data:`ENCODER_MEMO` segments encoded.
+    """
+
+    def __init__(self, memo: int = ENCODER_MEMO):
+        self.memo = memo
+        self._recent: collections.OrderedDict[int, tuple[ApSegment, bytes]] = collections.OrderedDict()
+        self.encoded = 0  # segments encoded (the rest of the calls were answered from the memo)
+
+    def __call__(self, seg: ApSegment) -> bytes:
+        hit = self._recent.get(id(seg))
+        if hit is not None and hit[0] is seg:
+            return hit[1]
+        payload = encode_segment(seg)
+        self.encoded += 1
+        self._recent[id(seg)] = (seg, payload)
+        if len(self._recent) > self.memo:
+            self._recent.popitem(last=False)
+        return payload
+
+
+class SegmentStore(SpillMap):
+    """``slot → ApSegment``, at most ``max_resident`` decoded in memory (None: all of them).
+
+    ``encoder``: shared by stores that hold the same segments (:class:`SegmentEncoder`)."""
+
+    def __init__(self, max_resident: int | None = None, spill_dir: str | Path | None = None,
+                 encoder: SegmentEncoder | None = None):
+        super().__init__(max_resident, spill_dir, encode=encoder if encoder is not None else SegmentEncoder(),
+                         decode=_decode_one, tag=lambda seg: seg.calib_version, prefix="segments-")
 
     def calib_version(self, slot: tuple) -> int:
         """The slot's calibration version, without reading a spilled segment."""

@@ -11,7 +11,8 @@ index is keyed random access with updates and deletes, and its page cache is bou
 A key gets its row when its value first leaves memory, not when it is written: until the resident
 bound is reached the map costs what a dict costs (the cloud's ingest writes three maps per
 segment; a row per write would be a large share of its CPU), and after that each write of a new key costs
-one indexed lookup (is it a spilled key?) plus the one spill it causes.
+the one spill it causes, plus an indexed lookup (is it a spilled key?) only if a fixed-size filter of
+the keys that have rows says it may be one (:data:`FILTER_BITS`).
 
 Semantics are a ``dict``'s: iteration follows first insertion (a write to an existing key keeps
 its place; a key deleted and written again goes last), so anything summed over the values sums in
@@ -35,6 +36,12 @@ from collections.abc import Callable, Iterator, MutableMapping
 from pathlib import Path
 
 CACHE_KIB = 256  # SQLite page cache per map (fills within minutes: no slow creep of RSS)
+#: Bits of a map's filter of the keys that have a row: a Bloom filter with two probes, of fixed size
+#: (1 MiB, made when the first row is), so memory does not grow with the keys. Most keys written
+#: are new, and a key the filter has not seen needs no lookup on disk; a key whose row was deleted
+#: stays in it, costing only a lookup. False positives: ~0.05 % at 100 000 rows, ~4 % at 10⁶.
+FILTER_BITS = 1 << 23
+_FILTER_MASK = FILTER_BITS - 1
 _BATCH = 64  # rows per read while iterating (spilled segments: ~0.5 MB)
 _KEY_TEXT = json.JSONEncoder(separators=(",", ":")).encode  # one encoder (json.dumps builds one per call)
 
@@ -81,6 +88,7 @@ class SpillMap(MutableMapping):
         # The last key looked up on disk and not found there: a write of it (``x in m`` then
         # ``m[x] = v``, ``m.get(x)`` then ``m[x] = v``: the callers' usual pattern) needs no second lookup.
         self._absent = _MISSING
+        self._filter: bytearray | None = None  # keys that have a row (see FILTER_BITS)
         self._n = 0  # keys in all
         self.spilled_total = 0  # values written out over the map's life
         self.reads = 0  # spilled values decoded back
@@ -118,6 +126,20 @@ class SpillMap(MutableMapping):
             self._index().execute("INSERT INTO m (ord, k, tag, v) VALUES (?, ?, ?, ?)",
                                   (self._ord[key], _key_text(key), tag, self._encode(value)))
             self._rowed.add(key)
+            if self._filter is None:
+                self._filter = bytearray(FILTER_BITS // 8)
+            h = hash(key)
+            for bit in (h & _FILTER_MASK, (h >> 23) & _FILTER_MASK):
+                self._filter[bit >> 3] |= 1 << (bit & 7)
+
+    def _may_have_row(self, key) -> bool:
+        """False if ``key`` has never had a row (the filter); True if it may have one."""
+        f = self._filter
+        if f is None:
+            return False
+        h = hash(key)
+        a, b = h & _FILTER_MASK, (h >> 23) & _FILTER_MASK
+        return bool(f[a >> 3] >> (a & 7) & 1 and f[b >> 3] >> (b & 7) & 1)
 
     def _spill_oldest(self) -> None:
         key, value = next(iter(self._hot.items()))
@@ -150,6 +172,9 @@ class SpillMap(MutableMapping):
     def _cold(self, key, columns: str = "v") -> tuple | None:
         """A spilled key's row (``columns`` of it), None if the key is not spilled."""
         if self._db is None or not self._any_spilled:
+            return None
+        if not self._may_have_row(key):
+            self._absent = key
             return None
         row = self._db.execute(f"SELECT {columns} FROM m WHERE k = ?", (_key_text(key),)).fetchone()
         if row is None:
@@ -219,7 +244,7 @@ class SpillMap(MutableMapping):
                 self._db.execute("DELETE FROM m WHERE ord = ?", (ordinal,))
             self._n -= 1
             return
-        if self._db is None or not self._any_spilled:
+        if self._db is None or not self._any_spilled or not self._may_have_row(key):
             raise KeyError(key)
         if not self._db.execute("DELETE FROM m WHERE k = ?", (_key_text(key),)).rowcount:
             raise KeyError(key)

@@ -22,18 +22,14 @@ import pyarrow as pa
 _INT64, _FLOAT64 = struct.Struct("<q"), struct.Struct("<d")
 _MAX_LAYOUTS = 512
 _templates: dict[tuple, tuple[bytes, tuple]] = {}  # layout → template (a memo of this process, not configuration)
-_fields: dict[type, tuple[str, ...]] = {}
+_fields: dict[type, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {}  # type → its fields by kind
 
 
-def _layout(msg, names: tuple[str, ...]) -> tuple:
-    out = [type(msg)]
-    for name in names:
-        v = getattr(msg, name)
-        if isinstance(v, str):
-            out.append(len(v.encode()))
-        elif isinstance(v, np.ndarray):
-            out.append(v.size)
-    return tuple(out)
+def _kinds(msg) -> tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]:
+    """A message type's field names: every one, its texts, its arrays (the rest are numbers)."""
+    names = tuple(f.name for f in dataclasses.fields(msg))
+    return (names, tuple(n for n in names if isinstance(getattr(msg, n), str)),
+            tuple(n for n in names if isinstance(getattr(msg, n), np.ndarray)))
 
 
 def _template(payload: bytes, names: tuple[str, ...]) -> tuple:
@@ -55,16 +51,22 @@ def _template(payload: bytes, names: tuple[str, ...]) -> tuple:
             places.append((name, col.buffers()[1].address - base, _INT64 if pa.types.is_int64(t) else _FLOAT64))
         else:
             raise TypeError(f"{name}: {t} is not a field this encoder writes")
-    return tuple(places)
+    numbers = tuple((pos, fmt.pack_into, name) for name, pos, fmt in places if fmt is not None)
+    texts = {name: pos for name, pos, fmt in places if fmt is None}
+    return numbers, texts
 
 
 def encode_flat(msg) -> bytes:
     """``msg.encode()``, byte for byte, from the template of its layout (a message whose wire
     columns are its fields, of the types above)."""
-    names = _fields.get(type(msg))
-    if names is None:
-        names = _fields[type(msg)] = tuple(f.name for f in dataclasses.fields(msg))
-    layout = _layout(msg, names)
+    kinds = _fields.get(type(msg))
+    if kinds is None:
+        kinds = _fields[type(msg)] = _kinds(msg)
+    names, text_names, array_names = kinds
+    values = msg.__dict__
+    texts = [values[n].encode() for n in text_names]
+    arrays = [values[n] for n in array_names]
+    layout = (type(msg), *map(len, texts), *(a.size for a in arrays))
     hit = _templates.get(layout)
     if hit is None:
         if len(_templates) >= _MAX_LAYOUTS:
@@ -72,18 +74,17 @@ def encode_flat(msg) -> bytes:
         payload = msg.encode()
         _templates[layout] = (payload, _template(payload, names))
         return payload
-    template, places = hit
+    template, (numbers, places) = hit
     out = bytearray(template)
-    for name, pos, fmt in places:
-        value = getattr(msg, name)
-        if fmt is not None:
-            fmt.pack_into(out, pos, value)
-        elif isinstance(value, str):
-            raw = value.encode()
-            out[pos : pos + len(raw)] = raw
-        elif value.size:
-            raw = np.ascontiguousarray(value).tobytes()
-            out[pos : pos + len(raw)] = raw
+    for pos, pack_into, name in numbers:
+        pack_into(out, pos, values[name])
+    for name, raw in zip(text_names, texts):
+        pos = places[name]
+        out[pos : pos + len(raw)] = raw
+    for name, a in zip(array_names, arrays):
+        if a.size:
+            pos = places[name]
+            out[pos : pos + a.nbytes] = memoryview(np.ascontiguousarray(a)).cast("B")
     return bytes(out)
 
 
