@@ -197,6 +197,13 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
         if not ok:
             out[k] = linear[k]
             continue
+        # sin(π a) at the taps by rotation: a falls by 2 fc from one tap to the next, so one sine
+        # and cosine per point, not per tap. The rotation's rounding is ~1e-16 absolute a tap, far
+        # below the window's own tolerance once divided by π a, except at the tap next to the
+        # point (|τ| < 1/2, a near 0), whose sine is taken directly.
+        step_sin, step_cos = math.sin(2.0 * math.pi * fc), math.cos(2.0 * math.pi * fc)
+        theta = math.pi * 2.0 * fc * (index[k] - (s0 + lo))
+        sin_a, cos_a = math.sin(theta), math.cos(theta)
         num, den = 0.0, 0.0
         for i in range(lo, hi):
             tau = index[k] - (s0 + i)
@@ -205,7 +212,8 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
             w = _KAISER[iu] + (u - iu) * (_KAISER[iu + 1] - _KAISER[iu])
             a = 2.0 * fc * tau
             if a != 0.0:
-                w *= math.sin(math.pi * a) / (math.pi * a)
+                w *= (sin_a if abs(tau) >= 0.5 else math.sin(math.pi * a)) / (math.pi * a)
+            sin_a, cos_a = sin_a * step_cos - cos_a * step_sin, cos_a * step_cos + sin_a * step_sin
             num += w * sap[i]
             den += w
         out[k] = num / den
@@ -498,6 +506,7 @@ class PassProcessor:
         self._z_tail = np.zeros((0, len(self.channel_names)))
         self._d4 = _Rows(len(self.channel_names))
         self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
+        self._windows: dict[int, tuple] = {}  # axle → (its last drift window, (trend, white sigma))
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -625,6 +634,26 @@ class PassProcessor:
             self._trim_differences()
         return out
 
+    def _window(self, axle: int, g: AxleGrid, wa: int, wb: int) -> tuple[np.ndarray | None, float]:
+        """The drift trend over grid indices ``wa … wb - 1`` of an axle (None without drift control)
+        and the white noise level there. Computed once per window: the points of a window are
+        final, and the tiles of a pass shorter than the drift window share theirs (each tile's
+        reaches from the pass's start to its end), which makes a short pass's end several tiles of
+        work in one tick."""
+        hit = self._windows.get(axle)
+        if hit is not None and hit[0] == (wa, wb):
+            return hit[1]
+        H = self.config.drift_points
+        vals, valid = g.values[wa - g.base : wb - g.base], g.valid[wa - g.base : wb - g.base]
+        trend = drift_trend(vals, valid, H) if H > 0 else None
+        # The noise level from the unfiltered AP: the anti-alias takes the noise above the
+        # passband that second differences see, but the white-equivalent level in the band the
+        # cloud uses is unchanged.
+        raw = g.linear[wa - g.base : wb - g.base]
+        out = trend, ap_sigma(raw - trend if H > 0 else raw, valid)
+        self._windows[axle] = ((wa, wb), out)
+        return out
+
     def _tile_segments(self, tile: int) -> list[ApSegment]:
         P, H = self.config.tile_points, self.config.drift_points
         out = []
@@ -637,22 +666,15 @@ class PassProcessor:
                 continue
             # Drift control on a window around the tile (everything within ±H is available).
             wa, wb = max(g.base, a - H), min(g.end, b + H)
-            vals = g.values[wa - g.base : wb - g.base]
             valid = g.valid[wa - g.base : wb - g.base]
-            if H > 0:
-                trend = drift_trend(vals, valid, H)
-                vals = vals - trend
-            seg_vals = vals[a - wa : b - wa]
             seg_valid = valid[a - wa : b - wa]
             if not seg_valid.any():
                 continue
+            trend, sigma_white = self._window(axle, g, wa, wb)
+            vals = g.values[wa - g.base : wb - g.base]
+            seg_vals = vals[a - wa : b - wa] - trend[a - wa : b - wa] if H > 0 else vals[a - wa : b - wa]
             first, last = np.flatnonzero(seg_valid)[[0, -1]]
             seg_vals, seg_valid = seg_vals[first : last + 1], seg_valid[first : last + 1]
-            # The noise level from the unfiltered AP: the anti-alias takes the noise above the
-            # passband that second differences see, but the white-equivalent level in the band the
-            # cloud uses is unchanged.
-            raw = g.linear[wa - g.base : wb - g.base]
-            sigma_white = ap_sigma(raw - trend if H > 0 else raw, valid)
             sigma = np.full(seg_vals.size, sigma_white)
             flags = 0
             t_seg = g.t[a - g.base + first : a - g.base + last + 1]
