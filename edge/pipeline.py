@@ -507,6 +507,8 @@ class PassProcessor:
         self._d4 = _Rows(len(self.channel_names))
         self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
         self._windows: dict[int, tuple] = {}  # axle → (its last drift window, (trend, white sigma))
+        self._steps: tuple = (0, 0.0, None)  # (samples, rate, sample times within a chunk)
+        self._based = False  # every axle's grid has its first point
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -526,9 +528,13 @@ class PassProcessor:
     def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
         """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
         chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
-        if chunk.n:
+        n = chunk.n
+        if n:
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
-            t = chunk.t
+            steps = self._steps
+            if steps[0] != n or steps[1] != chunk.sample_rate_hz:  # (chunks of a pass are alike)
+                steps = self._steps = (n, chunk.sample_rate_hz, np.arange(n) / chunk.sample_rate_hz)
+            t = chunk.t0 + steps[2]  # chunk.t's operations
             if self.error_model:
                 self._add_differences(z, t)
             reliable = chunk.speed >= self.config.min_speed_mps  # moving
@@ -617,12 +623,21 @@ class PassProcessor:
         return encode_error_model(sd_m, band, sigma_white)
 
     def _emit(self, final: bool) -> list[ApSegment]:
+        if not final and self._based:  # most chunks release nothing: say so without the general case
+            need = (self.next_tile + 1) * self.config.tile_points + self.config.drift_points
+            for g in self.grids:
+                st = g._st
+                if st[_BASE] + st[_DONE] < need:  # (the general case's frontier condition)
+                    if self.error_model and self._trimmed_for != self.next_tile:
+                        self._trim_differences()
+                    return []
         grids = [g for g in self.grids if g.base is not None]
         if not grids:
             return []
         P = self.config.tile_points
         if self.next_tile is None:
             self.next_tile = max(min(g.base for g in grids) // P, 0)
+        self._based = len(grids) == len(self.grids)
         # A tile is ready once every axle's grid extends past its end by the drift half-width.
         frontier = min(g.end for g in grids) if len(grids) == len(self.grids) else 0
         last_tile = max(g.end for g in grids) // P + 1 if final else (frontier - self.config.drift_points) // P
