@@ -253,9 +253,12 @@ class _Rows:
         n = self.hi - self.lo
         if self.hi + rows <= self.t.size:
             return
-        cap = max(self.t.size, 2 * (n + rows))
-        data, t = np.zeros((cap, self.data.shape[1])), np.zeros(cap)
-        data[:n], t[:n] = self.data[self.lo : self.hi], self.t[self.lo : self.hi]
+        if 2 * (n + rows) <= self.t.size:  # room once compacted: moved in place, nothing allocated
+            data, t = self.data, self.t
+        else:
+            cap = 2 * (n + rows)
+            data, t = np.zeros((cap, self.data.shape[1])), np.zeros(cap)
+        data[:n], t[:n] = self.data[self.lo : self.hi], self.t[self.lo : self.hi]  # (numpy copies overlaps safely)
         self.data, self.t, self.lo, self.hi = data, t, 0, n
 
 
@@ -445,7 +448,10 @@ class AxleGrid:
             st = self._st
             lo, hi = int(st[_S_LO]), int(st[_S_HI])
             cap = max(2 * (hi - lo + size - hi), 1024)
-            samples, reliable = np.zeros(cap), np.zeros(cap, dtype=bool)
+            if cap <= self._samples.size:  # room once compacted: moved in place, nothing allocated
+                samples, reliable = self._samples, self._sreliable
+            else:
+                samples, reliable = np.zeros(cap), np.zeros(cap, dtype=bool)
             samples[: hi - lo], reliable[: hi - lo] = self._samples[lo:hi], self._sreliable[lo:hi]
             self._samples, self._sreliable = samples, reliable
             st[_S_LO], st[_S_HI] = 0, hi - lo
@@ -509,6 +515,7 @@ class PassProcessor:
         self._windows: dict[int, tuple] = {}  # axle → (its last drift window, (trend, white sigma))
         self._steps: tuple = (0, 0.0, None)  # (samples, rate, sample times within a chunk)
         self._based = False  # every axle's grid has its first point
+        self._tile_points, self._drift_points = self.config.tile_points, self.config.drift_points
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -624,7 +631,7 @@ class PassProcessor:
 
     def _emit(self, final: bool) -> list[ApSegment]:
         if not final and self._based:  # most chunks release nothing: say so without the general case
-            need = (self.next_tile + 1) * self.config.tile_points + self.config.drift_points
+            need = (self.next_tile + 1) * self._tile_points + self._drift_points
             for g in self.grids:
                 st = g._st
                 if st[_BASE] + st[_DONE] < need:  # (the general case's frontier condition)
