@@ -516,6 +516,9 @@ class PassProcessor:
         self._steps: tuple = (0, 0.0, None)  # (samples, rate, sample times within a chunk)
         self._based = False  # every axle's grid has its first point
         self._tile_points, self._drift_points = self.config.tile_points, self.config.drift_points
+        self._noise: dict[tuple[float, float], np.ndarray | None] = {}  # a coming segment's (t0, t1) → _noise_sd
+        self._ahead = 0  # the first tile whose noise levels are not measured ahead
+        self._st0 = self.grids[0]._st  # (the first axle's state: a cheap test whether a tile may be complete)
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -600,15 +603,46 @@ class PassProcessor:
         d4.lo += int(np.searchsorted(d4.t[d4.lo : d4.hi], min(starts)))
         self._trimmed_for = self.next_tile
 
-    def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
-        """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
-        (edge.error_model), or None when there is too little to measure the noise from."""
+    def _noise_sd(self, t0: float, t1: float) -> np.ndarray | None:
+        """Each channel's noise sd from the fourth differences within times t0..t1, or None when
+        there are too few or they say nothing."""
         d4 = self._d4
         lo, hi = np.searchsorted(d4.t[d4.lo : d4.hi], [t0, t1], side="left") + d4.lo
         if hi - lo < 64 or not t1 > t0:
             return None
         sd = noise_sd_from_d4(d4.data[lo:hi])
         if not (np.all(np.isfinite(sd)) and np.any(sd > 0)):
+            return None
+        return sd
+
+    def _measure_ahead(self) -> None:
+        """The noise levels of the tiles whose points are all final but which wait for the drift
+        window, measured now (:meth:`_noise_sd` of the span each segment will have): what the
+        segment needs of the channels is there already, and a short pass's end, which releases
+        all its tiles at once, then has only its last tile's to measure."""
+        P = self._tile_points
+        tile = max(self._ahead, self.next_tile)
+        while all(g._st[_BASE] + g._st[_DONE] >= (tile + 1) * P for g in self.grids):
+            lo = tile * P if tile > 0 else min(self.min_index, 0)
+            for g in self.grids:
+                base = int(g._st[_BASE])
+                a = max(lo, base)
+                valid = g.valid[a - base : (tile + 1) * P - base]
+                if valid.size > 1 and valid.any():
+                    first, last = np.flatnonzero(valid)[[0, -1]]
+                    if last > first:  # (a segment of one point has no error model)
+                        key = (float(g.t[a - base + first]), float(g.t[a - base + last]))
+                        if key not in self._noise:
+                            self._noise[key] = self._noise_sd(*key)
+            tile += 1
+        self._ahead = tile
+
+    def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
+        """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
+        (edge.error_model), or None when there is too little to measure the noise from."""
+        key = (t0, t1)
+        sd = self._noise.pop(key) if key in self._noise else self._noise_sd(t0, t1)
+        if sd is None:
             return None
         speed = (n_points - 1) * self.config.spacing_m / (t1 - t0)  # the segment's own chainage speed
         cfg = self.config
@@ -635,8 +669,11 @@ class PassProcessor:
             for g in self.grids:
                 st = g._st
                 if st[_BASE] + st[_DONE] < need:  # (the general case's frontier condition)
-                    if self.error_model and self._trimmed_for != self.next_tile:
-                        self._trim_differences()
+                    if self.error_model:
+                        if self._trimmed_for != self.next_tile:
+                            self._trim_differences()
+                        if self._st0[_BASE] + self._st0[_DONE] >= (self._ahead + 1) * self._tile_points:
+                            self._measure_ahead()
                     return []
         grids = [g for g in self.grids if g.base is not None]
         if not grids:

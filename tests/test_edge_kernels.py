@@ -1,6 +1,6 @@
 """The edge's gridding and tiling shortcuts against their plain definitions: the anti-alias's
-sines by rotation against a sine per tap, and a drift window computed once per pass against once
-per tile."""
+sines by rotation against a sine per tap; a drift window computed once per pass against once per
+tile, and noise levels measured ahead against measured at each segment's release."""
 
 from __future__ import annotations
 
@@ -57,15 +57,19 @@ def test_the_antialias_is_its_sine_per_tap_definition(v):
 
 
 class _EveryTile(PassProcessor):
-    """Drift trend and white level computed for every tile afresh (no window kept)."""
+    """Drift trend and white level computed for every tile afresh (no window kept), and each
+    segment's noise levels measured when it is released (none ahead)."""
 
     def _window(self, axle, g, wa, wb):
         self._windows.clear()
         return super()._window(axle, g, wa, wb)
 
+    def _measure_ahead(self):
+        pass
+
 
 @pytest.mark.parametrize("seconds", [9.0, 40.0])  # shorter than the drift window, and several of them
-def test_a_window_computed_once_is_the_window_computed_per_tile(seconds):
+def test_windows_and_noise_levels_computed_once_are_those_computed_per_segment(seconds):
     model = build_inverse(QuarterCar(M=4450.0, m=420.0, K=5e5, k=1.95e6, c=2e4).system(), DT,
                           gamma=edge_gamma("quarter_car"))
     rng = np.random.default_rng(3)
@@ -83,4 +87,6 @@ def test_a_window_computed_once_is_the_window_computed_per_tile(seconds):
             out[j] += proc.feed(chunk)
         out[j] += proc.finish()[0]
     assert len(out[0]) == len(out[1]) >= 4
+    assert all(s.error_model.size for s in out[0][1:-1])  # (the error models are there to compare)
+    assert procs[0]._ahead > 0 and not procs[0]._noise  # measured ahead, and every measurement used
     assert [s.encode() for s in out[0]] == [s.encode() for s in out[1]]  # bit for bit
