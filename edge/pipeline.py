@@ -204,10 +204,11 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
         step_sin, step_cos = math.sin(2.0 * math.pi * fc), math.cos(2.0 * math.pi * fc)
         theta = math.pi * 2.0 * fc * (index[k] - (s0 + lo))
         sin_a, cos_a = math.sin(theta), math.cos(theta)
+        per_tau = m / half  # table steps per sample
         num, den = 0.0, 0.0
         for i in range(lo, hi):
             tau = index[k] - (s0 + i)
-            u = abs(tau) / half * m
+            u = abs(tau) * per_tau
             iu = min(int(u), m)
             w = _KAISER[iu] + (u - iu) * (_KAISER[iu + 1] - _KAISER[iu])
             a = 2.0 * fc * tau
