@@ -61,7 +61,7 @@ class Chunk(NamedTuple):
 
 class _Plan(NamedTuple):
     size: int  # payload bytes
-    struct_idx: np.ndarray  # byte positions of everything structural …
+    struct_idx: np.ndarray  # byte positions of everything structural in the body (the rest is the key) …
     struct_ref: np.ndarray  # … and their bytes
     strings: tuple  # (start, length) of each of _STRINGS' data
     seq: int
@@ -134,7 +134,10 @@ def _make_plan(payload: bytes, chunk: SensorChunk) -> _Plan | None:
                   tuple((name, value("ch." + name, 3, 4 * n) if n else 0) for name in chunk.channels))
     except (KeyError, IndexError, TypeError):
         return None
-    # (every value's bytes are unmarked by now: what is left is structure)
+    # (every value's bytes are unmarked by now: what is left is structure.) The bytes before the
+    # body are the plan's key, which a payload matches byte for byte to be read by this plan: only
+    # the body's structure is left to compare.
+    structural[: _body_start(payload)] = False
     plan = _Plan(size, np.flatnonzero(structural), np.frombuffer(payload, np.uint8)[structural].copy(), strings,
                  *scalars, lane, params, params_at, n, *arrays)
     # The plan reads back what the decoder read, or it is not used.

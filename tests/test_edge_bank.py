@@ -157,6 +157,8 @@ def test_the_decoder_accepts_and_refuses_as_the_contract(world):
         good[5][:-3],  # truncated
         b"not arrow at all",
         _corrupt(good[5], 2200, b"\x7f"),  # somewhere in the structure
+        _corrupt(good[5], 300, b"\x7f"),  # in the schema (the plan's key: another layout)
+        _corrupt(good[5], len(good[5]) - 1200, b"\x7f"),  # in the body's buffers
     ]
     got = seen.decode(cases)
     for payload, result in zip(cases, got):
