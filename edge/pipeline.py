@@ -527,19 +527,21 @@ class PassProcessor:
 
     def channels_of(self, chunk: SensorChunk) -> np.ndarray:
         """The chunk's channels as the inverse takes them: (samples, channels) in the model's order."""
-        names = self.channel_names
-        missing = [n for n in names if n not in chunk.channels]
+        names, channels = self.channel_names, chunk.channels
+        if len(names) == 1 and names[0] in channels:  # (a one-channel vehicle: a column, converted)
+            return channels[names[0]].astype(np.float64)[:, None]
+        missing = [n for n in names if n not in channels]
         if missing:
             raise ValueError(f"chunk lacks channel(s) {', '.join(missing)} for model {chunk.vehicle_model}")
         z = np.empty((chunk.n, len(names)))
         for j, name in enumerate(names):
-            z[:, j] = chunk.channels[name]
+            z[:, j] = channels[name]
         return z
 
     def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
         """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
         chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
-        n = chunk.n
+        n = z.shape[0]  # (chunk.n)
         if n:
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
             steps = self._steps
@@ -554,12 +556,12 @@ class PassProcessor:
             if warmup > 0:
                 reliable[:warmup] = False
             soft_end = self.inverse.reliable_from - self.n_samples
-            if self.inverse.reliable_from > hard and 0 <= soft_end < chunk.n:
+            if self.inverse.reliable_from > hard and 0 <= soft_end < n:
                 self.settled_t = float(t[soft_end])  # the first sample past the whole warm-up
             for i, grid in enumerate(self.grids):
                 grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m, self.min_index)
-            self.n_samples += chunk.n
-            self.speeds.append(float(np.add.reduce(chunk.speed)) / chunk.n)  # np.mean's sum and division
+            self.n_samples += n
+            self.speeds.append(float(np.add.reduce(chunk.speed)) / n)  # np.mean's sum and division
         return self._emit(final=False)
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
