@@ -61,7 +61,7 @@ class Chunk(NamedTuple):
 
 class _Plan(NamedTuple):
     size: int  # payload bytes
-    struct_idx: np.ndarray  # byte positions of everything structural …
+    struct_idx: np.ndarray  # byte positions of everything structural in the body (the rest is the key) …
     struct_ref: np.ndarray  # … and their bytes
     strings: tuple  # (start, length) of each of _STRINGS' data
     seq: int
@@ -134,7 +134,10 @@ def _make_plan(payload: bytes, chunk: SensorChunk) -> _Plan | None:
                   tuple((name, value("ch." + name, 3, 4 * n) if n else 0) for name in chunk.channels))
     except (KeyError, IndexError, TypeError):
         return None
-    # (every value's bytes are unmarked by now: what is left is structure)
+    # (every value's bytes are unmarked by now: what is left is structure.) The bytes before the
+    # body are the plan's key, which a payload matches byte for byte to be read by this plan: only
+    # the body's structure is left to compare.
+    structural[: _body_start(payload)] = False
     plan = _Plan(size, np.flatnonzero(structural), np.frombuffer(payload, np.uint8)[structural].copy(), strings,
                  *scalars, lane, params, params_at, n, *arrays)
     # The plan reads back what the decoder read, or it is not used.
@@ -194,6 +197,7 @@ class ChunkDecoder:
     def __init__(self) -> None:
         self._plans: dict[bytes, _Plan | None] = {}
         self._names: set[tuple[str, str, str, str]] = set()  # string tuples a full decode validated
+        self._known: dict[tuple, tuple[str, str, str, str]] = {}  # … by their UTF-8 bytes
         self.fast = 0  # payloads decoded by the fast path
         self.general = 0  # … and by the contract's decoder
 
@@ -221,6 +225,7 @@ class ChunkDecoder:
         names = (chunk.vehicle_id, chunk.pass_id, chunk.route_id, chunk.vehicle_model)
         if len(self._names) >= _MAX_NAMES:
             self._names.clear()
+            self._known.clear()
         self._names.add(names)
         if key is not None and key not in self._plans:
             if len(self._plans) >= _MAX_PLANS:
@@ -232,21 +237,53 @@ class ChunkDecoder:
         blob = b"".join(group)
         rows = np.frombuffer(blob, np.uint8).reshape(len(group), plan.size)
         read = _read_rows(plan, rows)
-        ok = read[0]
+        ok = read[0].tolist()
         size = plan.size
+        (s0, n0), (s1, n1), (s2, n2), (s3, n3) = plan.strings
+        known = self._known
+        rows_of = _Rows(plan, read)
         for r, i in enumerate(idx):
             names = None
             if ok[r]:
                 base = r * size
-                try:
-                    names = tuple(blob[base + a : base + a + n].decode() for a, n in plan.strings)
-                except UnicodeDecodeError:
-                    names = None
+                # the strings' bytes as one key: a tuple validated once is looked up, not decoded again
+                raw = (blob[base + s0 : base + s0 + n0], blob[base + s1 : base + s1 + n1],
+                       blob[base + s2 : base + s2 + n2], blob[base + s3 : base + s3 + n3])
+                names = known.get(raw)
+                if names is None:
+                    try:
+                        names = tuple(b.decode() for b in raw)
+                    except UnicodeDecodeError:
+                        names = None
+                    if names is not None and names in self._names:
+                        if len(known) >= _MAX_NAMES:
+                            known.clear()
+                        known[raw] = names
             if names is None or names not in self._names:
                 out[i] = self._general(group[r], None)
                 continue
             self.fast += 1
-            out[i] = _row_chunk(plan, read, r, names)
+            out[i] = rows_of.chunk(r, names)
+
+
+class _Rows:
+    """The chunks of a layout's rows read by :func:`_read_rows`, the scalars as Python values once
+    for all rows (what :func:`_row_chunk` makes of one row)."""
+
+    def __init__(self, plan: _Plan, read) -> None:
+        _, seq, t0, rate, final, lane, params, chainage, speed, channels = read
+        self.seq, self.t0, self.rate, self.final = seq.tolist(), t0.tolist(), rate.tolist(), final.tolist()
+        self.lane = None if lane is None else lane.tolist()
+        self.params = None if params is None else params.tolist()
+        self.names = plan.params
+        self.chainage, self.speed = chainage, speed
+        self.channels = channels
+
+    def chunk(self, r: int, names: tuple) -> Chunk:
+        return Chunk(names[0], names[1], names[2], names[3], self.seq[r], self.t0[r], self.rate[r],
+                     self.chainage[r], self.speed[r], {name: a[r] for name, a in self.channels}, self.final[r],
+                     None if self.params is None else dict(zip(self.names, self.params[r])),
+                     None if self.lane is None else self.lane[r])
 
 
 def _row_chunk(plan: _Plan, read, r: int, names: tuple) -> Chunk:

@@ -109,10 +109,19 @@ def channel_noise_sd(z: np.ndarray) -> np.ndarray:
     return noise_sd_from_d4(fourth_differences(z))
 
 
+_MODEL_KEYS: OrderedDict = OrderedDict()  # id(model) → (model, its key): a fleet's models hashed once each
+
+
 def _model_key(model: InverseModel) -> tuple:
+    hit = _MODEL_KEYS.get(id(model))
+    if hit is not None and hit[0] is model:  # (the model is held, so its id is not reused meanwhile)
+        return hit[1]
     arrays = (model.A, model.B, model.C, model.D)
-    return (hash(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)), model.constants.dt,
-            model.contact_rule)
+    key = (hash(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)), model.constants.dt, model.contact_rule)
+    _MODEL_KEYS[id(model)] = (model, key)
+    if len(_MODEL_KEYS) > _CACHE_SIZE:
+        _MODEL_KEYS.popitem(last=False)
+    return key
 
 
 def speed_bucket(speed_mps: float) -> float:

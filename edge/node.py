@@ -200,8 +200,13 @@ class Edge:
                 except Exception:  # isolation: one vehicle's failure must not stop the others
                     self._failed(task, chunk)
 
+            ending: list[tuple[int, list[ApSegment]]] = []
+
             def publish(i: int, segments) -> None:  # each vehicle's release leaves as soon as it is ready
                 task, chunk, trace = ready[i]
+                if chunk.final and not isinstance(segments, Exception):
+                    ending.append((i, segments))  # after the round's other releases (see below)
+                    return
                 self.trace = trace
                 try:
                     if isinstance(segments, Exception):
@@ -211,6 +216,17 @@ class Edge:
                     self._failed(task, chunk)
 
             feed_bank([(task.current, chunk) for task, chunk, _ in ready], publish)
+            # A pass's end tiles, drift-controls and encodes every tile still waiting for the drift
+            # window (on a route shorter than that window, the whole pass): passes ending together
+            # (a fleet in lockstep) would hold back the releases of the vehicles behind them in the
+            # round, which are cheap. Ends go last; each vehicle's own order is unchanged.
+            for i, segments in ending:
+                task, chunk, trace = ready[i]
+                self.trace = trace
+                try:
+                    self._end(task, chunk, segments)
+                except Exception:  # isolation, as above
+                    self._failed(task, chunk)
 
     def _failed(self, task: VehicleTask, chunk) -> None:
         task.errors += 1
@@ -277,6 +293,8 @@ class Edge:
 
     def _publish_segments(self, segments: list[ApSegment]) -> None:
         """Publish what one chunk released, in batches of up to ``ap_batch`` per route (one vehicle)."""
+        if not segments:  # (most chunks)
+            return
         by_route: dict[str, list[ApSegment]] = {}
         for seg in segments:
             by_route.setdefault(seg.route_id, []).append(seg)

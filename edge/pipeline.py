@@ -197,15 +197,24 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
         if not ok:
             out[k] = linear[k]
             continue
+        # sin(π a) at the taps by rotation: a falls by 2 fc from one tap to the next, so one sine
+        # and cosine per point, not per tap. The rotation's rounding is ~1e-16 absolute a tap, far
+        # below the window's own tolerance once divided by π a, except at the tap next to the
+        # point (|τ| < 1/2, a near 0), whose sine is taken directly.
+        step_sin, step_cos = math.sin(2.0 * math.pi * fc), math.cos(2.0 * math.pi * fc)
+        theta = math.pi * 2.0 * fc * (index[k] - (s0 + lo))
+        sin_a, cos_a = math.sin(theta), math.cos(theta)
+        per_tau = m / half  # table steps per sample
         num, den = 0.0, 0.0
         for i in range(lo, hi):
             tau = index[k] - (s0 + i)
-            u = abs(tau) / half * m
+            u = abs(tau) * per_tau
             iu = min(int(u), m)
             w = _KAISER[iu] + (u - iu) * (_KAISER[iu + 1] - _KAISER[iu])
             a = 2.0 * fc * tau
             if a != 0.0:
-                w *= math.sin(math.pi * a) / (math.pi * a)
+                w *= (sin_a if abs(tau) >= 0.5 else math.sin(math.pi * a)) / (math.pi * a)
+            sin_a, cos_a = sin_a * step_cos - cos_a * step_sin, cos_a * step_cos + sin_a * step_sin
             num += w * sap[i]
             den += w
         out[k] = num / den
@@ -245,9 +254,12 @@ class _Rows:
         n = self.hi - self.lo
         if self.hi + rows <= self.t.size:
             return
-        cap = max(self.t.size, 2 * (n + rows))
-        data, t = np.zeros((cap, self.data.shape[1])), np.zeros(cap)
-        data[:n], t[:n] = self.data[self.lo : self.hi], self.t[self.lo : self.hi]
+        if 2 * (n + rows) <= self.t.size:  # room once compacted: moved in place, nothing allocated
+            data, t = self.data, self.t
+        else:
+            cap = 2 * (n + rows)
+            data, t = np.zeros((cap, self.data.shape[1])), np.zeros(cap)
+        data[:n], t[:n] = self.data[self.lo : self.hi], self.t[self.lo : self.hi]  # (numpy copies overlaps safely)
         self.data, self.t, self.lo, self.hi = data, t, 0, n
 
 
@@ -437,7 +449,10 @@ class AxleGrid:
             st = self._st
             lo, hi = int(st[_S_LO]), int(st[_S_HI])
             cap = max(2 * (hi - lo + size - hi), 1024)
-            samples, reliable = np.zeros(cap), np.zeros(cap, dtype=bool)
+            if cap <= self._samples.size:  # room once compacted: moved in place, nothing allocated
+                samples, reliable = self._samples, self._sreliable
+            else:
+                samples, reliable = np.zeros(cap), np.zeros(cap, dtype=bool)
             samples[: hi - lo], reliable[: hi - lo] = self._samples[lo:hi], self._sreliable[lo:hi]
             self._samples, self._sreliable = samples, reliable
             st[_S_LO], st[_S_HI] = 0, hi - lo
@@ -498,6 +513,13 @@ class PassProcessor:
         self._z_tail = np.zeros((0, len(self.channel_names)))
         self._d4 = _Rows(len(self.channel_names))
         self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
+        self._windows: dict[int, tuple] = {}  # axle → (its last drift window, (trend, white sigma))
+        self._steps: tuple = (0, 0.0, None)  # (samples, rate, sample times within a chunk)
+        self._based = False  # every axle's grid has its first point
+        self._tile_points, self._drift_points = self.config.tile_points, self.config.drift_points
+        self._noise: dict[tuple[float, float], np.ndarray | None] = {}  # a coming segment's (t0, t1) → _noise_sd
+        self._ahead = 0  # the first tile whose noise levels are not measured ahead
+        self._st0 = self.grids[0]._st  # (the first axle's state: a cheap test whether a tile may be complete)
 
     def feed(self, chunk: SensorChunk) -> list[ApSegment]:
         z = self.channels_of(chunk)
@@ -505,21 +527,27 @@ class PassProcessor:
 
     def channels_of(self, chunk: SensorChunk) -> np.ndarray:
         """The chunk's channels as the inverse takes them: (samples, channels) in the model's order."""
-        names = self.channel_names
-        missing = [n for n in names if n not in chunk.channels]
+        names, channels = self.channel_names, chunk.channels
+        if len(names) == 1 and names[0] in channels:  # (a one-channel vehicle: a column, converted)
+            return channels[names[0]].astype(np.float64)[:, None]
+        missing = [n for n in names if n not in channels]
         if missing:
             raise ValueError(f"chunk lacks channel(s) {', '.join(missing)} for model {chunk.vehicle_model}")
         z = np.empty((chunk.n, len(names)))
         for j, name in enumerate(names):
-            z[:, j] = chunk.channels[name]
+            z[:, j] = channels[name]
         return z
 
     def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
         """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
         chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
-        if chunk.n:
+        n = z.shape[0]  # (chunk.n)
+        if n:
             x_cg = self.tracker.update(chunk.chainage, chunk.speed)
-            t = chunk.t
+            steps = self._steps
+            if steps[0] != n or steps[1] != chunk.sample_rate_hz:  # (chunks of a pass are alike)
+                steps = self._steps = (n, chunk.sample_rate_hz, np.arange(n) / chunk.sample_rate_hz)
+            t = chunk.t0 + steps[2]  # chunk.t's operations
             if self.error_model:
                 self._add_differences(z, t)
             reliable = chunk.speed >= self.config.min_speed_mps  # moving
@@ -528,12 +556,12 @@ class PassProcessor:
             if warmup > 0:
                 reliable[:warmup] = False
             soft_end = self.inverse.reliable_from - self.n_samples
-            if self.inverse.reliable_from > hard and 0 <= soft_end < chunk.n:
+            if self.inverse.reliable_from > hard and 0 <= soft_end < n:
                 self.settled_t = float(t[soft_end])  # the first sample past the whole warm-up
             for i, grid in enumerate(self.grids):
                 grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m, self.min_index)
-            self.n_samples += chunk.n
-            self.speeds.append(float(np.add.reduce(chunk.speed)) / chunk.n)  # np.mean's sum and division
+            self.n_samples += n
+            self.speeds.append(float(np.add.reduce(chunk.speed)) / n)  # np.mean's sum and division
         return self._emit(final=False)
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
@@ -578,15 +606,46 @@ class PassProcessor:
         d4.lo += int(np.searchsorted(d4.t[d4.lo : d4.hi], min(starts)))
         self._trimmed_for = self.next_tile
 
-    def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
-        """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
-        (edge.error_model), or None when there is too little to measure the noise from."""
+    def _noise_sd(self, t0: float, t1: float) -> np.ndarray | None:
+        """Each channel's noise sd from the fourth differences within times t0..t1, or None when
+        there are too few or they say nothing."""
         d4 = self._d4
         lo, hi = np.searchsorted(d4.t[d4.lo : d4.hi], [t0, t1], side="left") + d4.lo
         if hi - lo < 64 or not t1 > t0:
             return None
         sd = noise_sd_from_d4(d4.data[lo:hi])
         if not (np.all(np.isfinite(sd)) and np.any(sd > 0)):
+            return None
+        return sd
+
+    def _measure_ahead(self) -> None:
+        """The noise levels of the tiles whose points are all final but which wait for the drift
+        window, measured now (:meth:`_noise_sd` of the span each segment will have): what the
+        segment needs of the channels is there already, and a short pass's end, which releases
+        all its tiles at once, then has only its last tile's to measure."""
+        P = self._tile_points
+        tile = max(self._ahead, self.next_tile)
+        while all(g._st[_BASE] + g._st[_DONE] >= (tile + 1) * P for g in self.grids):
+            lo = tile * P if tile > 0 else min(self.min_index, 0)
+            for g in self.grids:
+                base = int(g._st[_BASE])
+                a = max(lo, base)
+                valid = g.valid[a - base : (tile + 1) * P - base]
+                if valid.size > 1 and valid.any():
+                    first, last = np.flatnonzero(valid)[[0, -1]]
+                    if last > first:  # (a segment of one point has no error model)
+                        key = (float(g.t[a - base + first]), float(g.t[a - base + last]))
+                        if key not in self._noise:
+                            self._noise[key] = self._noise_sd(*key)
+            tile += 1
+        self._ahead = tile
+
+    def _error_model(self, axle: int, t0: float, t1: float, n_points: int, sigma_white: float) -> np.ndarray | None:
+        """The wire error model of an axle's segment spanning times t0..t1 over n_points grid points
+        (edge.error_model), or None when there is too little to measure the noise from."""
+        key = (t0, t1)
+        sd = self._noise.pop(key) if key in self._noise else self._noise_sd(t0, t1)
+        if sd is None:
             return None
         speed = (n_points - 1) * self.config.spacing_m / (t1 - t0)  # the segment's own chainage speed
         cfg = self.config
@@ -608,12 +667,24 @@ class PassProcessor:
         return encode_error_model(sd_m, band, sigma_white)
 
     def _emit(self, final: bool) -> list[ApSegment]:
+        if not final and self._based:  # most chunks release nothing: say so without the general case
+            need = (self.next_tile + 1) * self._tile_points + self._drift_points
+            for g in self.grids:
+                st = g._st
+                if st[_BASE] + st[_DONE] < need:  # (the general case's frontier condition)
+                    if self.error_model:
+                        if self._trimmed_for != self.next_tile:
+                            self._trim_differences()
+                        if self._st0[_BASE] + self._st0[_DONE] >= (self._ahead + 1) * self._tile_points:
+                            self._measure_ahead()
+                    return []
         grids = [g for g in self.grids if g.base is not None]
         if not grids:
             return []
         P = self.config.tile_points
         if self.next_tile is None:
             self.next_tile = max(min(g.base for g in grids) // P, 0)
+        self._based = len(grids) == len(self.grids)
         # A tile is ready once every axle's grid extends past its end by the drift half-width.
         frontier = min(g.end for g in grids) if len(grids) == len(self.grids) else 0
         last_tile = max(g.end for g in grids) // P + 1 if final else (frontier - self.config.drift_points) // P
@@ -623,6 +694,26 @@ class PassProcessor:
             self.next_tile += 1
         if self.error_model:
             self._trim_differences()
+        return out
+
+    def _window(self, axle: int, g: AxleGrid, wa: int, wb: int) -> tuple[np.ndarray | None, float]:
+        """The drift trend over grid indices ``wa … wb - 1`` of an axle (None without drift control)
+        and the white noise level there. Computed once per window: the points of a window are
+        final, and the tiles of a pass shorter than the drift window share theirs (each tile's
+        reaches from the pass's start to its end), which makes a short pass's end several tiles of
+        work in one tick."""
+        hit = self._windows.get(axle)
+        if hit is not None and hit[0] == (wa, wb):
+            return hit[1]
+        H = self.config.drift_points
+        vals, valid = g.values[wa - g.base : wb - g.base], g.valid[wa - g.base : wb - g.base]
+        trend = drift_trend(vals, valid, H) if H > 0 else None
+        # The noise level from the unfiltered AP: the anti-alias takes the noise above the
+        # passband that second differences see, but the white-equivalent level in the band the
+        # cloud uses is unchanged.
+        raw = g.linear[wa - g.base : wb - g.base]
+        out = trend, ap_sigma(raw - trend if H > 0 else raw, valid)
+        self._windows[axle] = ((wa, wb), out)
         return out
 
     def _tile_segments(self, tile: int) -> list[ApSegment]:
@@ -637,22 +728,15 @@ class PassProcessor:
                 continue
             # Drift control on a window around the tile (everything within ±H is available).
             wa, wb = max(g.base, a - H), min(g.end, b + H)
-            vals = g.values[wa - g.base : wb - g.base]
             valid = g.valid[wa - g.base : wb - g.base]
-            if H > 0:
-                trend = drift_trend(vals, valid, H)
-                vals = vals - trend
-            seg_vals = vals[a - wa : b - wa]
             seg_valid = valid[a - wa : b - wa]
             if not seg_valid.any():
                 continue
+            trend, sigma_white = self._window(axle, g, wa, wb)
+            vals = g.values[wa - g.base : wb - g.base]
+            seg_vals = vals[a - wa : b - wa] - trend[a - wa : b - wa] if H > 0 else vals[a - wa : b - wa]
             first, last = np.flatnonzero(seg_valid)[[0, -1]]
             seg_vals, seg_valid = seg_vals[first : last + 1], seg_valid[first : last + 1]
-            # The noise level from the unfiltered AP: the anti-alias takes the noise above the
-            # passband that second differences see, but the white-equivalent level in the band the
-            # cloud uses is unchanged.
-            raw = g.linear[wa - g.base : wb - g.base]
-            sigma_white = ap_sigma(raw - trend if H > 0 else raw, valid)
             sigma = np.full(seg_vals.size, sigma_white)
             flags = 0
             t_seg = g.t[a - g.base + first : a - g.base + last + 1]

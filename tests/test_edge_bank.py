@@ -157,6 +157,8 @@ def test_the_decoder_accepts_and_refuses_as_the_contract(world):
         good[5][:-3],  # truncated
         b"not arrow at all",
         _corrupt(good[5], 2200, b"\x7f"),  # somewhere in the structure
+        _corrupt(good[5], 300, b"\x7f"),  # in the schema (the plan's key: another layout)
+        _corrupt(good[5], len(good[5]) - 1200, b"\x7f"),  # in the body's buffers
     ]
     got = seen.decode(cases)
     for payload, result in zip(cases, got):
@@ -174,7 +176,12 @@ def test_the_decoder_accepts_and_refuses_as_the_contract(world):
 def test_the_daemon_serves_ticks_over_zenoh_as_one_chunk_at_a_time(world):
     """serve(): raw chunks from several vehicles put back to back (so the worker takes them in ticks
     of many), a calibration among them; what the edge publishes over a real router is, per vehicle,
-    what the in-process edge publishes one chunk at a time, calibration in the same place."""
+    what the in-process edge publishes one chunk at a time, calibration in the same place.
+
+    The calibration arrives on its own key and subscriber, so over Zenoh its place among the raw
+    chunks is not given by the order of the puts: the test puts it once the edge has taken in every
+    chunk before it, and puts the chunks after it once the edge has applied it (the real handlers,
+    observed), so the place is the reference's."""
     import threading
 
     import zenoh
@@ -202,6 +209,10 @@ def test_the_daemon_serves_ticks_over_zenoh_as_one_chunk_at_a_time(world):
 
     got: list[tuple[str, bytes]] = []
     all_in, stop = threading.Event(), threading.Event()
+    before_cal = next(i for i, (kind, _, _) in enumerate(order) if kind == "calib")
+    taken = threading.Condition()
+    chunks_taken = [0]
+    applied = threading.Event()
 
     def collect(sample):
         got.append((str(sample.key_expr), sample.payload.to_bytes()))
@@ -211,6 +222,19 @@ def test_the_daemon_serves_ticks_over_zenoh_as_one_chunk_at_a_time(world):
     with run_router() as endpoint, zenoh.open(zenoh_config("client", connect=[endpoint])) as edge_s, \
             zenoh.open(zenoh_config("client", connect=[endpoint])) as veh_s:
         edge = Edge(NET, lambda key, p: edge_s.put(key, p, congestion_control=zenoh.CongestionControl.BLOCK), site)
+        real_chunks, real_calibration = edge.on_chunks, edge.on_calibration
+
+        def on_chunks(messages):  # the real handler, counted (serve() looks it up on the instance)
+            real_chunks(messages)
+            with taken:
+                chunks_taken[0] += len(messages)
+                taken.notify_all()
+
+        def on_calibration(payload, vehicle=None):
+            real_calibration(payload, vehicle)
+            applied.set()
+
+        edge.on_chunks, edge.on_calibration = on_chunks, on_calibration
         subs = [veh_s.declare_subscriber(keys.ap_keyexpr(NET), collect),
                 veh_s.declare_subscriber(keys.done_keyexpr(NET), collect)]
         server = threading.Thread(target=serve, args=(edge_s, edge, "edge-bank", stop), daemon=True)
@@ -220,9 +244,14 @@ def test_the_daemon_serves_ticks_over_zenoh_as_one_chunk_at_a_time(world):
                                                       lambda s: up.set(), history=True)
         assert up.wait(60.0), "the edge never came up"
         watch.undeclare()
-        for kind, vehicle, payload in order:
-            key = keys.imu_key(NET, vehicle) if kind == "imu" else keys.calib_key(NET, vehicle)
-            veh_s.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        for i, (kind, vehicle, payload) in enumerate(order):
+            if kind == "imu":
+                veh_s.put(keys.imu_key(NET, vehicle), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                continue
+            with taken:
+                assert taken.wait_for(lambda: chunks_taken[0] >= before_cal, 120.0), "chunks before the calibration"
+            veh_s.put(keys.calib_key(NET, vehicle), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            assert applied.wait(120.0), "the calibration was never applied"
         assert all_in.wait(120.0), f"{len(got)} of {n_expected} messages arrived"
         stop.set()
         server.join(30.0)
