@@ -59,5 +59,7 @@ def test_ratio_intervals_cover_the_truth_without_being_huge(tmp_path, world):
             e = np.array([(err, sd) for q, err, sd in rows if q == p])
             covered.append(float(np.mean(np.abs(e[:, 0]) <= 1.96 * e[:, 1])))
             z += list(e[:, 0] / e[:, 1])
+    print(f"{world}: coverage {np.mean(covered):.2f} over {len(covered)} run-ratios, rms error/sd "
+          f"{np.sqrt(np.mean(np.square(z))):.2f}")
     assert np.mean(covered) >= 0.75, covered
     assert np.sqrt(np.mean(np.square(z))) >= 0.3, z

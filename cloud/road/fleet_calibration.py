@@ -64,7 +64,7 @@ MIN_CONTRACTION = 0.1  # a common mode whose change falls by less than this per 
 TREND_ROUNDS = 24  # refinements remembered for the common-mode trend
 REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle round (≈ 16 %)
 CONSENSUS_DRAWS = 16  # draws of the consensus's error an exported interval's errors-in-variables term is made of
-SLOW_ITERATIONS = 3  # subspace iterations that pick the fleet's slow modes out (FleetCalibrator._fixed_point)
+SLOW_ITERATIONS = 2  # subspace iterations that pick the fleet's slow modes out (FleetCalibrator._fixed_point)
 #: the least contraction per round a slow mode is taken at (below it the class prior, which each
 #: vehicle's fit carries, pins the mode, and the linearisation would amplify it without bound)
 MIN_SLOW = 0.02
@@ -537,21 +537,23 @@ class FleetCalibrator:
         """Per vehicle of a :data:`PER_VEHICLE` model, the variance (log units) its step's Laplace
         interval leaves out (errors in variables), from the held ``segments``.
 
-        Every vehicle is fitted against a consensus the others' APs make, so the fleet's fits are
-        coupled: a change ``x`` of the vehicles' log-ratios changes the consensus, which moves every
-        fit by ``M x`` (:class:`cloud.road.calibration.ConsensusSensitivity`, both sides linearised
-        at the published ratios). The rounds stop at ``θ`` where the fits still want to move by
-        ``d`` (their last change); the fixed point they were heading for lies ``(I − M)⁻¹ d`` away,
-        and a change ``m`` of the fits that the consensus's own error causes moves that fixed point
-        by ``(I − M)⁻¹ m``. The fleet's slow modes (every vehicle's ratio moving together, in
-        patterns the speeds and the vehicles' own dynamics shape) contract by only a few per cent
-        per round, so the distance they leave is many times the last change (:meth:`_fixed_point`).
-        What is added, per vehicle:
-
         * the consensus's own error: ``n_draws`` draws of it (the precision-weighted mean's stated
           error, with the passes' excess error, :func:`cloud.road.long_wave.pass_error_draws`), the
-          same draws for every vehicle, each moving every fit, carried to the fixed point;
-        * the distance the rounds stopped short of their fixed point;
+          same draws for every vehicle, each moving every vehicle's fit
+          (:class:`cloud.road.calibration.ConsensusSensitivity`); each vehicle gets its own move's
+          scatter about the fleet's mean move, plus that mean move (shared by every vehicle: it does
+          not average out over the fleet) over the common mode's contraction ``g``
+          (:meth:`_contraction`);
+        * the distance the rounds stopped short of their fixed point, per vehicle. Every vehicle is
+          fitted against a consensus the others' APs make, so the fits are coupled: a change ``x`` of
+          the vehicles' log-ratios changes the consensus, which moves every fit by ``M x`` (both
+          sides linearised at the published ratios). The rounds stop at ``θ`` where the fits still
+          want to move by ``d`` (each vehicle's fit less its published ratios); the fixed point they
+          were heading for lies ``(I − M)⁻¹ d`` away (:meth:`_fixed_point`). The fleet's slow modes
+          (the vehicles' ratios moving together, in patterns their speeds and dynamics shape)
+          contract by only a few per cent per round, far less than the common change's trend over
+          the first, large rounds says, and a vehicle moves only by more than a fraction of its
+          posterior spread, so the rounds stop while those modes are still far from settled;
         * a quantity whose common mode the rounds froze (its common change does not contract,
           :meth:`_contraction` at most :data:`MIN_CONTRACTION`) is not pinned by the data at all:
           its common part is then the class prior's for the mean of N vehicles, plus the distance
