@@ -67,7 +67,7 @@ CONSENSUS_DRAWS = 16  # draws of the consensus's error an exported interval's er
 SLOW_ITERATIONS = 2  # subspace iterations that pick the fleet's slow modes out (FleetCalibrator._fixed_point)
 #: the least contraction per round a slow mode is taken at (below it the class prior, which each
 #: vehicle's fit carries, pins the mode, and the linearisation would amplify it without bound)
-MIN_SLOW = 0.02
+MIN_SLOW = 0.05
 #: Models calibrated per vehicle in acceleration space against the leave-one-out consensus (sensor
 #: noise is white there). For a quarter-car fleet at 2 % noise that is more accurate than the joint
 #: AP-space step, whose AP misfit the inverse's noise amplification at short wavelengths weighs
@@ -648,8 +648,10 @@ class FleetCalibrator:
             log.debug("fleet error %s: contraction %s, common move sd %s, common short %s, rms short %s", model,
                       np.round(g, 3), np.round(np.sqrt(np.mean(common**2, axis=0)), 5),
                       np.round(short.mean(axis=0), 5), np.round(np.sqrt(np.mean(short**2, axis=0)), 5))
+            # A mode the data pin less than the class prior does is pinned by the prior (each fit carries
+            # it): where the linearised distance exceeds the prior's statement, the prior's is the one.
             for k, vid in enumerate(vids):
-                out[vid] = np.where(frozen, var_frozen[k], var[k])
+                out[vid] = np.where(frozen, var_frozen[k], np.minimum(var[k], var_frozen[k]))
         return out
 
     def _fixed_point(self, coupled: dict[str, _Coupled], snaps: dict):
