@@ -2,9 +2,11 @@
 
 Each case is simulated in both worlds from the same scenario and seed and run through the same edge
 and cloud code (in process, default fleet calibration, 2 % noise); the second world's figure is
-held to simfleet's, or to the project's stated target. Goals that do not hold on the second world
-yet (the 95 % band and intervals' coverage, the default run under an odometer scale error) are
-reported by ``driveby reproduce robustness``, not pinned here.
+held to simfleet's, or to the project's stated target (the vehicle ratio intervals' coverage with an
+exact odometer: one fleet here, small fleets over seeds in ``tests/test_ratio_coverage.py``). Goals
+that do not hold on the second world yet (the 95 % band's coverage, the ratio intervals' under an
+odometer scale error, the default run under it) are reported by ``driveby reproduce robustness``,
+not pinned here.
 """
 
 from __future__ import annotations
@@ -136,9 +138,8 @@ def test_ratio_intervals_carry_how_far_the_rounds_stop_from_their_fixed_point(tm
     intervals carry that distance (the fleet's coupling through the consensus, linearised, solved in
     its slow subspace); read off the first rounds' trend instead, the distance is a fraction of the
     actual one and this fleet's K/M intervals hold the truth for few of its vehicles. One fleet is one
-    draw of its common error: the
-    seed is the case the distance was found on, and the coverage over seeds is in the report
-    (``tests/test_ratio_coverage.py`` pins it on small fleets)."""
+    draw of its common error: the seed is the case the distance was found on, and the coverage over
+    seeds is in the report (``tests/test_ratio_coverage.py`` pins it on small fleets)."""
     import numpy as np
 
     from cloud.road.calibration import to_calibration
