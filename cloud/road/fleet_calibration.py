@@ -636,8 +636,12 @@ class FleetCalibrator:
             moves = np.stack([coupled[v].moves for v in vids], axis=1)  # (draws, vehicles, quantities)
             common = moves.mean(axis=1)
             # the distance to the fixed point the rounds were heading for, per vehicle
-            short = self._fixed_point(coupled, snaps)(np.stack([coupled[v].last for v in vids]).reshape(1, -1))
-            short = short.reshape(len(vids), P)
+            last = np.stack([coupled[v].last for v in vids])
+            try:
+                short = self._fixed_point(coupled, snaps)(last.reshape(1, -1)).reshape(len(vids), P)
+            except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
+                log.warning("fleet fixed point failed for %s: %s", model, e)  # the common change over g, then
+                short = np.broadcast_to(last.mean(axis=0) / np.maximum(g, MIN_CONTRACTION), last.shape)
             scatter = np.mean((moves - common[:, None, :]) ** 2, axis=0)
             # The draws' common move over the rounds' measured contraction, not carried through the
             # slow modes: drawn white on the grid, the consensus's noise is far larger at the body's
