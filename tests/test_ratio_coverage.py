@@ -5,10 +5,12 @@ cloud cores in one process (:mod:`simfleet.harness`), fixed seeds.
 How many seeds. A fleet calibrated together shares one common error per ratio (what every vehicle's
 fit against the same consensus takes alike), so the vehicles of one run are far from independent
 draws: count each run's ratio as one draw, 4 ratios × 4 seeds = 16 per world. At a true 95 % the
-coverage of 16 such draws has sd √(0.95·0.05/16) ≈ 0.054; the floor of 0.75 is 3.7 sd below it, so
-an under-covering interval fails the test and a covering one does not (the seeds are fixed: the
-test is not flaky, only that coarse in meaning). Not huge: the rms of error / stated sd over all
-vehicles and ratios is at least 0.3 (an interval more than ~3× the actual error fails).
+coverage of 16 such draws has sd √(0.95·0.05/16) ≈ 0.054; the floor of 0.85 is 1.85 sd below it
+(a covering interval passes ~97 % of seed sets) and one that covers only 75 % of the time (a common
+term that misses how far the fleet's rounds stop from their fixed point) fails ~4 seed sets in 5
+(the seeds are fixed: the test is not flaky, only that coarse in meaning). Not huge: the rms of
+error / stated sd over all vehicles and ratios is at least 0.3 (an interval more than ~3× the actual
+error fails).
 """
 
 from __future__ import annotations
@@ -59,5 +61,7 @@ def test_ratio_intervals_cover_the_truth_without_being_huge(tmp_path, world):
             e = np.array([(err, sd) for q, err, sd in rows if q == p])
             covered.append(float(np.mean(np.abs(e[:, 0]) <= 1.96 * e[:, 1])))
             z += list(e[:, 0] / e[:, 1])
-    assert np.mean(covered) >= 0.75, covered
+    print(f"{world}: coverage {np.mean(covered):.2f} over {len(covered)} run-ratios, rms error/sd "
+          f"{np.sqrt(np.mean(np.square(z))):.2f}")
+    assert np.mean(covered) >= 0.85, covered
     assert np.sqrt(np.mean(np.square(z))) >= 0.3, z

@@ -622,41 +622,87 @@ def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray
                       float(np.sqrt(np.mean(data_res(sol.x) ** 2))), n_res)
 
 
+class ConsensusSensitivity:
+    """How a vehicle's fitted log-ratios move when the consensus it was fitted against moves (errors in
+    variables: the reference profile is an estimate, not the road), and how its own APs move when its
+    ratios do (the other side of the fleet's coupling through the consensus).
+
+    ``passes`` as :func:`fit_vehicle`'s, at the vehicle's fitted ``params``. Linearised at ``params``
+    with :func:`fit_vehicle`'s weights (misfit scale, effective sample count, class prior), a change
+    of the consensus moves the optimum by one Gauss–Newton step, ``δθ = −(JᵀJ)⁻¹ Jᵀ δr``; the matrices
+    are built once, so that many changes (draws, or the fleet's own moves) cost one forward run each.
+    """
+
+    def __init__(self, model: str, params: dict, passes: list[tuple[PassAp, np.ndarray]],
+                 prior: tuple[np.ndarray, np.ndarray], ref_value: float, ap_gamma: float | None = None):
+        self.model, self.params = model, params
+        self.names = calibration_names(model)
+        offsets = vehicle_from_params(model, params).system().offsets_m
+        self.remaps = [PassRemap(model, params, ap, cons, offsets, ap_gamma) for ap, cons in passes]
+        self.n_points = [ap.values.shape[0] for ap, _ in passes]
+        _, sd = prior
+        self.theta = np.log(np.array([to_calibration(model, params)[n] for n in self.names]))
+        self.ref_value = ref_value
+        r0 = self._data_res(self.theta)
+        n_res = r0.size
+        sigma = max(float(np.sqrt(np.mean(r0**2))), 1e-9)
+        taus = [_autocorrelation_time(col) for r in self.remaps for col in r.residual(params).reshape(r.n, -1).T]
+        self.w = math.sqrt(float(max(n_res, 1)) / float(np.mean(taus)) / max(n_res, 1)) / sigma
+        J = np.empty((n_res, self.theta.size))
+        for j in range(self.theta.size):
+            step = np.zeros_like(self.theta)
+            step[j] = FD_STEP
+            J[:, j] = (self._data_res(self.theta + step) - self._data_res(self.theta - step)) / (2 * FD_STEP) * self.w
+        self.J = J
+        self.A = J.T @ J + np.diag(1.0 / sd**2)
+
+    def _data_res(self, th: np.ndarray) -> np.ndarray:
+        params = from_calibration(self.model, dict(zip(self.names, np.exp(th))), self.ref_value)
+        return np.concatenate([r.residual(params) for r in self.remaps])
+
+    def moves(self, deltas: list[np.ndarray]) -> np.ndarray:
+        """``deltas[p]`` (K, n_points, n_contacts): K changes of pass p's consensus (the same K for every
+        pass). Returns (K, quantities): the fit's moves, log units, in :func:`calibration_names` order."""
+        out = np.zeros((deltas[0].shape[0] if deltas else 0, self.theta.size))
+        for k in range(out.shape[0]):
+            dr = np.concatenate([r.consensus_response(self.params, d[k]) for r, d in zip(self.remaps, deltas)]) * self.w
+            out[k] = -np.linalg.solve(self.A, self.J.T @ dr)
+        return out
+
+    def ap_response(self) -> list[np.ndarray]:
+        """Per pass, (quantities, n_points, n_contacts): the change of the pass's AP on its grid slice per
+        unit change of each log-quantity of this vehicle (the measured channels held, the inverse under
+        the changed ratios; at the AP's own Newmark γ and step). Zero where the inverse is warming up or
+        the pass has no data; each column less its straight line (the edge's drift control takes the
+        AP's free drift, which a change of the ratios moves, out alike)."""
+        out = []
+        for r, n in zip(self.remaps, self.n_points):
+            x, xt, off, _ = r._grid
+            base = InverseStream(build_inverse(vehicle_from_params(self.model, self.params).system(), r.dt,
+                                               gamma=r.ap_gamma)).update(r.z)
+            resp = np.zeros((self.theta.size, n, base.shape[1]))
+            for j in range(self.theta.size):
+                th = self.theta.copy()
+                th[j] += FD_STEP * 10
+                p = from_calibration(self.model, dict(zip(self.names, np.exp(th))), self.ref_value)
+                y = (InverseStream(build_inverse(vehicle_from_params(self.model, p).system(), r.dt,
+                                                 gamma=r.ap_gamma)).update(r.z) - base) / (FD_STEP * 10)
+                y[: r.skip] = 0.0
+                for i in range(base.shape[1]):
+                    col = np.interp(x, xt + off[i], y[:, i], left=0.0, right=0.0)
+                    u = np.arange(n) - 0.5 * (n - 1)
+                    resp[j, :, i] = col - col.mean() - u * (u @ col) / max(float(u @ u), 1e-300)
+            out.append(resp)
+        return out
+
+
 def consensus_sensitivity(model: str, params: dict, passes: list[tuple[PassAp, np.ndarray]],
                           deltas: list[np.ndarray], prior: tuple[np.ndarray, np.ndarray], ref_value: float,
                           ap_gamma: float | None = None) -> np.ndarray:
-    """How a vehicle's fitted log-ratios move when the consensus it was fitted against moves (errors in
-    variables: the reference profile is an estimate, not the road).
+    """How a vehicle's fitted log-ratios move when the consensus it was fitted against moves
+    (:class:`ConsensusSensitivity`, for one set of changes).
 
-    ``passes`` as :func:`fit_vehicle`'s, at the vehicle's fitted ``params``; ``deltas[p]`` (K, n_points,
-    n_contacts): K changes of pass p's consensus (draws of its error, the same K for every pass).
-    Linearised at ``params`` with :func:`fit_vehicle`'s weights (misfit scale, effective sample
-    count, class prior), each change moves the optimum by one Gauss–Newton step,
-    ``δθ = −(JᵀJ)⁻¹ Jᵀ δr``. Returns (K, quantities) in log units, in :func:`calibration_names` order.
+    ``deltas[p]`` (K, n_points, n_contacts): K changes of pass p's consensus (draws of its error, the
+    same K for every pass). Returns (K, quantities) in log units, in :func:`calibration_names` order.
     """
-    names = calibration_names(model)
-    offsets = vehicle_from_params(model, params).system().offsets_m
-    remaps = [PassRemap(model, params, ap, cons, offsets, ap_gamma) for ap, cons in passes]
-    _, sd = prior
-    theta = np.log(np.array([to_calibration(model, params)[n] for n in names]))
-
-    def data_res(th):
-        return np.concatenate([r.residual(from_calibration(model, dict(zip(names, np.exp(th))), ref_value))
-                               for r in remaps])
-
-    r0 = data_res(theta)
-    n_res = r0.size
-    sigma = max(float(np.sqrt(np.mean(r0**2))), 1e-9)
-    taus = [_autocorrelation_time(col) for r in remaps for col in r.residual(params).reshape(r.n, -1).T]
-    w = math.sqrt(float(max(n_res, 1)) / float(np.mean(taus)) / max(n_res, 1)) / sigma
-    J = np.empty((n_res, theta.size))
-    for j in range(theta.size):
-        step = np.zeros_like(theta)
-        step[j] = FD_STEP
-        J[:, j] = (data_res(theta + step) - data_res(theta - step)) / (2 * FD_STEP) * w
-    A = J.T @ J + np.diag(1.0 / sd**2)
-    out = np.zeros((deltas[0].shape[0] if deltas else 0, theta.size))
-    for k in range(out.shape[0]):
-        dr = np.concatenate([r.consensus_response(params, d[k]) for r, d in zip(remaps, deltas)]) * w
-        out[k] = -np.linalg.solve(A, J.T @ dr)
-    return out
+    return ConsensusSensitivity(model, params, passes, prior, ref_value, ap_gamma).moves(deltas)

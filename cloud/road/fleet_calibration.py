@@ -50,8 +50,8 @@ import numpy as np
 from shared.registry import Site
 from shared.schema import ApSegment, Calibration
 
-from cloud.road.calibration import (REFERENCE, REMAP_DT, PassAp, VehicleFit, calibration_names, class_prior,
-                                    consensus_sensitivity, fit_fleet, fit_vehicle, from_calibration, to_calibration)
+from cloud.road.calibration import (REFERENCE, REMAP_DT, ConsensusSensitivity, PassAp, VehicleFit, calibration_names,
+                                    class_prior, fit_fleet, fit_vehicle, from_calibration, to_calibration)
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_ap_resampled, pass_speed, pass_values
 from cloud.road.long_wave import pass_error_draws
 from cloud.road.mean_profile import MeanProfile
@@ -64,6 +64,10 @@ MIN_CONTRACTION = 0.1  # a common mode whose change falls by less than this per 
 TREND_ROUNDS = 24  # refinements remembered for the common-mode trend
 REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle round (≈ 16 %)
 CONSENSUS_DRAWS = 16  # draws of the consensus's error an exported interval's errors-in-variables term is made of
+SLOW_ITERATIONS = 2  # subspace iterations that pick the fleet's slow modes out (FleetCalibrator._fixed_point)
+#: the least contraction per round a slow mode is taken at (below it the class prior, which each
+#: vehicle's fit carries, pins the mode, and the linearisation would amplify it without bound)
+MIN_SLOW = 0.05
 #: Models calibrated per vehicle in acceleration space against the leave-one-out consensus (sensor
 #: noise is white there). For a quarter-car fleet at 2 % noise that is more accurate than the joint
 #: AP-space step, whose AP misfit the inverse's noise amplification at short wavelengths weighs
@@ -88,6 +92,26 @@ CONTINUOUS_CONSENSUS = frozenset({"half_car"})
 #: the best ratios and profile (docs/results.md).
 COMMON_GAIN = {"half_car": 0.3}
 REVERSAL_DAMPED = frozenset({"half_car"})
+
+
+@dataclasses.dataclass(frozen=True)
+class _Coupled:
+    """One vehicle's part in the fleet's coupling through the consensus (FleetCalibrator._fleet_error)."""
+
+    sens: ConsensusSensitivity
+    moves: np.ndarray  # (draws, quantities): its fit's moves under the consensus's error draws
+    response: list  # per pass (quantities, points, contacts): its AP's change per log-change of its ratios
+    where: list  # per pass: (route id, first grid index, end index, weights (points, contacts) in the consensus)
+    n_axles: int
+    last: np.ndarray  # its fit less its published ratios (log units): the change the rounds left
+    speed: float  # m/s, its passes' mean
+
+
+def _orthonormal(X: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of the columns of X (columns that add nothing dropped)."""
+    q, r = np.linalg.qr(X)
+    keep = np.abs(np.diag(r)) > 1e-9 * max(float(np.abs(np.diag(r)).max()), 1e-300)
+    return q[:, keep]
 
 
 @dataclasses.dataclass
@@ -511,23 +535,29 @@ class FleetCalibrator:
 
     def _fleet_error(self, segments: list[ApSegment], n_draws: int = CONSENSUS_DRAWS) -> dict[str, np.ndarray]:
         """Per vehicle of a :data:`PER_VEHICLE` model, the variance (log units) its step's Laplace
-        interval leaves out (errors in variables), from the held ``segments``:
+        interval leaves out (errors in variables), from the held ``segments``.
 
         * the consensus's own error: ``n_draws`` draws of it (the precision-weighted mean's stated
           error, with the passes' excess error, :func:`cloud.road.long_wave.pass_error_draws`), the
           same draws for every vehicle, each moving every vehicle's fit
-          (:func:`cloud.road.calibration.consensus_sensitivity`); each vehicle gets its own move's
-          spread, as the scatter of its move about the fleet's mean move plus that mean move (shared
-          by every vehicle: it does not average out over the fleet), the mean move over the common
-          mode's contraction ``g`` (:meth:`_contraction`): the rounds follow a common change of the
-          fits by only ``g`` of it per round (the consensus follows the fleet), so the fixed point
-          they settle at moves by ``1/g`` times it;
-        * the distance the rounds stopped short of their fixed point, shared by every vehicle: the
-          last round's common change over the contraction ``g`` (:meth:`_contraction`);
+          (:class:`cloud.road.calibration.ConsensusSensitivity`); each vehicle gets its own move's
+          scatter about the fleet's mean move, plus that mean move (shared by every vehicle: it does
+          not average out over the fleet) over the common mode's contraction ``g``
+          (:meth:`_contraction`);
+        * the distance the rounds stopped short of their fixed point, per vehicle. Every vehicle is
+          fitted against a consensus the others' APs make, so the fits are coupled: a change ``x`` of
+          the vehicles' log-ratios changes the consensus, which moves every fit by ``M x`` (both
+          sides linearised at the published ratios). The rounds stop at ``θ`` where the fits still
+          want to move by ``d`` (each vehicle's fit less its published ratios); the fixed point they
+          were heading for lies ``(I − M)⁻¹ d`` away (:meth:`_fixed_point`). The fleet's slow modes
+          (the vehicles' ratios moving together, in patterns their speeds and dynamics shape)
+          contract by only a few per cent per round, far less than the common change's trend over
+          the first, large rounds says, and a vehicle moves only by more than a fraction of its
+          posterior spread, so the rounds stop while those modes are still far from settled;
         * a quantity whose common mode the rounds froze (its common change does not contract,
           :meth:`_contraction` at most :data:`MIN_CONTRACTION`) is not pinned by the data at all:
           its common part is then the class prior's for the mean of N vehicles, plus the distance
-          the fleet's mean stands from the class mean.
+          the fleet's mean stands from the class mean, beside the scatter of the draws' moves.
         """
         by_vehicle: dict[str, list[ApSegment]] = {}
         for s in segments:
@@ -550,10 +580,10 @@ class FleetCalibrator:
             draws[rid] = sd * rng.standard_normal((n_draws, sd.size)) + np.nan_to_num(
                 pass_error_draws(snap, held, n_draws, rng))
         out = {}
-        by_model: dict[str, dict[str, np.ndarray]] = {}
+        by_model: dict[str, dict[str, _Coupled]] = {}
         for vid, vs in sorted(by_vehicle.items()):
             st = self.vehicles[vid]
-            items, deltas = [], []
+            items, deltas, where = [], [], []
             n_axles = max(s.axle for s in vs)
             passes: dict[str, list[ApSegment]] = {}
             for s in vs:
@@ -571,41 +601,128 @@ class FleetCalibrator:
                 items.append((PassAp(lo, ss[0].spacing_m, vals, ss[0].speed_mps, self._dt(ss[0])),
                               np.repeat(cons[:, None], n_axles, 1)))
                 deltas.append(np.repeat(draws[ss[0].route_id][:, lo:hi, None], n_axles, 2))
+                # the pass's weight in the consensus (MeanProfile: 1/σ² per point, σ the segment's)
+                sig = float(np.median(np.concatenate([np.asarray(s.sigma, float) for s in ss])))
+                where.append((ss[0].route_id, lo, hi, np.isfinite(vals) / max(sig, 1e-12) ** 2))
             if not items:
                 continue
             cls = self.site.vehicle_class(st.model)
             ref, _ = REFERENCE[st.model]
             try:
-                moves = consensus_sensitivity(st.model, st.params, items, deltas, class_prior(st.model, cls.mean, cls.std),
-                                              st.params[ref], ap_gamma=0.5 if self._continuous(st.model) else None)
+                sens = ConsensusSensitivity(st.model, st.params, items, class_prior(st.model, cls.mean, cls.std),
+                                            st.params[ref], ap_gamma=0.5 if self._continuous(st.model) else None)
+                moves = sens.moves(deltas)
+                response = sens.ap_response()
             except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
                 log.warning("consensus sensitivity failed for %s: %s", vid, e)
                 continue
-            by_model.setdefault(st.model, {})[vid] = moves
-        for model, moves in by_model.items():
-            common = np.mean(list(moves.values()), axis=0)  # (draws, quantities)
-            g = self._contraction(model, common.shape[1])
+            current = np.log([to_calibration(st.model, st.params)[n] for n in st.fit.names])
+            by_model.setdefault(st.model, {})[vid] = _Coupled(sens, moves, response, where, n_axles,
+                                                              np.log(st.fit.mean) - current,
+                                                              float(np.mean([it[0].speed_mps for it in items])))
+        for model, coupled in by_model.items():
+            vids = list(coupled)
+            P = len(self.vehicles[vids[0]].fit.names)
+            g = self._contraction(model, P)
             cls = self.site.vehicle_class(model)
             _, prior_sd = class_prior(model, cls.mean, cls.std)
             # Frozen: the class mean is the estimate of the fleet's mean, as the prior knows it, and the
             # fleet stands wherever the rounds left it: its distance from there is error too.
-            names = self.vehicles[next(iter(moves))].fit.names
+            names = self.vehicles[vids[0]].fit.names
             at_class = np.log([to_calibration(model, cls.mean)[n] for n in names])
             away = np.mean([np.log([to_calibration(model, self.vehicles[v].params)[n] for n in names]) - at_class
-                            for v in moves], axis=0)
-            # Not frozen: the rounds stopped short of their fixed point by about the last common change
-            # over the contraction (what the next rounds would still move the fleet by).
-            hist = self.common_trend.get(model, [])
-            last = np.asarray(hist[-1][1]) if hist and len(hist[-1][1]) == g.size else np.zeros(g.size)
-            short = last / np.maximum(g, MIN_CONTRACTION)
-            var_common = np.where(g > MIN_CONTRACTION, np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2,
-                                  prior_sd**2 / len(moves) + away**2)
-            log.debug("fleet error %s: contraction %s, common move sd %s, short %s, frozen sd %s, common sd %s",
-                      model, np.round(g, 3), np.round(np.sqrt(np.mean(common**2, axis=0)), 5), np.round(short, 5),
-                      np.round(np.sqrt(prior_sd**2 / len(moves) + away**2), 5), np.round(np.sqrt(var_common), 5))
-            for vid, m in moves.items():
-                out[vid] = np.mean((m - common) ** 2, axis=0) + var_common
+                            for v in vids], axis=0)
+            frozen = g <= MIN_CONTRACTION
+            moves = np.stack([coupled[v].moves for v in vids], axis=1)  # (draws, vehicles, quantities)
+            common = moves.mean(axis=1)
+            # the distance to the fixed point the rounds were heading for, per vehicle
+            last = np.stack([coupled[v].last for v in vids])
+            try:
+                short = self._fixed_point(coupled, snaps)(last.reshape(1, -1)).reshape(len(vids), P)
+            except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
+                log.warning("fleet fixed point failed for %s: %s", model, e)  # the common change over g, then
+                short = np.broadcast_to(last.mean(axis=0) / np.maximum(g, MIN_CONTRACTION), last.shape)
+            scatter = np.mean((moves - common[:, None, :]) ** 2, axis=0)
+            # The draws' common move over the rounds' measured contraction, not carried through the
+            # slow modes: drawn white on the grid, the consensus's noise is far larger at the body's
+            # wavelengths than the inverse's noise (sensor noise made blue) is, so its move is
+            # already an upper bound; the slow modes' amplification would multiply that excess.
+            var = scatter + np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2
+            var_frozen = scatter + prior_sd**2 / len(vids) + away**2
+            log.debug("fleet error %s: contraction %s, common move sd %s, common short %s, rms short %s", model,
+                      np.round(g, 3), np.round(np.sqrt(np.mean(common**2, axis=0)), 5),
+                      np.round(short.mean(axis=0), 5), np.round(np.sqrt(np.mean(short**2, axis=0)), 5))
+            # A mode the data pin less than the class prior does is pinned by the prior (each fit carries
+            # it): where the linearised distance exceeds the prior's statement, the prior's is the one.
+            for k, vid in enumerate(vids):
+                out[vid] = np.where(frozen, var_frozen[k], np.minimum(var[k], var_frozen[k]))
         return out
+
+    def _fixed_point(self, coupled: dict[str, _Coupled], snaps: dict):
+        """The operator ``r ↦ (I − M)⁻¹ r`` of :meth:`_fleet_error` on stacked per-vehicle log changes
+        (rows of length vehicles × quantities), ``M`` the fleet's coupling through the consensus.
+
+        ``M`` is applied, never formed (one forward run per pass and vehicle for each product): its
+        slow subspace — the modes that contract least — is found by subspace iteration from the
+        fleet's common and speed-graded modes (``M``'s other eigenvalues are small: one vehicle
+        among many hardly moves the consensus, so those modes settle in a round or two and iteration
+        picks the slow ones out within :data:`SLOW_ITERATIONS`), ``I − M`` solved there, and taken
+        as the identity outside it. A slow mode contracting by less than :data:`MIN_SLOW` per round
+        is taken at that contraction: such a mode is pinned by the class prior, not by the data."""
+        vids = list(coupled)
+        P = coupled[vids[0]].moves.shape[1]
+        V = len(vids)
+        # per route: each vehicle's passes' weights, summed (the consensus is their weighted mean)
+        totals: dict[str, np.ndarray] = {}
+        for c in coupled.values():
+            for rid, lo, hi, w in c.where:
+                t = totals.setdefault(rid, np.zeros(snaps[rid].elevation_m.size))
+                t[lo:hi] += w.sum(axis=1)
+
+        def apply_m(X: np.ndarray) -> np.ndarray:
+            """``M`` on the columns of X (V·P, b)."""
+            b = X.shape[1]
+            xs = X.reshape(V, P, b)
+            sums = {rid: np.zeros((b, t.size)) for rid, t in totals.items()}
+            own = []
+            for k, v in enumerate(vids):
+                c = coupled[v]
+                mine = []
+                for (rid, lo, hi, w), resp in zip(c.where, c.response):
+                    # this pass's AP change under each column's change of its vehicle's ratios
+                    d = np.einsum("qnc,qb->bnc", resp, xs[k])
+                    part = (d * w[None]).sum(axis=2)
+                    sums[rid][:, lo:hi] += part
+                    mine.append(part)
+                own.append(mine)
+            Y = np.zeros((V, P, b))
+            for k, v in enumerate(vids):
+                c = coupled[v]
+                deltas = []
+                for (rid, lo, hi, w), part in zip(c.where, own[k]):
+                    loo = totals[rid][lo:hi] - w.sum(axis=1)  # the leave-one-out consensus's weight
+                    change = (sums[rid][:, lo:hi] - part) / np.maximum(loo, 1e-300)[None, :]
+                    deltas.append(np.repeat(np.where(loo > 0, change, 0.0)[:, :, None], c.n_axles, 2))
+                Y[k] = c.sens.moves(deltas).T
+            return Y.reshape(V * P, b)
+
+        speed = np.array([coupled[v].speed for v in vids])
+        graded = (speed - speed.mean()) / max(float(np.ptp(speed)), 1e-9)
+        start = np.concatenate([np.kron(np.ones((V, 1)), np.eye(P)), np.kron(graded[:, None], np.eye(P))], axis=1)
+        Q = _orthonormal(start)
+        for _ in range(SLOW_ITERATIONS):
+            Q = _orthonormal(apply_m(Q))
+        MQ = apply_m(Q)
+        JQ = np.eye(Q.shape[1]) - Q.T @ MQ
+        u, sv, vt = np.linalg.svd(JQ)
+        JQ_inv = vt.T @ np.diag(1.0 / np.maximum(sv, MIN_SLOW)) @ u.T
+
+        def solve(R: np.ndarray) -> np.ndarray:
+            R = np.atleast_2d(R)
+            inside = R @ Q  # (rows, k)
+            return R - inside @ Q.T + (inside @ JQ_inv.T) @ Q.T
+
+        return solve
 
     def _contraction(self, model: str, n: int) -> np.ndarray:
         """Per quantity, the fraction of a fleet-common change the rounds follow per round (the slope
