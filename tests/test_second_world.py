@@ -12,12 +12,21 @@ not pinned here.
 from __future__ import annotations
 
 import dataclasses
+import json
 
+import numpy as np
 import pytest
 
+from cloud.road.calibration import PassAp, class_prior, fit_vehicle, to_calibration
+from cloud.road.continuous import continuous_ap
+from shared.drivelog import list_drive_logs, read_drive_log
+from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
+from shared.registry import load_site
+from shared.vehicles import QuarterCar
 from simfleet import sim
+from simfleet.harness import Harness
 from simfleet.reproduce_robustness import run_and_score
-from simfleet.scenarios import SCENARIOS
+from simfleet.scenarios import SCENARIOS, TABLE_4_1
 from simfleet.worlds import ivp
 
 SEED = 0
@@ -93,17 +102,6 @@ def test_the_vehicle_step_is_unbiased_on_the_second_worlds_physics(tmp_path):
     consensus and the true parameters as the start, what the step finds is the model error every
     vehicle would share. A fleet-common ratio error on that world therefore comes from the consensus
     the fleet fits against, not from this chain (nor from the logger's filter)."""
-    import json
-
-    import numpy as np
-
-    from cloud.road.calibration import PassAp, class_prior, fit_vehicle, to_calibration
-    from cloud.road.continuous import continuous_ap
-    from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
-    from shared.vehicles import QuarterCar
-    from simfleet.scenarios import TABLE_4_1
-
     sc = dataclasses.replace(SCENARIOS["road-qc"], route_length_m=200.0)
     # No speed wobble: the step's time base is one speed per pass, and this test is about the physics.
     ivp.generate(sc, tmp_path, seed=3, passes=1, vehicles=1, noise_pct=0.0, nominal="true", progress=False, workers=1,
@@ -140,13 +138,6 @@ def test_ratio_intervals_carry_how_far_the_rounds_stop_from_their_fixed_point(tm
     actual one and this fleet's K/M intervals hold the truth for few of its vehicles. One fleet is one
     draw of its common error: the seed is the case the distance was found on, and the coverage over
     seeds is in the report (``tests/test_ratio_coverage.py`` pins it on small fleets)."""
-    import numpy as np
-
-    from cloud.road.calibration import to_calibration
-    from shared.drivelog import list_drive_logs, read_drive_log
-    from shared.registry import load_site
-    from simfleet.harness import Harness
-
     sc = dataclasses.replace(SCENARIOS["road-qc"], route_length_m=200.0)
     truth = ivp.generate(sc, tmp_path, seed=6, passes=30, noise_pct=2.0, progress=False, workers=1,
                          settings=EXACT_ODOMETER)
