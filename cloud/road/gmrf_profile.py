@@ -63,7 +63,8 @@ from shared.schema import SIGMA_SCALE, ApSegment
 
 from cloud.road.banded import draw_into, selected_inverse
 from cloud.road.mean_profile import ProfileSnapshot
-from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
+from cloud.road.pass_drift import (DRIFT_PRIOR_SCALE, DriftPosterior, drift_system, eliminate, learn_drift_variance,
+                                   stated_error_sd)
 
 log = logging.getLogger(__name__)
 
@@ -586,7 +587,10 @@ class GmrfProfile:
                                   self._segment_information)
             posts.append(eliminate(blk.precision, blk.factor, route.b[blk.start : blk.stop], system,
                                    self.drift_knot_m / self.spacing_m, blk.start))
-        s2 = self.drift_sd_m**2 if self.drift_sd_m is not None else learn_drift_variance(posts)
+        if self.drift_sd_m is not None:
+            s2 = self.drift_sd_m**2
+        else:
+            s2 = learn_drift_variance(posts, prior_sd=DRIFT_PRIOR_SCALE * stated_error_sd(segs) or None)
         route.drift_sd = math.sqrt(s2)
         out = []
         for blk, d in zip(blocks, posts):

@@ -63,6 +63,12 @@ from cloud.road.banded import band_cholesky, band_solve, draw_into, selected_inv
 DRIFT_SD_BOUNDS_M = (1e-7, 1e-2)
 #: Tolerance of the learnt log drift variance (the score equation's residual).
 SCORE_TOL = 1e-11
+#: Scale of the drift sd's half-normal prior in units of the passes' stated error sd (the edge's
+#: error model's marginal sd per point, ``r · sigma``). A level several times the error a pass states
+#: at 0.5–50 m is not what the edge's drift control leaves of integrated sensor noise; with few or
+#: short passes the evidence alone is flat up to such levels, where the drifts trade against the
+#: road's long waves and the trends the edges removed over the passes' differing stretches.
+DRIFT_PRIOR_SCALE = 3.0
 
 
 def pass_key(seg: ApSegment) -> tuple[str, str, int]:
@@ -487,8 +493,30 @@ def log_evidence(s2: float, posts: list[DriftPosterior]) -> float:
     return sum(d.log_evidence(s2) for d in posts)
 
 
-def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M, tol: float = SCORE_TOL) -> float:
-    """Type-II ML drift variance (m²) over all blocks of a route; 0 when the lower bound wins.
+def stated_error_sd(segments: list[ApSegment]) -> float:
+    """The median over the points of ``segments`` of the error sd their passes state (m): the edge's
+    error model's marginal sd ``r · sigma``, or ``sigma`` where a segment carries no model."""
+    if not segments:
+        return 0.0
+    sd = [s.sigma * (float(s.error_model[0]) if s.error_model.size else 1.0) for s in segments]
+    return float(np.median(np.concatenate(sd)))
+
+
+def log_prior(s2: float, prior_sd: float | None) -> float:
+    """Log density (up to a constant) of the drift sd's half-normal prior of scale ``prior_sd`` (m) at
+    variance ``s2`` (m²); 0 (flat: maximum likelihood) when ``prior_sd`` is None."""
+    return 0.0 if prior_sd is None else -0.5 * s2 / prior_sd**2
+
+
+def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M, tol: float = SCORE_TOL,
+                         prior_sd: float | None = None) -> float:
+    """Type-II ML (MAP with ``prior_sd``) drift variance (m²) over all blocks of a route; 0 when the
+    lower bound wins.
+
+    ``prior_sd``: scale (m) of a half-normal prior on the drift sd (:func:`log_prior`). With many
+    passes the evidence is sharp and the prior moves the level little; with two short passes it is
+    flat over an order of magnitude, and the prior keeps the level where the passes' disagreement
+    and the error they state put it rather than on a far shoulder.
 
     A function of the held data alone, to well below anything it moves: a fixed grid brackets the
     maximum (ℓ can have a flat shoulder), Brent's method on ℓ finds it to ~1e-4 in log s², and the
@@ -500,28 +528,33 @@ def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M
     if not any(d.n_beta for d in posts):
         return 0.0
     lo, hi = 2.0 * math.log(bounds_m[0]), 2.0 * math.log(bounds_m[1])
+    def objective(u):
+        return log_evidence(math.exp(u), posts) + log_prior(math.exp(u), prior_sd)
+
     grid = np.linspace(lo, hi, 25)  # ℓ can have a flat shoulder: bracket on a grid, then refine
-    vals = [log_evidence(math.exp(u), posts) for u in grid]
+    vals = [objective(u) for u in grid]
     i = int(np.argmax(vals))
     if vals[i] <= 0.0:  # no s² beats no drift at all
         return 0.0
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    res = minimize_scalar(lambda u: -log_evidence(math.exp(u), posts), bounds=(a, b), method="bounded",
-                          options={"xatol": 1e-4})
+    res = minimize_scalar(lambda u: -objective(u), bounds=(a, b), method="bounded", options={"xatol": 1e-4})
     u = res.x if -res.fun >= vals[i] else grid[i]
     if u <= lo + 1e-9:
         return 0.0
-    return math.exp(_polish(u, posts, a, b, tol))
+    return math.exp(_polish(u, posts, a, b, tol, prior_sd))
 
 
-def _polish(u: float, posts: list[DriftPosterior], a: float, b: float, tol: float, max_iter: int = 30) -> float:
-    """The root of ``h(u) = log(Σ E[βᵀβ] / Σ K) − u`` near ``u`` within ``[a, b]`` (secant steps after
-    one EM step); ``u`` unchanged if the steps leave the bracket or do not converge."""
+def _polish(u: float, posts: list[DriftPosterior], a: float, b: float, tol: float, prior_sd: float | None = None,
+            max_iter: int = 30) -> float:
+    """The root of ``h(u) = log(Σ E[βᵀβ] / (Σ K + s²/s₀²)) − u``, ``s² = eᵘ`` (the prior's term only
+    with a scale ``s₀ = prior_sd``), near ``u`` within ``[a, b]`` (secant steps after one EM step);
+    ``u`` unchanged if the steps leave the bracket or do not converge."""
     K = sum(d.n_beta for d in posts)
 
     def h(v):
         st = sum(d.em_statistic(math.exp(v)) for d in posts)
-        return math.log(st / K) - v if st > 0.0 else -math.inf
+        k = K + (0.0 if prior_sd is None else math.exp(v) / prior_sd**2)
+        return math.log(st / k) - v if st > 0.0 else -math.inf
 
     try:
         u0, h0 = u, h(u)
