@@ -299,8 +299,9 @@ class DriftPosterior:
     quad0: float = 0.0  # b̃_Sᵀ Ã_SS⁻¹ b̃_S (β removed)
     logdet0: float = 0.0  # log |Ã_SS|
     cov0: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))  # band of Ã_SS⁻¹
-    s2: float = 0.0  # drift variance per coefficient (m²)
-    factor_red: np.ndarray | None = None  # at s2: banded factor of Ã(s2)
+    s2: float = 0.0  # drift variance per coefficient (m²) the mean is taken at
+    spread_s2: float = 0.0  # ... and the band and the draws' spread (>= s2)
+    factor_red: np.ndarray | None = None  # at spread_s2: banded factor of Ã(spread_s2)
     mean_red: np.ndarray | None = None
 
     @property
@@ -339,12 +340,18 @@ class DriftPosterior:
         mb = cho_solve_banded((cb, True), self.b_red, check_finite=False)[self.beta_idx]
         return float(mb @ mb) + float(selected_inverse(cb)[0, self.beta_idx].sum())
 
-    def set_level(self, s2: float) -> None:
-        """Fix the drift variance (m²): factorise the reduced system and take its mean and band."""
+    def set_level(self, s2: float, spread_s2: float | None = None) -> None:
+        """Fix the drift variance (m²): factorise the reduced system and take its mean at ``s2`` and
+        its band (and the draws' spread about that mean) at ``spread_s2`` (default ``s2``; never below
+        it). Two levels where the level itself is uncertain: the mean at the better supported one, the
+        band at the larger, which holds what the drifts might be at either."""
         self.s2 = float(s2) if self.n_beta else 0.0
+        self.spread_s2 = max(self.s2, float(spread_s2)) if self.n_beta and spread_s2 is not None else self.s2
+        self.mean_red = None
         if self.s2 > 0.0:
-            self.factor_red = self._factor(self.s2)
-            self.mean_red = cho_solve_banded((self.factor_red, True), self.b_red, check_finite=False)
+            self.mean_red = cho_solve_banded((self._factor(self.s2), True), self.b_red, check_finite=False)
+        if self.spread_s2 > 0.0:
+            self.factor_red = self._factor(self.spread_s2)
 
     def mean_beta(self) -> np.ndarray:
         if self.s2 <= 0.0:
@@ -365,9 +372,9 @@ class DriftPosterior:
         """``diag(W C⁻¹ Wᵀ)`` (m²), ``W = A_RR⁻¹ A_Rβ``: the variance the unknown drifts add to each
         point, as the joint posterior's marginal less the drift-free one, chunk by chunk."""
         out = np.zeros(self.size)
-        if self.s2 <= 0.0:
+        if self.spread_s2 <= 0.0:
             return out
-        cov = selected_inverse(self.factor_red)
+        cov = selected_inverse(self.factor_red)  # at the band's level
         out[self.sep_points] = cov[0, self.sep_red] - self.cov0[0, np.arange(self.sep_points.size)]
         for ch in self.chunks:
             G = self._chunk_solve(ch)[:, :-1]
@@ -380,10 +387,10 @@ class DriftPosterior:
     def draw_shift(self, z: np.ndarray) -> np.ndarray:
         """``−A_RR⁻¹ A_Rβ β`` for draws of β from its marginal posterior, one per row of the standard
         normals ``z`` (n, :attr:`n_coefficients`): the reduced system is drawn whole, β taken from it."""
-        if self.s2 <= 0.0:
+        if self.spread_s2 <= 0.0:
             return np.zeros((z.shape[0], self.size))
         x = np.array(z, dtype=np.float64, order="C")
-        draw_into(self.factor_red, self.mean_red, x)
+        draw_into(self.factor_red, self.mean_red if self.s2 > 0.0 else np.zeros(self.b_red.size), x)
         return self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
 
     def _chunk_solve(self, ch: _Chunk) -> np.ndarray:
