@@ -64,10 +64,13 @@ DRIFT_SD_BOUNDS_M = (1e-7, 1e-2)
 #: Tolerance of the learnt log drift variance (the score equation's residual).
 SCORE_TOL = 1e-11
 #: Scale of the drift sd's half-normal prior in units of the passes' stated error sd (the edge's
-#: error model's marginal sd per point, ``r · sigma``). A level several times the error a pass states
-#: at 0.5–50 m is not what the edge's drift control leaves of integrated sensor noise; with few or
-#: short passes the evidence alone is flat up to such levels, where the drifts trade against the
-#: road's long waves and the trends the edges removed over the passes' differing stretches.
+#: error model's marginal sd per point, ``r · sigma``): a weakly informative prior that ties the level
+#: to the noise the passes state. With two short passes the evidence alone is flat over an order of
+#: magnitude and can peak on a far shoulder, where the drifts trade against the road's long waves (and
+#: the trends the edges removed over the passes' differing stretches) and take them out of the mean;
+#: where the passes' disagreement demands a larger level, the evidence outweighs the prior. The
+#: scale is a modelling choice, not a bound the edge states: the band is held at the evidence's own
+#: level when that is larger (:meth:`DriftPosterior.set_level`).
 DRIFT_PRIOR_SCALE = 3.0
 
 
