@@ -31,7 +31,9 @@ from that small banded system and the chunks:
 
 * the log evidence's dependence on ``s²`` is ``ℓ(s²) = ½ b̃ᵀÃ(s²)⁻¹b̃ − ½ log|Ã(s²)| − ½ K log s²``
   less its ``s² → 0`` limit (the system with β removed), one banded factorisation of ``Ã`` per
-  ``s²``; the level is learnt by type-II maximum likelihood (0 when no drift beats none);
+  ``s²``; the level is learnt by type-II maximum likelihood (0 when no drift beats none), and with
+  a half-normal prior on ``s`` (MAP) for the mean: few short passes leave ℓ flat over an order of
+  magnitude; the band is taken at the larger of the two levels;
 * ``μ_β`` from ``Ã``; the profile's mean ``A_RR⁻¹ b_R − A_RR⁻¹ A_Rβ μ_β`` (one banded solve);
 * the variance the unknown drifts add: at a chunk's interior ``diag(G Σ̃_JJ Gᵀ) − diag(G_S Σ̃⁰_SS G_Sᵀ)``
   with ``G = A_II⁻¹ A_IJ`` and ``Σ̃`` (``Σ̃⁰``: β removed) the band of the reduced system's inverse
