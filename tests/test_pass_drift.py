@@ -140,7 +140,7 @@ def test_blocks_across_a_gap_and_the_learnt_level_are_the_dense_ones():
         assert -res.fun > 1.0  # the data do show drift
         levels[name] = math.exp(res.x)
     assert levels["map"] < levels["ml"]  # the prior only pulls the level down
-    # The mean at the MAP level, the band at the larger (here the ML one).
+    # The mean at the MAP level, the band at the larger (here the ML one) about it.
     assert g.drift_mean_sd["R1"] == pytest.approx(math.sqrt(levels["map"]), rel=1e-3)
     assert g.drift_sd["R1"] == pytest.approx(math.sqrt(levels["ml"]), rel=1e-3)
     # ... to far below the optimiser's value tolerance: the dense score equation (EM fixed point)
@@ -160,7 +160,8 @@ def test_blocks_across_a_gap_and_the_learnt_level_are_the_dense_ones():
         assert stat / (K + s2 * prior_term) == pytest.approx(s2, rel=1e-8)
     for (a, e), j in zip(blocks, joints):
         mean = dense_marginal(*j, s2_mean)[0]
-        sd = dense_marginal(*j, s2_band)[1]
+        mean_band, sd_band = dense_marginal(*j, s2_band)
+        sd = np.sqrt(sd_band**2 + (mean_band - mean) ** 2)  # the band also holds the mean at its level
         np.testing.assert_allclose(snap.elevation_m[a:e], mean, rtol=0, atol=1e-9 * np.abs(mean).max())
         np.testing.assert_allclose(sd_of(snap)[a:e], sd, rtol=1e-7)
     assert np.isnan(snap.elevation_m[150:200]).all()

@@ -307,7 +307,8 @@ class DriftPosterior:
     s2: float = 0.0  # drift variance per coefficient (m²) the mean is taken at
     spread_s2: float = 0.0  # ... and the band and the draws' spread (>= s2)
     factor_red: np.ndarray | None = None  # at spread_s2: banded factor of Ã(spread_s2)
-    mean_red: np.ndarray | None = None
+    mean_red: np.ndarray | None = None  # at s2
+    level_shift: np.ndarray | None = None  # the profile's mean at spread_s2 less that at s2 (None: equal)
 
     @property
     def n_beta(self) -> int:
@@ -315,8 +316,9 @@ class DriftPosterior:
 
     @property
     def n_coefficients(self) -> int:
-        """Standard normals one draw of the nuisance takes (the reduced system's size)."""
-        return int(self.b_red.size)
+        """Standard normals one draw of the nuisance takes (the reduced system's size, and one for
+        the level's own uncertainty when the band's level differs from the mean's)."""
+        return int(self.b_red.size) + (self.level_shift is not None)
 
     def _factor(self, s2: float) -> np.ndarray:
         A = self.red.copy()
@@ -352,11 +354,17 @@ class DriftPosterior:
         band at the larger, which holds what the drifts might be at either."""
         self.s2 = float(s2) if self.n_beta else 0.0
         self.spread_s2 = max(self.s2, float(spread_s2)) if self.n_beta and spread_s2 is not None else self.s2
-        self.mean_red = None
+        self.mean_red = self.level_shift = None
         if self.s2 > 0.0:
             self.mean_red = cho_solve_banded((self._factor(self.s2), True), self.b_red, check_finite=False)
         if self.spread_s2 > 0.0:
             self.factor_red = self._factor(self.spread_s2)
+        if self.spread_s2 > self.s2:
+            # The mean the band's level would give differs from the mean's by this shift; the band
+            # holds it too (its square is added to the variance, a draw moves along it by a standard
+            # normal), so that it covers what the drifts leave at either level.
+            at_spread = cho_solve_banded((self.factor_red, True), self.b_red, check_finite=False)[self.beta_idx]
+            self.level_shift = self._shift(at_spread - self.mean_beta())
 
     def mean_beta(self) -> np.ndarray:
         if self.s2 <= 0.0:
@@ -375,7 +383,8 @@ class DriftPosterior:
 
     def profile_variance(self) -> np.ndarray:
         """``diag(W C⁻¹ Wᵀ)`` (m²), ``W = A_RR⁻¹ A_Rβ``: the variance the unknown drifts add to each
-        point, as the joint posterior's marginal less the drift-free one, chunk by chunk."""
+        point, as the joint posterior's marginal less the drift-free one, chunk by chunk (at the band's
+        level), plus the square of the mean's shift between the two levels when they differ."""
         out = np.zeros(self.size)
         if self.spread_s2 <= 0.0:
             return out
@@ -387,16 +396,21 @@ class DriftPosterior:
             GS = G[:, :nS]
             out[ch.start : ch.stop] = (np.einsum("ij,ij->i", G @ _band_block(cov, ch.J), G)
                                        - np.einsum("ij,ij->i", GS @ _band_block(self.cov0, ch.J0), GS))
-        return np.maximum(out, 0.0)
+        out = np.maximum(out, 0.0)
+        return out if self.level_shift is None else out + self.level_shift**2
 
     def draw_shift(self, z: np.ndarray) -> np.ndarray:
         """``−A_RR⁻¹ A_Rβ β`` for draws of β from its marginal posterior, one per row of the standard
         normals ``z`` (n, :attr:`n_coefficients`): the reduced system is drawn whole, β taken from it."""
         if self.spread_s2 <= 0.0:
             return np.zeros((z.shape[0], self.size))
-        x = np.array(z, dtype=np.float64, order="C")
-        draw_into(self.factor_red, self.mean_red if self.s2 > 0.0 else np.zeros(self.b_red.size), x)
-        return self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
+        n = self.b_red.size
+        x = np.array(z[:, :n], dtype=np.float64, order="C")
+        draw_into(self.factor_red, self.mean_red if self.s2 > 0.0 else np.zeros(n), x)
+        out = self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
+        if self.level_shift is not None:
+            out += z[:, n : n + 1] * self.level_shift
+        return out
 
     def _chunk_solve(self, ch: _Chunk) -> np.ndarray:
         """``A_II⁻¹ [A_IS, A_Iβ, b_I]`` of one chunk (its last column the information's)."""
