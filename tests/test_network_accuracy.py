@@ -94,9 +94,9 @@ def mean_scores(sims):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "open: R1 and R3. Over noise draws the field drives' mean profile error on R1 (the drives' GNSS dropout: "
-    "chainage beyond a shift and a stretch) and on R3, and R1's IRI, exceed 1.2x the clean passes'; R2, R4 "
-    "and R3's IRI are within it"))
+    "open: R1's and R3's profile. Over noise draws the field drives' mean profile error on R1 (the drives' "
+    "GNSS dropout: chainage beyond a shift and a stretch) and on R3 exceeds 1.2x the clean passes'; R2's and "
+    "R4's profile and both IRIs are within it"))
 def test_field_drives_are_within_1p2x_of_the_same_coverage_driven_clean(mean_scores):
     field, clean = mean_scores
     for rid in sorted(clean):
