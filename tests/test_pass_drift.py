@@ -15,6 +15,7 @@ import pytest
 from scipy.optimize import minimize_scalar
 
 from cloud.road.gmrf_profile import GmrfProfile
+from cloud.road.pass_drift import DRIFT_PRIOR_SCALE, log_prior, stated_error_sd
 from tests.test_gmrf_profile import DX, make_seg, route_length, sd_of
 
 
@@ -118,7 +119,7 @@ def test_local_elimination_is_the_dense_joint_posterior(order, rho, knot_m, mode
 def test_blocks_across_a_gap_and_the_learnt_level_are_the_dense_ones():
     """A gap longer than max_gap_m splits the route into blocks solved apart (a pass's drift has
     independent coefficients on either side); the level is learnt from the evidence summed over
-    the blocks, and it is the maximiser of the dense evidence."""
+    the blocks, and it is the maximiser of the dense evidence times the level's prior."""
     rng = np.random.default_rng(32)
     P = 361
     segs = _passes(rng, ((0, 150), (0, 150), (30, 150)), drift=1e-3)
@@ -130,26 +131,37 @@ def test_blocks_across_a_gap_and_the_learnt_level_are_the_dense_ones():
     snap = g.snapshot()["R1"]
     blocks = [(0, 150), (200, 361)]
     joints = [dense_joint(segs, a, e, tau, 1, 0.0, g.ridge, knot_m) for a, e in blocks]
-    res = minimize_scalar(lambda u: -sum(dense_log_evidence(*j, math.exp(u)) for j in joints),
-                          bounds=(math.log(1e-12), math.log(1e-4)), method="bounded", options={"xatol": 1e-6})
-    s2 = math.exp(res.x)
-    assert -res.fun > 1.0  # the data do show drift
-    assert g.drift_sd["R1"] == pytest.approx(math.sqrt(s2), rel=1e-3)
-    s2 = g.drift_sd["R1"] ** 2
+    s0 = DRIFT_PRIOR_SCALE * stated_error_sd(segs)
+    levels = {}
+    for name, prior in (("map", s0), ("ml", None)):
+        res = minimize_scalar(lambda u: -sum(dense_log_evidence(*j, math.exp(u)) for j in joints)
+                              - log_prior(math.exp(u), prior),
+                              bounds=(math.log(1e-12), math.log(1e-4)), method="bounded", options={"xatol": 1e-6})
+        assert -res.fun > 1.0  # the data do show drift
+        levels[name] = math.exp(res.x)
+    assert levels["map"] < levels["ml"]  # the prior only pulls the level down
+    # The mean at the MAP level, the band at the larger (here the ML one) about it.
+    assert g.drift_mean_sd["R1"] == pytest.approx(math.sqrt(levels["map"]), rel=1e-3)
+    assert g.drift_sd["R1"] == pytest.approx(math.sqrt(levels["ml"]), rel=1e-3)
     # ... to far below the optimiser's value tolerance: the dense score equation (EM fixed point)
-    # s² = E[βᵀβ | y] / K holds at the learnt level (a stop ~1e-6 short of the maximum would depend
-    # on the rounding of the sums, i.e. on the order the segments arrived in).
-    stat = K = 0.0
-    for A, b, m, k in joints:
-        J = A.copy()
-        J[m:, m:] += np.eye(k) / s2
-        cov = np.linalg.inv(J)
-        mu = cov @ b
-        stat += mu[m:] @ mu[m:] + np.trace(cov[m:, m:])
-        K += k
-    assert stat / K == pytest.approx(s2, rel=1e-8)
+    # s² = E[βᵀβ | y] / (K + s²/s₀²) holds at each learnt level (s₀ → ∞ for the ML one; a stop ~1e-6
+    # short of the maximum would depend on the rounding of the sums, i.e. on the order the segments
+    # arrived in).
+    s2_mean, s2_band = g.drift_mean_sd["R1"] ** 2, g.drift_sd["R1"] ** 2
+    for s2, prior_term in ((s2_mean, 1.0 / s0**2), (s2_band, 0.0)):
+        stat = K = 0.0
+        for A, b, m, k in joints:
+            J = A.copy()
+            J[m:, m:] += np.eye(k) / s2
+            cov = np.linalg.inv(J)
+            mu = cov @ b
+            stat += mu[m:] @ mu[m:] + np.trace(cov[m:, m:])
+            K += k
+        assert stat / (K + s2 * prior_term) == pytest.approx(s2, rel=1e-8)
     for (a, e), j in zip(blocks, joints):
-        mean, sd = dense_marginal(*j, s2)
+        mean = dense_marginal(*j, s2_mean)[0]
+        mean_band, sd_band = dense_marginal(*j, s2_band)
+        sd = np.sqrt(sd_band**2 + (mean_band - mean) ** 2)  # the band also holds the mean at its level
         np.testing.assert_allclose(snap.elevation_m[a:e], mean, rtol=0, atol=1e-9 * np.abs(mean).max())
         np.testing.assert_allclose(sd_of(snap)[a:e], sd, rtol=1e-7)
     assert np.isnan(snap.elevation_m[150:200]).all()

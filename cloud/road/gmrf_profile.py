@@ -38,7 +38,11 @@ Per-pass drift (optional, ``drift_knot_m``)
 Each pass also carries its own drift (what the edge's drift control leaves of twice-integrated
 sensor noise, independent from pass to pass): a nuisance of the posterior on a lattice of knots
 every ``drift_knot_m``, marginalised exactly by eliminating the profile (:mod:`.pass_drift`), its
-level learnt by type-II maximum likelihood (or fixed by ``drift_sd_m``). It moves the mean (each
+level learnt from the evidence (or fixed by ``drift_sd_m``). Two short passes leave the level
+uncertain over an order of magnitude, and a level far above what the passes' error suggests lets the
+drifts take the road's long waves: the mean is taken at the level a half-normal prior scaled to the
+passes' stated error and the evidence support (MAP), the band at the larger of that and the
+evidence's maximum (type-II ML), so the prior never narrows the band. It moves the mean (each
 pass's drift is estimated, not averaged in) and widens the band at wavelengths above about
 ``2 · drift_knot_m`` by what the unknown drifts leave in the fused profile. Its information is
 assembled at snapshot time from the held segments, so segment updates and retractions cost what
@@ -63,7 +67,8 @@ from shared.schema import SIGMA_SCALE, ApSegment
 
 from cloud.road.banded import draw_into, selected_inverse
 from cloud.road.mean_profile import ProfileSnapshot
-from cloud.road.pass_drift import DriftPosterior, drift_system, eliminate, learn_drift_variance
+from cloud.road.pass_drift import (DRIFT_PRIOR_SCALE, DriftPosterior, drift_system, eliminate, learn_drift_variance,
+                                   stated_error_sd)
 
 log = logging.getLogger(__name__)
 
@@ -280,7 +285,8 @@ class _Route:
         self.cover = np.zeros(n, dtype=np.int64)  # segments covering each point (any axle)
         self.passes = np.zeros(n, dtype=np.int64)  # axle-1 segments covering each point
         self.tau = tau
-        self.drift_sd = 0.0  # learnt (or given) per-pass drift sd per knot coefficient (m)
+        self.drift_sd = 0.0  # learnt (or given) per-pass drift sd per knot coefficient (m): the band's
+        self.drift_mean_sd = 0.0  # ... and the mean's (<= drift_sd)
         self.posterior: _Posterior | None = None
 
 
@@ -322,8 +328,9 @@ class GmrfProfile:
         with the passes *at a point*, n, as O(P · n²) (it is eliminated chunk by chunk between the
         knots): 10 km with 2 passes ~0.5–1 s, 200 m with 30 passes ~0.1–0.2 s on a loaded 2-core machine.
     drift_sd_m : float, optional
-        Prior sd of each drift coefficient (m); ``None`` (default) learns it per route by type-II
-        maximum likelihood at snapshot time (0 when the data show no drift).
+        Prior sd of each drift coefficient (m); ``None`` (default) learns it per route at snapshot
+        time (0 when the data show no drift): the mean's level by MAP, the band's by type-II maximum
+        likelihood or the MAP level, whichever is larger (:mod:`.pass_drift`).
     """
 
     def __init__(self, routes: dict[str, float], spacing_m: float = 0.05, tau: float | None = None, *,
@@ -419,8 +426,15 @@ class GmrfProfile:
 
     @property
     def drift_sd(self) -> dict[str, float]:
-        """Per-pass drift sd per knot coefficient (m) of each route's last posterior (0: none)."""
+        """Per-pass drift sd per knot coefficient (m) of each route's last posterior (0: none): the level
+        its band and draws hold. The mean is taken at :attr:`drift_mean_sd`, the level a half-normal
+        prior scaled to the passes' stated error and the evidence support, which is this level or less."""
         return {rid: r.drift_sd for rid, r in self.routes.items()}
+
+    @property
+    def drift_mean_sd(self) -> dict[str, float]:
+        """Per-pass drift sd per knot coefficient (m) each route's last posterior mean is taken at."""
+        return {rid: r.drift_mean_sd for rid, r in self.routes.items()}
 
     def sample(self, route_id: str, n: int, rng: np.random.Generator | int | None = None) -> np.ndarray:
         """``n`` draws from the posterior of a route's profile, shape (n, P), NaN outside covered blocks."""
@@ -576,7 +590,7 @@ class GmrfProfile:
         """
         zero = [np.zeros(blk.stop - blk.start) for blk in blocks]
         if self.drift_knot_m is None or not blocks:
-            route.drift_sd = 0.0
+            route.drift_sd = route.drift_mean_sd = 0.0
             return zero
         segs = [s for s in self.segments.values() if s.route_id == route_id]
         n = route.cover.size
@@ -586,11 +600,19 @@ class GmrfProfile:
                                   self._segment_information)
             posts.append(eliminate(blk.precision, blk.factor, route.b[blk.start : blk.stop], system,
                                    self.drift_knot_m / self.spacing_m, blk.start))
-        s2 = self.drift_sd_m**2 if self.drift_sd_m is not None else learn_drift_variance(posts)
-        route.drift_sd = math.sqrt(s2)
+        if self.drift_sd_m is not None:
+            s2 = spread = self.drift_sd_m**2
+        else:
+            # The mean at the level the prior and the evidence support; the band at the larger of that
+            # and the evidence's own maximum, so that a level the passes leave uncertain moves the
+            # mean toward the better supported one without narrowing the band.
+            s2 = learn_drift_variance(posts, prior_sd=DRIFT_PRIOR_SCALE * stated_error_sd(segs) or None)
+            spread = max(s2, learn_drift_variance(posts))
+        route.drift_sd = math.sqrt(spread)
+        route.drift_mean_sd = math.sqrt(s2)
         out = []
         for blk, d in zip(blocks, posts):
-            d.set_level(s2)
+            d.set_level(s2, spread)
             blk.mean0, blk.drift = blk.mean, d
             blk.mean = blk.mean0 + d.profile_shift()
             out.append(d.profile_variance())

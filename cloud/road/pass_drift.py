@@ -31,7 +31,9 @@ from that small banded system and the chunks:
 
 * the log evidence's dependence on ``s²`` is ``ℓ(s²) = ½ b̃ᵀÃ(s²)⁻¹b̃ − ½ log|Ã(s²)| − ½ K log s²``
   less its ``s² → 0`` limit (the system with β removed), one banded factorisation of ``Ã`` per
-  ``s²``; the level is learnt by type-II maximum likelihood (0 when no drift beats none);
+  ``s²``; the level is learnt by type-II maximum likelihood (0 when no drift beats none), and with
+  a half-normal prior on ``s`` (MAP) for the mean: few short passes leave ℓ flat over an order of
+  magnitude; the band is taken at the larger of the two levels;
 * ``μ_β`` from ``Ã``; the profile's mean ``A_RR⁻¹ b_R − A_RR⁻¹ A_Rβ μ_β`` (one banded solve);
 * the variance the unknown drifts add: at a chunk's interior ``diag(G Σ̃_JJ Gᵀ) − diag(G_S Σ̃⁰_SS G_Sᵀ)``
   with ``G = A_II⁻¹ A_IJ`` and ``Σ̃`` (``Σ̃⁰``: β removed) the band of the reduced system's inverse
@@ -63,6 +65,15 @@ from cloud.road.banded import band_cholesky, band_solve, draw_into, selected_inv
 DRIFT_SD_BOUNDS_M = (1e-7, 1e-2)
 #: Tolerance of the learnt log drift variance (the score equation's residual).
 SCORE_TOL = 1e-11
+#: Scale of the drift sd's half-normal prior in units of the passes' stated error sd (the edge's
+#: error model's marginal sd per point, ``r · sigma``): a weakly informative prior that ties the level
+#: to the noise the passes state. With two short passes the evidence alone is flat over an order of
+#: magnitude and can peak on a far shoulder, where the drifts trade against the road's long waves (and
+#: the trends the edges removed over the passes' differing stretches) and take them out of the mean;
+#: where the passes' disagreement demands a larger level, the evidence outweighs the prior. The
+#: scale is a modelling choice, not a bound the edge states: the band is held at the evidence's own
+#: level when that is larger (:meth:`DriftPosterior.set_level`).
+DRIFT_PRIOR_SCALE = 3.0
 
 
 def pass_key(seg: ApSegment) -> tuple[str, str, int]:
@@ -293,9 +304,11 @@ class DriftPosterior:
     quad0: float = 0.0  # b̃_Sᵀ Ã_SS⁻¹ b̃_S (β removed)
     logdet0: float = 0.0  # log |Ã_SS|
     cov0: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))  # band of Ã_SS⁻¹
-    s2: float = 0.0  # drift variance per coefficient (m²)
-    factor_red: np.ndarray | None = None  # at s2: banded factor of Ã(s2)
-    mean_red: np.ndarray | None = None
+    s2: float = 0.0  # drift variance per coefficient (m²) the mean is taken at
+    spread_s2: float = 0.0  # ... and the band and the draws' spread (>= s2)
+    factor_red: np.ndarray | None = None  # at spread_s2: banded factor of Ã(spread_s2)
+    mean_red: np.ndarray | None = None  # at s2
+    level_shift: np.ndarray | None = None  # the profile's mean at spread_s2 less that at s2 (None: equal)
 
     @property
     def n_beta(self) -> int:
@@ -303,8 +316,9 @@ class DriftPosterior:
 
     @property
     def n_coefficients(self) -> int:
-        """Standard normals one draw of the nuisance takes (the reduced system's size)."""
-        return int(self.b_red.size)
+        """Standard normals one draw of the nuisance takes (the reduced system's size, and one for
+        the level's own uncertainty when the band's level differs from the mean's)."""
+        return int(self.b_red.size) + (self.level_shift is not None)
 
     def _factor(self, s2: float) -> np.ndarray:
         A = self.red.copy()
@@ -333,12 +347,24 @@ class DriftPosterior:
         mb = cho_solve_banded((cb, True), self.b_red, check_finite=False)[self.beta_idx]
         return float(mb @ mb) + float(selected_inverse(cb)[0, self.beta_idx].sum())
 
-    def set_level(self, s2: float) -> None:
-        """Fix the drift variance (m²): factorise the reduced system and take its mean and band."""
+    def set_level(self, s2: float, spread_s2: float | None = None) -> None:
+        """Fix the drift variance (m²): factorise the reduced system and take its mean at ``s2`` and
+        its band (and the draws' spread about that mean) at ``spread_s2`` (default ``s2``; never below
+        it). Two levels where the level itself is uncertain: the mean at the better supported one, the
+        band at the larger, which holds what the drifts might be at either."""
         self.s2 = float(s2) if self.n_beta else 0.0
+        self.spread_s2 = max(self.s2, float(spread_s2)) if self.n_beta and spread_s2 is not None else self.s2
+        self.mean_red = self.level_shift = None
         if self.s2 > 0.0:
-            self.factor_red = self._factor(self.s2)
-            self.mean_red = cho_solve_banded((self.factor_red, True), self.b_red, check_finite=False)
+            self.mean_red = cho_solve_banded((self._factor(self.s2), True), self.b_red, check_finite=False)
+        if self.spread_s2 > 0.0:
+            self.factor_red = self._factor(self.spread_s2)
+        if self.spread_s2 > self.s2:
+            # The mean the band's level would give differs from the mean's by this shift; the band
+            # holds it too (its square is added to the variance, a draw moves along it by a standard
+            # normal), so that it covers what the drifts leave at either level.
+            at_spread = cho_solve_banded((self.factor_red, True), self.b_red, check_finite=False)[self.beta_idx]
+            self.level_shift = self._shift(at_spread - self.mean_beta())
 
     def mean_beta(self) -> np.ndarray:
         if self.s2 <= 0.0:
@@ -357,11 +383,12 @@ class DriftPosterior:
 
     def profile_variance(self) -> np.ndarray:
         """``diag(W C⁻¹ Wᵀ)`` (m²), ``W = A_RR⁻¹ A_Rβ``: the variance the unknown drifts add to each
-        point, as the joint posterior's marginal less the drift-free one, chunk by chunk."""
+        point, as the joint posterior's marginal less the drift-free one, chunk by chunk (at the band's
+        level), plus the square of the mean's shift between the two levels when they differ."""
         out = np.zeros(self.size)
-        if self.s2 <= 0.0:
+        if self.spread_s2 <= 0.0:
             return out
-        cov = selected_inverse(self.factor_red)
+        cov = selected_inverse(self.factor_red)  # at the band's level
         out[self.sep_points] = cov[0, self.sep_red] - self.cov0[0, np.arange(self.sep_points.size)]
         for ch in self.chunks:
             G = self._chunk_solve(ch)[:, :-1]
@@ -369,16 +396,21 @@ class DriftPosterior:
             GS = G[:, :nS]
             out[ch.start : ch.stop] = (np.einsum("ij,ij->i", G @ _band_block(cov, ch.J), G)
                                        - np.einsum("ij,ij->i", GS @ _band_block(self.cov0, ch.J0), GS))
-        return np.maximum(out, 0.0)
+        out = np.maximum(out, 0.0)
+        return out if self.level_shift is None else out + self.level_shift**2
 
     def draw_shift(self, z: np.ndarray) -> np.ndarray:
         """``−A_RR⁻¹ A_Rβ β`` for draws of β from its marginal posterior, one per row of the standard
         normals ``z`` (n, :attr:`n_coefficients`): the reduced system is drawn whole, β taken from it."""
-        if self.s2 <= 0.0:
+        if self.spread_s2 <= 0.0:
             return np.zeros((z.shape[0], self.size))
-        x = np.array(z, dtype=np.float64, order="C")
-        draw_into(self.factor_red, self.mean_red, x)
-        return self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
+        n = self.b_red.size
+        x = np.array(z[:, :n], dtype=np.float64, order="C")
+        draw_into(self.factor_red, self.mean_red if self.s2 > 0.0 else np.zeros(n), x)
+        out = self._shift(np.ascontiguousarray(x[:, self.beta_idx].T)).T
+        if self.level_shift is not None:
+            out += z[:, n : n + 1] * self.level_shift
+        return out
 
     def _chunk_solve(self, ch: _Chunk) -> np.ndarray:
         """``A_II⁻¹ [A_IS, A_Iβ, b_I]`` of one chunk (its last column the information's)."""
@@ -487,8 +519,30 @@ def log_evidence(s2: float, posts: list[DriftPosterior]) -> float:
     return sum(d.log_evidence(s2) for d in posts)
 
 
-def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M, tol: float = SCORE_TOL) -> float:
-    """Type-II ML drift variance (m²) over all blocks of a route; 0 when the lower bound wins.
+def stated_error_sd(segments: list[ApSegment]) -> float:
+    """The median over the points of ``segments`` of the error sd their passes state (m): the edge's
+    error model's marginal sd ``r · sigma``, or ``sigma`` where a segment carries no model."""
+    if not segments:
+        return 0.0
+    sd = [s.sigma * (float(s.error_model[0]) if s.error_model.size else 1.0) for s in segments]
+    return float(np.median(np.concatenate(sd)))
+
+
+def log_prior(s2: float, prior_sd: float | None) -> float:
+    """Log density (up to a constant) of the drift sd's half-normal prior of scale ``prior_sd`` (m) at
+    variance ``s2`` (m²); 0 (flat: maximum likelihood) when ``prior_sd`` is None."""
+    return 0.0 if prior_sd is None else -0.5 * s2 / prior_sd**2
+
+
+def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M, tol: float = SCORE_TOL,
+                         prior_sd: float | None = None) -> float:
+    """Type-II ML (MAP with ``prior_sd``) drift variance (m²) over all blocks of a route; 0 when the
+    lower bound wins.
+
+    ``prior_sd``: scale (m) of a half-normal prior on the drift sd (:func:`log_prior`). With many
+    passes the evidence is sharp and the prior moves the level little; with two short passes it is
+    flat over an order of magnitude, and the prior keeps the level where the passes' disagreement
+    and the error they state put it rather than on a far shoulder.
 
     A function of the held data alone, to well below anything it moves: a fixed grid brackets the
     maximum (ℓ can have a flat shoulder), Brent's method on ℓ finds it to ~1e-4 in log s², and the
@@ -500,28 +554,33 @@ def learn_drift_variance(posts: list[DriftPosterior], bounds_m=DRIFT_SD_BOUNDS_M
     if not any(d.n_beta for d in posts):
         return 0.0
     lo, hi = 2.0 * math.log(bounds_m[0]), 2.0 * math.log(bounds_m[1])
+    def objective(u):
+        return log_evidence(math.exp(u), posts) + log_prior(math.exp(u), prior_sd)
+
     grid = np.linspace(lo, hi, 25)  # ℓ can have a flat shoulder: bracket on a grid, then refine
-    vals = [log_evidence(math.exp(u), posts) for u in grid]
+    vals = [objective(u) for u in grid]
     i = int(np.argmax(vals))
     if vals[i] <= 0.0:  # no s² beats no drift at all
         return 0.0
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    res = minimize_scalar(lambda u: -log_evidence(math.exp(u), posts), bounds=(a, b), method="bounded",
-                          options={"xatol": 1e-4})
+    res = minimize_scalar(lambda u: -objective(u), bounds=(a, b), method="bounded", options={"xatol": 1e-4})
     u = res.x if -res.fun >= vals[i] else grid[i]
     if u <= lo + 1e-9:
         return 0.0
-    return math.exp(_polish(u, posts, a, b, tol))
+    return math.exp(_polish(u, posts, a, b, tol, prior_sd))
 
 
-def _polish(u: float, posts: list[DriftPosterior], a: float, b: float, tol: float, max_iter: int = 30) -> float:
-    """The root of ``h(u) = log(Σ E[βᵀβ] / Σ K) − u`` near ``u`` within ``[a, b]`` (secant steps after
-    one EM step); ``u`` unchanged if the steps leave the bracket or do not converge."""
+def _polish(u: float, posts: list[DriftPosterior], a: float, b: float, tol: float, prior_sd: float | None = None,
+            max_iter: int = 30) -> float:
+    """The root of ``h(u) = log(Σ E[βᵀβ] / (Σ K + s²/s₀²)) − u``, ``s² = eᵘ`` (the prior's term only
+    with a scale ``s₀ = prior_sd``), near ``u`` within ``[a, b]`` (secant steps after one EM step);
+    ``u`` unchanged if the steps leave the bracket or do not converge."""
     K = sum(d.n_beta for d in posts)
 
     def h(v):
         st = sum(d.em_statistic(math.exp(v)) for d in posts)
-        return math.log(st / K) - v if st > 0.0 else -math.inf
+        k = K + (0.0 if prior_sd is None else math.exp(v) / prior_sd**2)
+        return math.log(st / k) - v if st > 0.0 else -math.inf
 
     try:
         u0, h0 = u, h(u)
