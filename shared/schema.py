@@ -785,14 +785,22 @@ def quantize_values(values_m: np.ndarray) -> tuple[np.ndarray, float, float]:
     ``values ~= offset_m + scale_m * q`` with an error of at most ``scale_m / 2``.
     """
     v = np.asarray(values_m, dtype=np.float64)
-    lo, hi = float(v.min()), float(v.max())
+    return _quantize_values(v, float(v.min()), float(v.max()))
+
+
+def _quantize_values(v: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, float, float]:
+    """:func:`quantize_values` of float64 ``v`` whose extremes ``lo`` and ``hi`` are known."""
     offset = 0.5 * (lo + hi)
     half = 0.5 * (hi - lo)
     scale = half / Q_MAX
     if not scale > 0.0:  # constant segment (or a half-range below the smallest float)
         scale = 1.0
-    q = np.clip(np.rint((v - offset) / scale), -Q_MAX, Q_MAX).astype(np.int16)
-    return q, scale, offset
+    x = np.subtract(v, offset)  # (in place from here: one temporary instead of four)
+    x /= scale
+    np.rint(x, out=x)
+    np.maximum(x, -Q_MAX, out=x)  # (np.clip's bounds as two ufuncs: no wrapper; x has no NaN)
+    np.minimum(x, Q_MAX, out=x)
+    return x.astype(np.int16), scale, offset
 
 
 def quantize_sigma(sigma_m: np.ndarray) -> tuple[np.ndarray, float]:
@@ -801,10 +809,18 @@ def quantize_sigma(sigma_m: np.ndarray) -> tuple[np.ndarray, float]:
     ``sigma ~= sigma_ref_m * 2**(q / 2048)``, never below the true sigma.
     """
     s = np.asarray(sigma_m, dtype=np.float64)
-    ref = float(s.max())
-    code = np.ceil(SIGMA_CODES_PER_OCTAVE * np.log2(s / ref))
-    q = np.clip(code, -Q_MAX - 1, 0).astype(np.int16)
-    return q, ref
+    return _quantize_sigma(s, float(s.max()))
+
+
+def _quantize_sigma(s: np.ndarray, ref: float) -> tuple[np.ndarray, float]:
+    """:func:`quantize_sigma` of positive float64 ``s`` whose largest value ``ref`` is known."""
+    code = np.divide(s, ref)  # (in place from here: one temporary instead of four)
+    np.log2(code, out=code)
+    code *= SIGMA_CODES_PER_OCTAVE
+    np.ceil(code, out=code)
+    np.maximum(code, -Q_MAX - 1, out=code)  # (np.clip's bounds as two ufuncs; code has no NaN)
+    np.minimum(code, 0, out=code)
+    return code.astype(np.int16), ref
 
 
 ERROR_MODEL_NONE = np.zeros(0)
@@ -832,6 +848,19 @@ def _error_model(value: object) -> np.ndarray:
     if not np.min(symbol) > 0:
         _fail("bad_value", "error_model band is not positive definite")
     return em
+
+
+def _extremes(name: str, v: object) -> tuple[np.ndarray, float, float]:
+    """``v`` as a finite 1-D float64 array (not copied when it is one) and its least and largest
+    values, with the reasons :func:`_array` gives."""
+    if type(v) is not np.ndarray or v.dtype != np.float64 or v.ndim != 1 or v.size > MAX_SAMPLES:
+        v = _array(name, v, np.float64)
+    if v.size == 0:
+        return v, 0.0, 0.0
+    lo, hi = float(v.min()), float(v.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # (a NaN anywhere makes both NaN)
+        _fail("non_finite", f"{name} has NaN or inf")
+    return v, lo, hi
 
 
 @dataclass(frozen=True, eq=False)
@@ -873,6 +902,22 @@ class ApSegment(_Message):
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
+        self._check_place()
+        values_q = _array("values_q", self.values_q, np.int16)
+        sigma_q = _array("sigma_q", self.sigma_q, np.int16)
+        if values_q.size == 0:
+            _fail("bad_shape", "a segment needs at least one point")
+        if sigma_q.size != values_q.size:
+            _fail("bad_shape", f"sigma has {sigma_q.size} points, values {values_q.size}")
+        if sigma_q.max() > 0:  # not empty, checked above
+            _fail("bad_value", "sigma codes must be <= 0")
+        set_(self, "values_q", values_q)
+        set_(self, "sigma_q", sigma_q)
+        self._check_rest()
+
+    def _check_place(self) -> None:
+        """Validate the fields before the codes (identity and grid position)."""
+        set_ = object.__setattr__
         _id("vehicle_id", self.vehicle_id)
         _text("pass_id", self.pass_id, MAX_TEXT)
         if not self.pass_id:
@@ -884,16 +929,10 @@ class ApSegment(_Message):
         # starts; the cloud keeps them for re-running the pass, and fuses only chainage >= 0).
         set_(self, "start_index", _int("start_index", self.start_index, -MAX_INDEX, MAX_INDEX))
         set_(self, "spacing_m", _float("spacing_m", self.spacing_m, 0.0, 100.0, lo_open=True))
-        values_q = _array("values_q", self.values_q, np.int16)
-        sigma_q = _array("sigma_q", self.sigma_q, np.int16)
-        if values_q.size == 0:
-            _fail("bad_shape", "a segment needs at least one point")
-        if sigma_q.size != values_q.size:
-            _fail("bad_shape", f"sigma has {sigma_q.size} points, values {values_q.size}")
-        if sigma_q.max() > 0:  # not empty, checked above
-            _fail("bad_value", "sigma codes must be <= 0")
-        set_(self, "values_q", values_q)
-        set_(self, "sigma_q", sigma_q)
+
+    def _check_rest(self) -> None:
+        """Validate the fields after the codes (their decoding, calibration, times, sequence, error model)."""
+        set_ = object.__setattr__
         set_(self, "scale_m", _float("scale_m", self.scale_m, 0.0, 1.0, lo_open=True))
         set_(self, "offset_m", _float("offset_m", self.offset_m, -MAX_ABS_AP_M, MAX_ABS_AP_M))
         set_(self, "sigma_ref_m", _float("sigma_ref_m", self.sigma_ref_m, 0.0, MAX_ABS_AP_M, lo_open=True))
@@ -943,19 +982,24 @@ class ApSegment(_Message):
         error_model : array, optional
             ``[r, c₀, …, c_p]`` (see the class), or None for none.
         """
-        values = _array("values_m", values_m, np.float64)
-        sigma = _array("sigma_m", sigma_m, np.float64)
+        values, lo, hi = _extremes("values_m", values_m)
+        sigma, s_lo, s_hi = _extremes("sigma_m", sigma_m)
         if values.size == 0:
             _fail("bad_shape", "a segment needs at least one point")
         if sigma.size != values.size:
             _fail("bad_shape", f"sigma has {sigma.size} points, values {values.size}")
-        if np.max(np.abs(values)) > MAX_ABS_AP_M:
+        if lo < -MAX_ABS_AP_M or hi > MAX_ABS_AP_M:
             _fail("bad_value", f"|AP| > {MAX_ABS_AP_M} m")
-        if np.min(sigma) <= 0.0 or np.max(sigma) > MAX_ABS_AP_M:
+        if s_lo <= 0.0 or s_hi > MAX_ABS_AP_M:
             _fail("bad_value", f"sigma must lie in (0, {MAX_ABS_AP_M}] m")
-        q, scale, offset = quantize_values(values)
-        sq, ref = quantize_sigma(sigma)
-        return cls(
+        q, scale, offset = _quantize_values(values, lo, hi)
+        sq, ref = _quantize_sigma(sigma, s_hi)
+        # The codes are valid by construction (int16, as many as the values, sigma codes <= 0):
+        # every other field is validated as the constructor does, the codes not a second time.
+        q.setflags(write=False)
+        sq.setflags(write=False)
+        seg = cls.__new__(cls)
+        seg.__dict__.update(
             vehicle_id=vehicle_id,
             pass_id=pass_id,
             route_id=route_id,
@@ -977,6 +1021,9 @@ class ApSegment(_Message):
             flags=flags,
             error_model=ERROR_MODEL_NONE if error_model is None else error_model,
         )
+        seg._check_place()
+        seg._check_rest()
+        return seg
 
     @property
     def n(self) -> int:
