@@ -1070,7 +1070,7 @@ class ApSegment(_Message):
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this segment."""
-        return _encode(self.KIND, _ap_columns([self]))
+        return _encode_ap(self.KIND, (self,))
 
 
 # The wire columns of an AP segment, in order (an ap_batch has the same columns, one row per segment).
@@ -1137,6 +1137,75 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
     return cols
 
 
+# AP payloads written into a template of their layout. Arrow's IPC bytes of a batch whose columns
+# are texts, int64 and float64 scalars and lists of numbers depend on the values only through the
+# contents of the value buffers: the metadata (buffer offsets and lengths, list and text offsets,
+# padding) is fixed by the layout (the rows, each row's text lengths in bytes and array sizes). So
+# the first payload of a layout is encoded by Arrow and the positions of its value buffers read back;
+# every later payload of that layout is its values written at those positions into a copy of it, byte
+# for byte what Arrow writes, without building arrays and a record batch each time.
+_AP_TEXTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_string(t))
+_AP_LISTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_list(t))
+_MAX_AP_LAYOUTS = 1024
+_ap_templates: dict[tuple, tuple[bytes, tuple] | None] = {}  # layout → template (a memo of this process)
+
+
+def _encode_ap(kind: str, segments: tuple[ApSegment, ...]) -> bytes:
+    """The Arrow IPC payload of AP ``segments`` (an ``ap_segment`` or ``ap_batch``)."""
+    texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
+    layout = (kind, *(len(b) for col in texts for b in col), *(getattr(s, name).size for name in _AP_LISTS for s in segments))
+    hit = _ap_templates.get(layout, False)
+    if hit is False:
+        if len(_ap_templates) >= _MAX_AP_LAYOUTS:
+            _ap_templates.clear()
+        payload = _encode(kind, _ap_columns(segments))
+        _ap_templates[layout] = _ap_template(payload, segments)
+        return payload
+    if hit is None:  # (a layout whose buffers could not be placed: Arrow writes each payload)
+        return _encode(kind, _ap_columns(segments))
+    template, places = hit
+    out = bytearray(template)
+    for pos, raw in zip(places, _ap_buffers(segments, texts)):
+        out[pos : pos + len(raw)] = raw
+    return bytes(out)
+
+
+def _ap_buffers(segments: tuple[ApSegment, ...], texts: list[list[bytes]] | None = None) -> list[bytes]:
+    """The contents of each AP column's value buffer, in the columns' order."""
+    if texts is None:
+        texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
+    by_name = dict(zip(_AP_TEXTS, (b"".join(col) for col in texts)))
+    for names, dtype in ((_AP_INT64, np.int64), (_AP_FLOAT64, np.float64)):
+        rows = np.array([[getattr(s, f) for s in segments] for f in names], dtype=dtype)
+        by_name.update(zip(names, (row.tobytes() for row in rows)))
+    for name, t in _AP_COLUMNS:
+        if pa.types.is_list(t):
+            items = [getattr(s, name) for s in segments]
+            by_name[name] = np.concatenate(items).astype(_NUMPY_OF[t.value_type], copy=False).tobytes()
+    return [by_name[name] for name in _AP_NAMES]
+
+
+def _ap_template(payload: bytes, segments: tuple[ApSegment, ...]) -> tuple[bytes, tuple] | None:
+    """``(payload, positions)``: where each column's value buffer lies in ``payload``, or None when
+    a buffer is not found there holding what the segments hold (Arrow chose another placement)."""
+    buf = pa.py_buffer(payload)
+    batch = pa.ipc.open_stream(buf).read_next_batch()
+    base = buf.address
+    places = []
+    for (name, t), raw in zip(_AP_COLUMNS, _ap_buffers(segments)):
+        col = batch.column(name)
+        data = (col.values.buffers()[1] if pa.types.is_list(t) else
+                col.buffers()[2] if pa.types.is_string(t) else col.buffers()[1])
+        if not raw:
+            places.append(0)  # (nothing to write)
+            continue
+        pos = -1 if data is None else data.address - base
+        if not 0 <= pos <= len(payload) - len(raw) or payload[pos : pos + len(raw)] != raw:
+            return None
+        places.append(pos)
+    return payload, tuple(places)
+
+
 def _ap_segments(r: _Row) -> list[ApSegment]:
     """Every row of an ``ap_segment`` or ``ap_batch`` batch as a validated :class:`ApSegment`."""
     columns = [[_AP_OPTIONAL[name]] * r.n_rows if name in _AP_OPTIONAL and name not in r.names else
@@ -1196,7 +1265,7 @@ class ApBatch(_Message):
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this batch."""
-        return _encode(self.KIND, _ap_columns(self.segments))
+        return _encode_ap(self.KIND, self.segments)
 
 
 def _build_ap_batch(r: _Row) -> ApBatch:

@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import math
 
+import dataclasses
+
 import numpy as np
+import pyarrow as pa
 import pytest
 
 from shared.schema import (
@@ -120,3 +123,37 @@ def test_make_refuses_what_the_constructor_refuses(values, sigma, over, reason):
         with pytest.raises(InvalidMessage) as built:  # the same fields by the constructor: the same reason
             _by_constructor(values, sigma, **{**FIELDS, **over})
         assert built.value.reason == reason
+
+
+def _arrow_writes(segments: list[ApSegment], payload: bytes) -> bytes:
+    """What Arrow's stream writer writes for the segments' fields as columns (one row per segment),
+    under ``payload``'s schema (names, types and header)."""
+    schema = pa.ipc.open_stream(payload).schema
+    columns = [pa.array([getattr(s, f.name) for s in segments], type=schema.field(f.name).type)
+               for f in dataclasses.fields(ApSegment)]
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, schema) as w:
+        w.write_batch(pa.RecordBatch.from_arrays(columns, schema=schema))
+    return sink.getvalue().to_pybytes()
+
+
+def test_payloads_are_arrows_byte_for_byte_when_layouts_repeat():
+    """Payloads of one layout (row count, text lengths, array sizes) reuse the first one's
+    placement of buffers: every one must still be what Arrow writes, and decode to its segments."""
+    rng = np.random.default_rng(9)
+    layouts = [(1, 200, 0), (2, 200, 4), (2, 37, 0), (3, 1, 3), (1, 5, 10)]
+    for i in range(60):
+        rows, n, em = layouts[i % len(layouts)]
+        segments = []
+        for r in range(rows):
+            values, sigma = rng.normal(0, 1e-3, n), 10.0 ** rng.uniform(-5, -3, n)
+            error_model = np.r_[rng.uniform(0.5, 2), 3.0, rng.uniform(-0.3, 0.3, em - 2)] if em else None
+            segments.append(ApSegment.make(
+                values, sigma, **{**FIELDS, "vehicle_id": f"veh-{i % 3}", "pass_id": f"p-{rng.integers(10, 99)}",
+                                  "tile": int(rng.integers(0, 1 << 20)), "axle": r + 1, "seq": r,
+                                  "start_index": int(rng.integers(-50, 1 << 20)), "speed_mps": rng.uniform(0, 40),
+                                  "t_first": rng.uniform(0, 1e4), "t_last": 1e4 + rng.uniform(0, 10),
+                                  "flags": int(rng.integers(0, 4)), "error_model": error_model}))
+        payload = segments[0].encode() if rows == 1 else ApBatch(tuple(segments)).encode()
+        assert payload == _arrow_writes(segments, payload), i
+        assert decode_ap(payload) == segments, i
