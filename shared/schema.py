@@ -35,6 +35,7 @@ import functools
 import itertools
 import json
 import math
+import operator
 import re
 import struct
 import sys
@@ -1146,6 +1147,10 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
 # for byte what Arrow writes, without building arrays and a record batch each time.
 _AP_TEXTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_string(t))
 _AP_LISTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_list(t))
+_AP_NUMBERS = tuple((names, operator.attrgetter(*names), dtype)
+                    for names, dtype in ((_AP_INT64, np.int64), (_AP_FLOAT64, np.float64)))
+_AP_LIST_READERS = tuple((name, operator.attrgetter(name), _NUMPY_OF[t.value_type])
+                         for name, t in _AP_COLUMNS if pa.types.is_list(t))
 _MAX_AP_LAYOUTS = 1024
 _ap_templates: dict[tuple, tuple[bytes, tuple] | None] = {}  # layout → template (a memo of this process)
 
@@ -1174,15 +1179,12 @@ def _ap_buffers(segments: tuple[ApSegment, ...], texts: list[list[bytes]] | None
     """The contents of each AP column's value buffer, in the columns' order."""
     if texts is None:
         texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
-    by_name = dict(zip(_AP_TEXTS, (b"".join(col) for col in texts)))
-    for names, dtype in ((_AP_INT64, np.int64), (_AP_FLOAT64, np.float64)):
-        rows = np.array([[getattr(s, f) for s in segments] for f in names], dtype=dtype)
-        by_name.update(zip(names, (row.tobytes() for row in rows)))
-    for name, t in _AP_COLUMNS:
-        if pa.types.is_list(t):
-            items = [getattr(s, name) for s in segments]
-            by_name[name] = np.concatenate(items).astype(_NUMPY_OF[t.value_type], copy=False).tobytes()
-    return [by_name[name] for name in _AP_NAMES]
+    by_name = dict(zip(_AP_TEXTS, map(b"".join, texts)))
+    for names, get, dtype in _AP_NUMBERS:
+        by_name.update(zip(names, map(np.ndarray.tobytes, np.array(list(map(get, segments)), dtype=dtype).T)))
+    for name, get, dtype in _AP_LIST_READERS:
+        by_name[name] = np.concatenate(list(map(get, segments))).astype(dtype, copy=False).tobytes()
+    return list(map(by_name.__getitem__, _AP_NAMES))
 
 
 def _ap_template(payload: bytes, segments: tuple[ApSegment, ...]) -> tuple[bytes, tuple] | None:
