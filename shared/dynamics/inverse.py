@@ -774,13 +774,15 @@ def update_streams(streams: list[InverseStream], z: np.ndarray) -> np.ndarray:
         groups.setdefault((r.form, r.structure), []).append(q)
     for key, idx in groups.items():
         Ad, A2, A1, B, C, D = _bank_matrices(key, tuple(streams[q]._real for q in idx))
-        w = np.ascontiguousarray(np.stack([streams[q]._s for q in idx], axis=-1))
+        # The states gathered and handed back in one copy each way (np.array of equal-length
+        # arrays and the rows of a transposed copy: no per-stream array calls).
+        w = np.ascontiguousarray(np.array([streams[q]._s for q in idx]).T)
         zz = z if len(idx) == len(streams) else np.ascontiguousarray(z[:, :, idx])
         y = out if len(idx) == len(streams) else np.empty((z.shape[0], n_out, len(idx)))
         _run_blocks_bank(Ad, A2, A1, B, C, D, w, zz, y)
         if y is not out:
             out[:, :, idx] = y
-        for j, q in enumerate(idx):
-            streams[q]._s = w[:, j].copy()
+        for q, state in zip(idx, w.T.copy()):
+            streams[q]._s = state
             streams[q].n_seen += z.shape[0]
     return out
