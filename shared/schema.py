@@ -1158,7 +1158,8 @@ _ap_templates: dict[tuple, tuple[bytes, tuple] | None] = {}  # layout → templa
 def _encode_ap(kind: str, segments: tuple[ApSegment, ...]) -> bytes:
     """The Arrow IPC payload of AP ``segments`` (an ``ap_segment`` or ``ap_batch``)."""
     texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
-    layout = (kind, *(len(b) for col in texts for b in col), *(getattr(s, name).size for name in _AP_LISTS for s in segments))
+    layout = (kind, *(len(b) for col in texts for b in col),
+              *(getattr(s, name).size for name in _AP_LISTS for s in segments))
     hit = _ap_templates.get(layout, False)
     if hit is False:
         if len(_ap_templates) >= _MAX_AP_LAYOUTS:
