@@ -35,7 +35,7 @@ def feed_bank(items: list[tuple[PassProcessor, object]], done=None) -> list[list
             groups.setdefault((proc.model_name, len(system.channels), system.n_contacts, chunk.n), []).append(i)
     ap_of: list = [None] * len(items)
     for idx in groups.values():
-        z = np.stack([z_of[i] for i in idx], axis=-1)
+        z = np.array([z_of[i] for i in idx]).transpose(1, 2, 0)  # (np.stack's result, in one array call)
         ap = update_streams([items[i][0].inverse for i in idx], z)
         for j, i in enumerate(idx):
             ap_of[i] = ap[:, :, j]

@@ -35,6 +35,7 @@ import functools
 import itertools
 import json
 import math
+import operator
 import re
 import struct
 import sys
@@ -785,14 +786,22 @@ def quantize_values(values_m: np.ndarray) -> tuple[np.ndarray, float, float]:
     ``values ~= offset_m + scale_m * q`` with an error of at most ``scale_m / 2``.
     """
     v = np.asarray(values_m, dtype=np.float64)
-    lo, hi = float(v.min()), float(v.max())
+    return _quantize_values(v, float(v.min()), float(v.max()))
+
+
+def _quantize_values(v: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, float, float]:
+    """:func:`quantize_values` of float64 ``v`` whose extremes ``lo`` and ``hi`` are known."""
     offset = 0.5 * (lo + hi)
     half = 0.5 * (hi - lo)
     scale = half / Q_MAX
     if not scale > 0.0:  # constant segment (or a half-range below the smallest float)
         scale = 1.0
-    q = np.clip(np.rint((v - offset) / scale), -Q_MAX, Q_MAX).astype(np.int16)
-    return q, scale, offset
+    x = np.subtract(v, offset)  # (in place from here: one temporary instead of four)
+    x /= scale
+    np.rint(x, out=x)
+    np.maximum(x, -Q_MAX, out=x)  # (np.clip's bounds as two ufuncs: no wrapper; x has no NaN)
+    np.minimum(x, Q_MAX, out=x)
+    return x.astype(np.int16), scale, offset
 
 
 def quantize_sigma(sigma_m: np.ndarray) -> tuple[np.ndarray, float]:
@@ -801,10 +810,18 @@ def quantize_sigma(sigma_m: np.ndarray) -> tuple[np.ndarray, float]:
     ``sigma ~= sigma_ref_m * 2**(q / 2048)``, never below the true sigma.
     """
     s = np.asarray(sigma_m, dtype=np.float64)
-    ref = float(s.max())
-    code = np.ceil(SIGMA_CODES_PER_OCTAVE * np.log2(s / ref))
-    q = np.clip(code, -Q_MAX - 1, 0).astype(np.int16)
-    return q, ref
+    return _quantize_sigma(s, float(s.max()))
+
+
+def _quantize_sigma(s: np.ndarray, ref: float) -> tuple[np.ndarray, float]:
+    """:func:`quantize_sigma` of positive float64 ``s`` whose largest value ``ref`` is known."""
+    code = np.divide(s, ref)  # (in place from here: one temporary instead of four)
+    np.log2(code, out=code)
+    code *= SIGMA_CODES_PER_OCTAVE
+    np.ceil(code, out=code)
+    np.maximum(code, -Q_MAX - 1, out=code)  # (np.clip's bounds as two ufuncs; code has no NaN)
+    np.minimum(code, 0, out=code)
+    return code.astype(np.int16), ref
 
 
 ERROR_MODEL_NONE = np.zeros(0)
@@ -832,6 +849,19 @@ def _error_model(value: object) -> np.ndarray:
     if not np.min(symbol) > 0:
         _fail("bad_value", "error_model band is not positive definite")
     return em
+
+
+def _extremes(name: str, v: object) -> tuple[np.ndarray, float, float]:
+    """``v`` as a finite 1-D float64 array (not copied when it is one) and its least and largest
+    values, with the reasons :func:`_array` gives."""
+    if type(v) is not np.ndarray or v.dtype != np.float64 or v.ndim != 1 or v.size > MAX_SAMPLES:
+        v = _array(name, v, np.float64)
+    if v.size == 0:
+        return v, 0.0, 0.0
+    lo, hi = float(v.min()), float(v.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # (a NaN anywhere makes both NaN)
+        _fail("non_finite", f"{name} has NaN or inf")
+    return v, lo, hi
 
 
 @dataclass(frozen=True, eq=False)
@@ -873,6 +903,22 @@ class ApSegment(_Message):
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
+        self._check_place()
+        values_q = _array("values_q", self.values_q, np.int16)
+        sigma_q = _array("sigma_q", self.sigma_q, np.int16)
+        if values_q.size == 0:
+            _fail("bad_shape", "a segment needs at least one point")
+        if sigma_q.size != values_q.size:
+            _fail("bad_shape", f"sigma has {sigma_q.size} points, values {values_q.size}")
+        if sigma_q.max() > 0:  # not empty, checked above
+            _fail("bad_value", "sigma codes must be <= 0")
+        set_(self, "values_q", values_q)
+        set_(self, "sigma_q", sigma_q)
+        self._check_rest()
+
+    def _check_place(self) -> None:
+        """Validate the fields before the codes (identity and grid position)."""
+        set_ = object.__setattr__
         _id("vehicle_id", self.vehicle_id)
         _text("pass_id", self.pass_id, MAX_TEXT)
         if not self.pass_id:
@@ -884,16 +930,10 @@ class ApSegment(_Message):
         # starts; the cloud keeps them for re-running the pass, and fuses only chainage >= 0).
         set_(self, "start_index", _int("start_index", self.start_index, -MAX_INDEX, MAX_INDEX))
         set_(self, "spacing_m", _float("spacing_m", self.spacing_m, 0.0, 100.0, lo_open=True))
-        values_q = _array("values_q", self.values_q, np.int16)
-        sigma_q = _array("sigma_q", self.sigma_q, np.int16)
-        if values_q.size == 0:
-            _fail("bad_shape", "a segment needs at least one point")
-        if sigma_q.size != values_q.size:
-            _fail("bad_shape", f"sigma has {sigma_q.size} points, values {values_q.size}")
-        if sigma_q.max() > 0:  # not empty, checked above
-            _fail("bad_value", "sigma codes must be <= 0")
-        set_(self, "values_q", values_q)
-        set_(self, "sigma_q", sigma_q)
+
+    def _check_rest(self) -> None:
+        """Validate the fields after the codes (their decoding, calibration, times, sequence, error model)."""
+        set_ = object.__setattr__
         set_(self, "scale_m", _float("scale_m", self.scale_m, 0.0, 1.0, lo_open=True))
         set_(self, "offset_m", _float("offset_m", self.offset_m, -MAX_ABS_AP_M, MAX_ABS_AP_M))
         set_(self, "sigma_ref_m", _float("sigma_ref_m", self.sigma_ref_m, 0.0, MAX_ABS_AP_M, lo_open=True))
@@ -943,19 +983,24 @@ class ApSegment(_Message):
         error_model : array, optional
             ``[r, c₀, …, c_p]`` (see the class), or None for none.
         """
-        values = _array("values_m", values_m, np.float64)
-        sigma = _array("sigma_m", sigma_m, np.float64)
+        values, lo, hi = _extremes("values_m", values_m)
+        sigma, s_lo, s_hi = _extremes("sigma_m", sigma_m)
         if values.size == 0:
             _fail("bad_shape", "a segment needs at least one point")
         if sigma.size != values.size:
             _fail("bad_shape", f"sigma has {sigma.size} points, values {values.size}")
-        if np.max(np.abs(values)) > MAX_ABS_AP_M:
+        if lo < -MAX_ABS_AP_M or hi > MAX_ABS_AP_M:
             _fail("bad_value", f"|AP| > {MAX_ABS_AP_M} m")
-        if np.min(sigma) <= 0.0 or np.max(sigma) > MAX_ABS_AP_M:
+        if s_lo <= 0.0 or s_hi > MAX_ABS_AP_M:
             _fail("bad_value", f"sigma must lie in (0, {MAX_ABS_AP_M}] m")
-        q, scale, offset = quantize_values(values)
-        sq, ref = quantize_sigma(sigma)
-        return cls(
+        q, scale, offset = _quantize_values(values, lo, hi)
+        sq, ref = _quantize_sigma(sigma, s_hi)
+        # The codes are valid by construction (int16, as many as the values, sigma codes <= 0):
+        # every other field is validated as the constructor does, the codes not a second time.
+        q.setflags(write=False)
+        sq.setflags(write=False)
+        seg = cls.__new__(cls)
+        seg.__dict__.update(
             vehicle_id=vehicle_id,
             pass_id=pass_id,
             route_id=route_id,
@@ -977,6 +1022,9 @@ class ApSegment(_Message):
             flags=flags,
             error_model=ERROR_MODEL_NONE if error_model is None else error_model,
         )
+        seg._check_place()
+        seg._check_rest()
+        return seg
 
     @property
     def n(self) -> int:
@@ -1023,7 +1071,7 @@ class ApSegment(_Message):
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this segment."""
-        return _encode(self.KIND, _ap_columns([self]))
+        return _encode_ap(self.KIND, (self,))
 
 
 # The wire columns of an AP segment, in order (an ap_batch has the same columns, one row per segment).
@@ -1090,6 +1138,77 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
     return cols
 
 
+# AP payloads written into a template of their layout. Arrow's IPC bytes of a batch whose columns
+# are texts, int64 and float64 scalars and lists of numbers depend on the values only through the
+# contents of the value buffers: the metadata (buffer offsets and lengths, list and text offsets,
+# padding) is fixed by the layout (the rows, each row's text lengths in bytes and array sizes). So
+# the first payload of a layout is encoded by Arrow and the positions of its value buffers read back;
+# every later payload of that layout is its values written at those positions into a copy of it, byte
+# for byte what Arrow writes, without building arrays and a record batch each time.
+_AP_TEXTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_string(t))
+_AP_LISTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_list(t))
+_AP_NUMBERS = tuple((names, operator.attrgetter(*names), dtype)
+                    for names, dtype in ((_AP_INT64, np.int64), (_AP_FLOAT64, np.float64)))
+_AP_LIST_READERS = tuple((name, operator.attrgetter(name), _NUMPY_OF[t.value_type])
+                         for name, t in _AP_COLUMNS if pa.types.is_list(t))
+_MAX_AP_LAYOUTS = 1024
+_ap_templates: dict[tuple, tuple[bytes, tuple] | None] = {}  # layout → template (a memo of this process)
+
+
+def _encode_ap(kind: str, segments: tuple[ApSegment, ...]) -> bytes:
+    """The Arrow IPC payload of AP ``segments`` (an ``ap_segment`` or ``ap_batch``)."""
+    texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
+    layout = (kind, *(len(b) for col in texts for b in col),
+              *(getattr(s, name).size for name in _AP_LISTS for s in segments))
+    hit = _ap_templates.get(layout, False)
+    if hit is False:
+        if len(_ap_templates) >= _MAX_AP_LAYOUTS:
+            _ap_templates.clear()
+        payload = _encode(kind, _ap_columns(segments))
+        _ap_templates[layout] = _ap_template(payload, segments)
+        return payload
+    if hit is None:  # (a layout whose buffers could not be placed: Arrow writes each payload)
+        return _encode(kind, _ap_columns(segments))
+    template, places = hit
+    out = bytearray(template)
+    for pos, raw in zip(places, _ap_buffers(segments, texts)):
+        out[pos : pos + len(raw)] = raw
+    return bytes(out)
+
+
+def _ap_buffers(segments: tuple[ApSegment, ...], texts: list[list[bytes]] | None = None) -> list[bytes]:
+    """The contents of each AP column's value buffer, in the columns' order."""
+    if texts is None:
+        texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
+    by_name = dict(zip(_AP_TEXTS, map(b"".join, texts)))
+    for names, get, dtype in _AP_NUMBERS:
+        by_name.update(zip(names, map(np.ndarray.tobytes, np.array(list(map(get, segments)), dtype=dtype).T)))
+    for name, get, dtype in _AP_LIST_READERS:
+        by_name[name] = np.concatenate(list(map(get, segments))).astype(dtype, copy=False).tobytes()
+    return list(map(by_name.__getitem__, _AP_NAMES))
+
+
+def _ap_template(payload: bytes, segments: tuple[ApSegment, ...]) -> tuple[bytes, tuple] | None:
+    """``(payload, positions)``: where each column's value buffer lies in ``payload``, or None when
+    a buffer is not found there holding what the segments hold (Arrow chose another placement)."""
+    buf = pa.py_buffer(payload)
+    batch = pa.ipc.open_stream(buf).read_next_batch()
+    base = buf.address
+    places = []
+    for (name, t), raw in zip(_AP_COLUMNS, _ap_buffers(segments)):
+        col = batch.column(name)
+        data = (col.values.buffers()[1] if pa.types.is_list(t) else
+                col.buffers()[2] if pa.types.is_string(t) else col.buffers()[1])
+        if not raw:
+            places.append(0)  # (nothing to write)
+            continue
+        pos = -1 if data is None else data.address - base
+        if not 0 <= pos <= len(payload) - len(raw) or payload[pos : pos + len(raw)] != raw:
+            return None
+        places.append(pos)
+    return payload, tuple(places)
+
+
 def _ap_segments(r: _Row) -> list[ApSegment]:
     """Every row of an ``ap_segment`` or ``ap_batch`` batch as a validated :class:`ApSegment`."""
     columns = [[_AP_OPTIONAL[name]] * r.n_rows if name in _AP_OPTIONAL and name not in r.names else
@@ -1149,7 +1268,7 @@ class ApBatch(_Message):
 
     def encode(self) -> bytes:
         """Arrow IPC payload of this batch."""
-        return _encode(self.KIND, _ap_columns(self.segments))
+        return _encode_ap(self.KIND, self.segments)
 
 
 def _build_ap_batch(r: _Row) -> ApBatch:

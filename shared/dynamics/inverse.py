@@ -711,13 +711,44 @@ class _BankGroup:
         _run_blocks_bank(self.Ad, self.A2, self.A1, self.B, self.C, self.D, self.s, z, y)
 
 
+_BANK_FIELDS = ("Ad", "A2", "A1", "B", "C", "D")
+# The last bank's matrices per block structure: (its members' realisations, their stacks). A memo
+# of this process (each entry replaced whole, never changed in place), not configuration.
+_banks: dict[tuple, tuple[tuple, tuple[np.ndarray, ...]]] = {}
+
+
+def _bank_matrices(key: tuple, reals: tuple) -> tuple[np.ndarray, ...]:
+    """The realisations' matrices stacked along a last axis, one member each. A fleet's bank keeps
+    most of its members from one chunk to the next, so the last bank's stacks are reused: whole
+    when its members are the same, else the members it had taken from it in one indexing, and only
+    those that join gathered one by one. (The same numbers either way: only copies.)"""
+    last = _banks.get(key)
+    if last is not None and len(last[0]) == len(reals) and all(a is b for a, b in zip(last[0], reals)):
+        return last[1]
+    at = {} if last is None else {id(r): j for j, r in enumerate(last[0])}
+    new = [r for r in reals if id(r) not in at]
+    for j, r in enumerate(new):
+        at[id(r)] = len(last[0]) + j if last is not None else j
+    order = np.array([at[id(r)] for r in reals], dtype=np.intp)
+    stacks = []
+    for f, name in enumerate(_BANK_FIELDS):
+        parts = ([last[1][f]] if last is not None else []) + \
+                ([np.stack([getattr(r, name) for r in new], axis=-1)] if new else [])
+        source = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
+        stacks.append(np.ascontiguousarray(source[..., order]))
+    out = tuple(stacks)
+    _banks[key] = (reals, out)
+    return out
+
+
 def update_streams(streams: list[InverseStream], z: np.ndarray) -> np.ndarray:
     """One chunk of each of many :class:`InverseStream` in one compiled call per block structure:
     ``z`` (n_samples, n_channels, n_streams) → AP (n_samples, n_contacts, n_streams), and each
     stream's state advanced, exactly as ``streams[s].update(z[:, :, s])`` each (bit for bit: the
     bank kernel does the single stream's operations in the same order). The streams must share a
     vehicle model (channels and contacts); members may change from call to call (an edge's fleet
-    whose passes start and end), so the matrices are gathered per call.
+    whose passes start and end): the last call's stacked matrices are kept per block structure and
+    only what changed is gathered again.
     """
     z = np.ascontiguousarray(z, dtype=np.float64)
     if not streams:
@@ -741,19 +772,17 @@ def update_streams(streams: list[InverseStream], z: np.ndarray) -> np.ndarray:
     for q in started:
         r = streams[q]._real
         groups.setdefault((r.form, r.structure), []).append(q)
-    for idx in groups.values():
-        reals = [streams[q]._real for q in idx]
-
-        def stack(name):
-            return np.ascontiguousarray(np.stack([getattr(r, name) for r in reals], axis=-1))
-
-        w = np.ascontiguousarray(np.stack([streams[q]._s for q in idx], axis=-1))
+    for key, idx in groups.items():
+        Ad, A2, A1, B, C, D = _bank_matrices(key, tuple(streams[q]._real for q in idx))
+        # The states gathered and handed back in one copy each way (np.array of equal-length
+        # arrays and the rows of a transposed copy: no per-stream array calls).
+        w = np.ascontiguousarray(np.array([streams[q]._s for q in idx]).T)
         zz = z if len(idx) == len(streams) else np.ascontiguousarray(z[:, :, idx])
         y = out if len(idx) == len(streams) else np.empty((z.shape[0], n_out, len(idx)))
-        _run_blocks_bank(stack("Ad"), stack("A2"), stack("A1"), stack("B"), stack("C"), stack("D"), w, zz, y)
+        _run_blocks_bank(Ad, A2, A1, B, C, D, w, zz, y)
         if y is not out:
             out[:, :, idx] = y
-        for j, q in enumerate(idx):
-            streams[q]._s = w[:, j].copy()
+        for q, state in zip(idx, w.T.copy()):
+            streams[q]._s = state
             streams[q].n_seen += z.shape[0]
     return out
