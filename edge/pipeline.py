@@ -197,24 +197,15 @@ def _antialias(sap, srel, s0, index, speed, linear, out, valid, k0, dt, min_spee
         if not ok:
             out[k] = linear[k]
             continue
-        # sin(π a) at the taps by rotation: a falls by 2 fc from one tap to the next, so one sine
-        # and cosine per point, not per tap. The rotation's rounding is ~1e-16 absolute a tap, far
-        # below the window's own tolerance once divided by π a, except at the tap next to the
-        # point (|τ| < 1/2, a near 0), whose sine is taken directly.
-        step_sin, step_cos = math.sin(2.0 * math.pi * fc), math.cos(2.0 * math.pi * fc)
-        theta = math.pi * 2.0 * fc * (index[k] - (s0 + lo))
-        sin_a, cos_a = math.sin(theta), math.cos(theta)
-        per_tau = m / half  # table steps per sample
         num, den = 0.0, 0.0
         for i in range(lo, hi):
             tau = index[k] - (s0 + i)
-            u = abs(tau) * per_tau
+            u = abs(tau) / half * m
             iu = min(int(u), m)
             w = _KAISER[iu] + (u - iu) * (_KAISER[iu + 1] - _KAISER[iu])
             a = 2.0 * fc * tau
             if a != 0.0:
-                w *= (sin_a if abs(tau) >= 0.5 else math.sin(math.pi * a)) / (math.pi * a)
-            sin_a, cos_a = sin_a * step_cos - cos_a * step_sin, cos_a * step_cos + sin_a * step_sin
+                w *= math.sin(math.pi * a) / (math.pi * a)
             num += w * sap[i]
             den += w
         out[k] = num / den
