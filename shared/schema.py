@@ -346,6 +346,18 @@ _METADATA_V5 = 4  # Arrow's MetadataVersion of what pyarrow writes
 _MAX_CACHED_SCHEMA_BYTES = 64 * 1024  # bounds what the schema cache holds (64 entries)
 
 
+def _schema_end(payload) -> int | None:
+    """Where the schema message of a payload framed as :func:`_encode` writes it ends (a continuation
+    marker and length, a cacheable schema, a continuation marker after it), else None."""
+    n = len(payload)
+    if n < 24 or _fb(_U32, payload, 0) != _CONTINUATION:
+        return None
+    schema_end = 8 + _fb(_U32, payload, 4)
+    if schema_end > _MAX_CACHED_SCHEMA_BYTES or schema_end + 16 > n or _fb(_U32, payload, schema_end) != _CONTINUATION:
+        return None
+    return schema_end
+
+
 def _read_our_batch(payload) -> tuple[str, int, pa.RecordBatch] | None:
     """The fast path of :func:`_read_batch`, for payloads laid out exactly as :func:`_encode` writes them.
 
@@ -359,10 +371,8 @@ def _read_our_batch(payload) -> tuple[str, int, pa.RecordBatch] | None:
     view = memoryview(payload)
     try:
         n = len(view)
-        if n < 24 or _fb(_U32, view, 0) != _CONTINUATION:
-            return None
-        schema_end = 8 + _fb(_U32, view, 4)
-        if schema_end > _MAX_CACHED_SCHEMA_BYTES or schema_end + 16 > n or _fb(_U32, view, schema_end) != _CONTINUATION:
+        schema_end = _schema_end(view)
+        if schema_end is None:
             return None
         plan = _schema_plan(view[:schema_end].tobytes())
         if plan is None:
@@ -1469,10 +1479,8 @@ def _columns_of(payload) -> tuple[str, int, dict] | None:
     reader reads, from its buffers (texts as str, scalars as Python numbers, lists as ``(flat
     values, offsets)``, null maps as None), if Arrow's full validation would accept them; else None."""
     n = len(payload)
-    if n < 24 or _fb(_U32, payload, 0) != _CONTINUATION:
-        return None
-    schema_end = 8 + _fb(_U32, payload, 4)
-    if schema_end > _MAX_CACHED_SCHEMA_BYTES or schema_end + 16 > n or _fb(_U32, payload, schema_end) != _CONTINUATION:
+    schema_end = _schema_end(payload)
+    if schema_end is None:
         return None
     meta_length = _fb(_U32, payload, schema_end + 4)
     start = schema_end + 8
