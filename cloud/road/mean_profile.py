@@ -1,7 +1,9 @@
 """The plain profile estimator: precision-weighted mean of all passes per grid point.
 
-Exact to add and retract (sums only), order-independent. Its band combines each pass's stated
-error with the scatter between passes, so it stays honest when calibration errors dominate.
+Sums only, so adding and retracting are cheap and order-independent up to rounding; whether a
+point has data is an integer count, exact whatever rounding the sums went through. Its band combines
+each pass's stated error with the scatter between passes, so it stays honest when calibration errors
+dominate.
 Roads are estimated by the Bayesian GMRF (:mod:`.gmrf_profile`); this is the data-only
 consensus the vehicle step compares against (no prior smoothing to bias the shortest waves), and
 its snapshot type is the one every profile estimator returns.
