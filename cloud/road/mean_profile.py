@@ -1,7 +1,9 @@
 """The plain profile estimator: precision-weighted mean of all passes per grid point.
 
-Exact to add and retract (sums only), order-independent. Its band combines each pass's stated
-error with the scatter between passes, so it stays honest when calibration errors dominate.
+Sums only, so adding and retracting are cheap and order-independent up to rounding; whether a
+point has data is an integer count, exact whatever rounding the sums went through. Its band combines
+each pass's stated error with the scatter between passes, so it stays honest when calibration errors
+dominate.
 Roads are estimated by the Bayesian GMRF (:mod:`.gmrf_profile`); this is the data-only
 consensus the vehicle step compares against (no prior smoothing to bias the shortest waves), and
 its snapshot type is the one every profile estimator returns.
@@ -28,10 +30,13 @@ class ProfileSnapshot:
 
 
 @kernel
-def _accumulate(sw, swy, swyy, count, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, sign, is_pass):
+def _accumulate(sw, swy, swyy, count, held, lo, values_q, scale, offset, sigma_q, sigma_ref, sigma_scale, sign,
+                is_pass):
     """Add ``sign`` times a segment's ``w = 1/sigma²``, ``w·y`` and ``w·y²`` from index ``lo`` (and move
-    ``count`` by ``sign`` if ``is_pass``) in one pass, the segment given by its wire codes and decoded
-    point by point as :attr:`ApSegment.values` and :attr:`ApSegment.sigma` decode them."""
+    ``count`` by ``sign`` if ``is_pass``, ``held`` always) in one pass, the segment given by its wire
+    codes and decoded point by point as :attr:`ApSegment.values` and :attr:`ApSegment.sigma` decode
+    them. A point no segment holds any more gets its sums back at exactly zero: retraction leaves
+    rounding there, and a ratio of two rounding residues is not a profile (see ``snapshot``)."""
     step = int(sign)
     for i in range(values_q.size):
         y = offset + scale * np.float64(values_q[i])
@@ -41,6 +46,11 @@ def _accumulate(sw, swy, swyy, count, lo, values_q, scale, offset, sigma_q, sigm
         sw[lo + i] += w
         swy[lo + i] += wy
         swyy[lo + i] += wy * y
+        held[lo + i] += step
+        if held[lo + i] == 0:
+            sw[lo + i] = 0.0
+            swy[lo + i] = 0.0
+            swyy[lo + i] = 0.0
         if is_pass:
             count[lo + i] += step
 
@@ -51,6 +61,7 @@ class _RouteSums:
         self.swy = np.zeros(n)
         self.swyy = np.zeros(n)
         self.count = np.zeros(n, dtype=np.int64)  # segments of axle 1 = passes
+        self.held = np.zeros(n, dtype=np.int64)  # segments of any axle
 
 
 class MeanProfile:
@@ -70,8 +81,8 @@ class MeanProfile:
         if hi <= lo:
             return
         n = hi - lo
-        _accumulate(sums.sw, sums.swy, sums.swyy, sums.count, lo, seg.values_q[:n], seg.scale_m, seg.offset_m,
-                    seg.sigma_q[:n], seg.sigma_ref_m, SIGMA_SCALE, sign, seg.axle == 1)
+        _accumulate(sums.sw, sums.swy, sums.swyy, sums.count, sums.held, lo, seg.values_q[:n], seg.scale_m,
+                    seg.offset_m, seg.sigma_q[:n], seg.sigma_ref_m, SIGMA_SCALE, sign, seg.axle == 1)
 
     def accepts(self, seg: ApSegment) -> bool:
         return seg.route_id in self.routes and abs(seg.spacing_m - self.spacing_m) < 1e-12
@@ -88,7 +99,10 @@ class MeanProfile:
             if route_id is not None and rid != route_id:
                 continue
             with np.errstate(invalid="ignore", divide="ignore"):
-                has = s.sw > 0
+                # Whether a point has data is a count, not the sign of a sum: a leave-one-out view
+                # (the pass retracted) would otherwise show a rounding residue where only that pass
+                # was, as a value, present or not by the residue's sign.
+                has = (s.held > 0) & (s.sw > 0)
                 mean = np.where(has, s.swy / np.where(has, s.sw, 1.0), np.nan)
                 var_w = np.where(has, s.swyy / np.where(has, s.sw, 1.0) - mean**2, np.nan)
                 n = np.maximum(s.count, 1)
