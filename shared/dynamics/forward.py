@@ -127,6 +127,22 @@ def channels_from_ap(system: VehicleSystem, ap: np.ndarray, c: NewmarkConstants,
     return measured_channels(system, ap_response(system, ap, c, u0, v0))
 
 
+def _smooth_size(n: int) -> int:
+    """The least 2^a·3^b·5^c ≥ n: a length the FFT is fast at."""
+    best = 1 << max(n - 1, 0).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p = p35
+            while p < n:
+                p *= 2
+            best = min(best, p)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
 def channels_transpose(system: VehicleSystem, weights: np.ndarray, c: NewmarkConstants) -> np.ndarray:
     """The transpose of :func:`channels_from_ap` (from static equilibrium): per row of ``weights``,
     the weights on the profile that give the same sum.
@@ -162,7 +178,7 @@ def channels_transpose(system: VehicleSystem, weights: np.ndarray, c: NewmarkCon
         impulses[i, 1, i] = 1.0  # the time-invariant part: an impulse after the start
         impulses[nc + i, 0, i] = 1.0  # the start: static equilibrium on the first sample, then zero
     resp = channels_from_ap(system, impulses, c)  # (2 nc, n, n_channels)
-    size = 2 * n
+    size = _smooth_size(2 * n - 1)  # no wrap-around of the lags read
     fw = np.fft.rfft(w3, size, axis=1)  # (b, f, n_channels)
     out = np.empty((b, n, nc))
     for i in range(nc):
