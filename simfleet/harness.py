@@ -86,7 +86,8 @@ class Harness:
         """Idle work and delivery until nothing more happens; returns the rounds (sweeps included)."""
         rounds = 0
         while self.idle():
-            rounds += not self.cloud.aligner.sweeping  # (a slice of an alignment sweep is not a round)
+            # (a slice of an alignment sweep, or of a round's vehicle steps, is not a round)
+            rounds += not self.cloud.aligner.sweeping and not self.cloud.calibrating
             self.pump()
         return rounds
 

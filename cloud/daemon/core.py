@@ -97,6 +97,8 @@ class Cloud:
         self.ownership = Ownership(s.shard, self.aggregator.vehicle_routes)
         self.aligner = ChainageAligner(s)
         self._unfused: dict[tuple[str, str], None] = {}  # acknowledged passes whose correction is due (ordered)
+        #: the round whose vehicle steps are being taken in slices: (its segments' key, its consensus)
+        self._round: tuple[str, MeanProfile] | None = None
         #: ``record(kind, payload)``: the daemon's journal for the cloud's own decisions (an epoch's start,
         #: the calibrator's state after a round, an alarm), written before what they cause is published.
         self.record: Callable[[str, bytes], None] | None = None
@@ -406,7 +408,10 @@ class Cloud:
             self.record("epoch", json.dumps(self.epochs.state()).encode())
 
     def maybe_calibrate(self, tail: bool | None = None) -> bool:
-        """Run one calibration round if one is due; publish what changed. True if a round ran.
+        """Run one calibration round if one is due; publish what changed. True if a round ran, or a
+        slice of one: its vehicle steps are taken in slices of about ``round_budget_s``
+        (:meth:`FleetCalibrator.prepare`), as long as its segments stay the same, and the round is
+        applied with the last (the same round as in one call).
 
         A round is due when the current epoch has not finished and all of its passes are at their
         vehicle's current calibration; it sees those passes only, against a consensus of them alone
@@ -439,21 +444,33 @@ class Cloud:
         # The vehicle step sees what the posterior fuses: continuous-time APs (FleetCalibrator.continuous_aps).
         self.fuse_pending()
         segs = dict(zip(segs, self.aggregator.as_fused(segs.values())))
+        # each round pass's sample interval at the edge (its pass-done's), for the models of the passes
+        intervals = {key: ps.sample_interval_s for key in {(s.vehicle_id, s.pass_id) for s in segs.values()}
+                     if (ps := self.aggregator.passes.get(key)) is not None}
         # The leave-one-out consensus of the round: the epoch's passes only, summed in a fixed order
-        # (the running consensus holds passes beyond the epoch and rounding from its history).
-        consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
-        for seg in segs.values():
-            consensus.update(seg)
+        # (the running consensus holds passes beyond the epoch and rounding from its history). Kept
+        # while the round's vehicle steps are taken in slices, for as long as its segments are the same.
+        key = c.round_key(segs, intervals)
+        if self._round is None or self._round[0] != key:
+            consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
+            for seg in segs.values():
+                consensus.update(seg)
+            self._round = (key, consensus)
+        consensus = self._round[1]
         if self.settings.shard is not None:  # the others' vehicles inform the consensus; their owners calibrate them
             segs = {sl: seg for sl, seg in segs.items() if self.owns(seg.vehicle_id)}
         c.estimator = consensus
-        # each round pass's sample interval at the edge (its pass-done's), for the models of the passes
-        c.sample_intervals = {key: ps.sample_interval_s for key in {(s.vehicle_id, s.pass_id) for s in segs.values()}
-                              if (ps := self.aggregator.passes.get(key)) is not None}
+        own = {(s.vehicle_id, s.pass_id) for s in segs.values()}
+        c.sample_intervals = {k: v for k, v in intervals.items() if k in own}
         try:
+            # The vehicle steps in slices of about round_budget_s (idle work, as alignment's): the
+            # serve loop takes input between them; the round then only applies them.
+            if not c.prepare(segs, Slice(self.clock, self.settings.round_budget_s)):
+                return True
             cals = c.round(segs)
         finally:
             c.estimator = self.consensus
+        self._round = None
         if self.record is not None:  # the round's outcome is on disk before any of it is published
             self.record("calibrator", json.dumps(c.state()).encode())
         for cal in cals:
@@ -467,6 +484,11 @@ class Cloud:
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
+
+    @property
+    def calibrating(self) -> bool:
+        """A round's vehicle steps are being taken in slices (:meth:`maybe_calibrate`)."""
+        return self._round is not None
 
     def vehicle_rows(self) -> list[dict]:
         """Rows of ``vehicles.parquet`` from the calibrator: a shard's own vehicles only (a vehicle it

@@ -151,6 +151,10 @@ class FleetCalibrator:
         #: (vehicle, pass) → the sample interval (s) the edge inverted the pass at (its pass-done; the
         #: daemon sets this before a round, as it sets ``estimator``); a pass not here was a 500 Hz log's.
         self.sample_intervals: dict[tuple[str, str], float] = {}
+        #: Vehicle steps taken ahead of a round in bounded slices (:meth:`prepare`): the estimator they
+        #: were taken against, per vehicle (its parameters' key, its fit), and per model the continuous
+        #: consensus they used. Not state: a function of the round's data, dropped with the estimator.
+        self._prepared: tuple[object, dict, dict] | None = None
 
     # -- durable state (cloud/daemon/durable.py journals it after every round) --------------------
     def state(self) -> dict:
@@ -229,8 +233,8 @@ class FleetCalibrator:
                 return False
         return len({s.pass_id for s in segments.values()}) >= self.min_passes
 
-    def round(self, segments: dict[tuple, ApSegment]) -> list[Calibration]:
-        """One vehicle step for every model's vehicles with data; the calibrations that changed."""
+    def _groups(self, segments: dict[tuple, ApSegment]) -> tuple[dict, dict]:
+        """A round's segments per vehicle, and per model its vehicles with usable passes (sorted)."""
         by_vehicle: dict[str, list[ApSegment]] = {}
         for seg in segments.values():
             by_vehicle.setdefault(seg.vehicle_id, []).append(seg)
@@ -242,6 +246,78 @@ class FleetCalibrator:
             items = self._passes(segs, self.sample_intervals)
             if items:
                 by_model.setdefault(st.model, []).append((vid, items))
+        return by_vehicle, by_model
+
+    @staticmethod
+    def round_key(segments: dict[tuple, ApSegment], sample_intervals: dict) -> str:
+        """A fingerprint of what a round's consensus and vehicle steps are made of (the segments, in
+        order, and their passes' sample intervals): the vehicle steps :meth:`prepare` took hold for a
+        round on segments of the same key, against a consensus built from them."""
+        h = hashlib.sha1()
+        for sl, seg in segments.items():
+            h.update(repr((sl, seg.vehicle_id, seg.pass_id, seg.route_id, seg.axle, seg.start_index, seg.spacing_m,
+                           seg.calib_version, seg.speed_mps,
+                           sample_intervals.get((seg.vehicle_id, seg.pass_id)))).encode())
+            h.update(np.ascontiguousarray(seg.values, dtype=float).tobytes())
+            h.update(np.ascontiguousarray(seg.sigma, dtype=float).tobytes())
+        return h.hexdigest()
+
+    def prepare(self, segments: dict[tuple, ApSegment], work=None) -> bool:
+        """Idle work ahead of a round on ``segments``: its per-vehicle models' vehicle steps, in the
+        round's order, against ``estimator`` as the round would take them, as many as ``work`` allows
+        (an object with ``more()`` and ``spent()``, as :class:`cloud.daemon.chainage.Slice`; None:
+        all). True when every one is taken; :meth:`round` on the same segments and estimator then
+        only applies them, so a round's work can be spread over many short calls with the same result.
+
+        A step is a function of the vehicle's parameters, its segments and the estimator (the caller
+        gives the same estimator object only for segments of the same :meth:`round_key`); a step whose
+        vehicle's parameters changed meanwhile is taken again by :meth:`round`. Changes nothing the
+        calibrator journals."""
+        by_vehicle, by_model = self._groups(segments)
+        if self._prepared is None or self._prepared[0] is not self.estimator:
+            self._prepared = (self.estimator, {}, {})
+        _, fits, conts = self._prepared
+        for model, group in sorted(by_model.items()):
+            if model not in PER_VEHICLE:
+                continue
+            vids = [vid for vid, _ in group]
+            estimator, cont = self.estimator, {}
+            if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
+                key = self._params_key(vids)
+                if conts.get(model, (None,))[0] != key:
+                    if work is not None and not work.more():
+                        return False
+                    conts[model] = (key, *self._continuous_estimator(model, vids, by_vehicle))
+                    if work is not None:
+                        work.spent()
+                _, estimator, cont = conts[model]
+            for vid in vids:
+                key = self._step_key(model, vid, vids)
+                if fits.get(vid, (None,))[0] == key:
+                    continue
+                if work is not None and not work.more():
+                    return False
+                fits[vid] = (key, self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid)))
+                if work is not None:
+                    work.spent()
+        return True
+
+    def _params_key(self, vids: list[str]) -> str:
+        return repr([(vid, sorted(self.vehicles[vid].params.items())) for vid in vids])
+
+    def _step_key(self, model: str, vid: str, vids: list[str]) -> str:
+        """What a prepared vehicle step depends on beyond the round's segments and estimator: the
+        vehicle's parameters, and for a continuous consensus every vehicle's of the model."""
+        if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
+            return self._params_key(vids)
+        return self._params_key([vid])
+
+    def round(self, segments: dict[tuple, ApSegment]) -> list[Calibration]:
+        """One vehicle step for every model's vehicles with data; the calibrations that changed. The
+        steps :meth:`prepare` took for these segments against this estimator are used as they are."""
+        by_vehicle, by_model = self._groups(segments)
+        prepared = self._prepared if self._prepared is not None and self._prepared[0] is self.estimator else None
+        self._prepared = None
         self.rounds += 1
         self.dirty = False
         out = []
@@ -251,7 +327,7 @@ class FleetCalibrator:
             cls = self.site.vehicle_class(model)
             prior = class_prior(model, cls.mean, cls.std)
             if model in PER_VEHICLE:
-                moved, big = self._refine(model, [vid for vid, _ in group], by_vehicle, prior)
+                moved, big = self._refine(model, [vid for vid, _ in group], by_vehicle, prior, prepared)
                 out += moved
                 biggest = max(biggest, big)
                 continue
@@ -301,19 +377,26 @@ class FleetCalibrator:
         return Calibration(vehicle_id=vid, version=st.version, vehicle_model=st.model, params=st.params,
                            source="fleet")
 
-    def _refine(self, model: str, vids: list[str], by_vehicle: dict, prior) -> tuple[list[Calibration], float]:
+    def _refine(self, model: str, vids: list[str], by_vehicle: dict, prior,
+                prepared: tuple | None = None) -> tuple[list[Calibration], float]:
         """A refinement round for vehicles the joint step has placed: each vehicle against the
         leave-one-out consensus of the profile estimator, in acceleration space, the fleet-wide
         common part of the changes over-relaxed (alternation's slow mode is the fleet drifting
-        together)."""
+        together). ``prepared``: steps :meth:`prepare` took (used where their key still holds)."""
         self.refinements += 1
         self._start_round(model, vids, {s.pass_id for vid in vids for s in by_vehicle[vid]})
         steps = {}
+        _, fits, conts = prepared if prepared is not None else (None, {}, {})
         estimator, cont = self.estimator, {}
         if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
-            estimator, cont = self._continuous_estimator(model, vids, by_vehicle)
+            if conts.get(model, (None,))[0] == self._params_key(vids):
+                _, estimator, cont = conts[model]
+            else:
+                estimator, cont = self._continuous_estimator(model, vids, by_vehicle)
         for vid in vids:
-            fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid))
+            key, fit = fits.get(vid, (None, None))
+            if key != self._step_key(model, vid, vids):
+                fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid))
             if fit is not None:
                 current = np.log([to_calibration(model, self.vehicles[vid].params)[n] for n in fit.names])
                 steps[vid] = (np.log(fit.mean) - current, fit)
