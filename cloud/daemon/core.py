@@ -99,6 +99,9 @@ class Cloud:
         self._unfused: dict[tuple[str, str], None] = {}  # acknowledged passes whose correction is due (ordered)
         #: the round whose vehicle steps are being taken in slices: (its segments' key, its consensus)
         self._round: tuple[str, MeanProfile] | None = None
+        #: the vehicle table of the last round for the view, being built in slices: (its key, the steps)
+        self._view_table: tuple[tuple, object] | None = None
+        self._table: tuple[tuple, list[dict]] | None = None  # the last vehicle table built: (its key, rows)
         #: ``record(kind, payload)``: the daemon's journal for the cloud's own decisions (an epoch's start,
         #: the calibrator's state after a round, an alarm), written before what they cause is published.
         self.record: Callable[[str, bytes], None] | None = None
@@ -424,6 +427,9 @@ class Cloud:
         c = self.calibrator
         if c is None:
             return False
+        if self._view_table is not None:  # the last round's table for the view first, in slices
+            self._step_view_table()
+            return True
         epochs = self.epochs
         size = epochs.next_size(tail)
         if size is not None:
@@ -477,25 +483,57 @@ class Cloud:
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
             epochs.issued(cal.vehicle_id)
         if self.view is not None:
-            try:
-                self.view.log_calibration(self.vehicle_rows())  # this round's vehicles, with their intervals
-            except Exception:  # the view is a side subscriber: never let it take the daemon down
-                log.exception("rerun calibration view update failed")
+            # This round's vehicles with their intervals: the table of the calibrator and the held
+            # segments as they are now, built in slices by the next calls (its cost grows with the fleet).
+            segments = self.fused_segments()
+            self._view_table = (self._table_key(segments), c.snapshot().table_steps(segments))
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
 
     @property
     def calibrating(self) -> bool:
-        """A round's vehicle steps are being taken in slices (:meth:`maybe_calibrate`)."""
-        return self._round is not None
+        """A round's vehicle steps, or its table for the view, are being taken in slices
+        (:meth:`maybe_calibrate`)."""
+        return self._round is not None or self._view_table is not None
+
+    def _step_view_table(self) -> None:
+        """One slice (``round_budget_s``) of the view's vehicle table; logged when it is complete."""
+        key, steps = self._view_table
+        work = Slice(self.clock, self.settings.round_budget_s)
+        try:
+            while work.more():
+                next(steps)
+                work.spent()
+        except StopIteration as done:
+            self._view_table = None
+            self._table = (key, done.value)
+            try:
+                self.view.log_calibration([r for r in done.value if self.owns(r["vehicle_id"])])
+            except Exception:  # the view is a side subscriber: never let it take the daemon down
+                log.exception("rerun calibration view update failed")
+        except Exception:
+            self._view_table = None
+            log.exception("rerun calibration view update failed")
+
+    def _table_key(self, segments: list) -> tuple:
+        """What the vehicle table is a function of: the calibrator's rounds and versions, its passes'
+        sample intervals, and the held segments."""
+        c = self.calibrator
+        return (c.rounds, tuple(sorted((vid, st.version) for vid, st in c.vehicles.items())),
+                tuple(sorted(c.sample_intervals.items())), c.round_key(dict(enumerate(segments)), {}))
 
     def vehicle_rows(self) -> list[dict]:
         """Rows of ``vehicles.parquet`` from the calibrator: a shard's own vehicles only (a vehicle it
-        calibrated before its passes elsewhere made another shard its owner is that one's now)."""
+        calibrated before its passes elsewhere made another shard its owner is that one's now). The
+        table the view's slices built is used while nothing it depends on has changed."""
         if self.calibrator is None:
             return []
-        return [r for r in self.calibrator.table(self.fused_segments()) if self.owns(r["vehicle_id"])]
+        segments = self.fused_segments()
+        key = self._table_key(segments)
+        if self._table is None or self._table[0] != key:
+            self._table = (key, self.calibrator.table(segments))
+        return [r for r in self._table[1] if self.owns(r["vehicle_id"])]
 
     # -- bridges ---------------------------------------------------------------------------------
     def _bridge_uncertainty(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:

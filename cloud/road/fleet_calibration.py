@@ -44,6 +44,7 @@ import hashlib
 import logging
 import math
 import time
+from collections.abc import Generator
 
 import numpy as np
 
@@ -602,8 +603,20 @@ class FleetCalibrator:
         from ``segments``, the held segments as the vehicle step sees them; without them, the step's
         spread alone): the consensus it was fitted against, and the part of that error every vehicle
         shares."""
+        steps = self.table_steps(segments)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return done.value
+
+    def table_steps(self, segments: list[ApSegment] | None = None) -> Generator[None, None, list[dict]]:
+        """:meth:`table` one vehicle's linearisation at a time: a generator that yields between them and
+        returns the rows, so that the caller can spread the work over bounded calls. It reads the
+        calibrator as it is at each step: to build the table of one moment while rounds go on, run it
+        on a :meth:`snapshot`."""
         rows = []
-        extra = self._fleet_error(segments or [])
+        extra = yield from self._fleet_error(segments or [])
         for vid, st in sorted(self.vehicles.items()):
             if st.fit is None:
                 continue
@@ -616,9 +629,22 @@ class FleetCalibrator:
                              "hi95": cal[n] * math.exp(1.96 * se[i])})
         return rows
 
-    def _fleet_error(self, segments: list[ApSegment], n_draws: int = CONSENSUS_DRAWS) -> dict[str, np.ndarray]:
+    def snapshot(self) -> FleetCalibrator:
+        """A copy of the calibrator as it is now, for :meth:`table_steps` while this one goes on
+        (the vehicles, the trend and the sample intervals copied; no estimator, nothing prepared)."""
+        out = copy.copy(self)
+        out.vehicles = copy.deepcopy(self.vehicles)
+        out.common_trend = copy.deepcopy(self.common_trend)
+        out.trend_passes = dict(self.trend_passes)
+        out.sample_intervals = dict(self.sample_intervals)
+        out.estimator, out._prepared = None, None
+        return out
+
+    def _fleet_error(self, segments: list[ApSegment],
+                     n_draws: int = CONSENSUS_DRAWS) -> Generator[None, None, dict[str, np.ndarray]]:
         """Per vehicle of a :data:`PER_VEHICLE` model, the variance (log units) its step's Laplace
-        interval leaves out (errors in variables), from the held ``segments``.
+        interval leaves out (errors in variables), from the held ``segments`` (a generator: it
+        yields before each vehicle's linearisation and returns the variances).
 
         * the consensus's own error: ``n_draws`` draws of it (the precision-weighted mean's stated
           error, with the passes' excess error, :func:`cloud.road.long_wave.pass_error_draws`), the
@@ -691,6 +717,7 @@ class FleetCalibrator:
                 continue
             cls = self.site.vehicle_class(st.model)
             ref, _ = REFERENCE[st.model]
+            yield  # a vehicle's linearisation is the unit of work
             try:
                 sens = ConsensusSensitivity(st.model, st.params, items, class_prior(st.model, cls.mean, cls.std),
                                             st.params[ref], ap_gamma=0.5 if self._continuous(st.model) else None)
