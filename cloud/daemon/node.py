@@ -286,6 +286,8 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
                         else:
                             # (A round journals the calibrator through cloud.record before publishing.)
                             cloud.maybe_calibrate(tail=cloud.since_new_pass_s() >= settings.epoch_tail_s)
+                            if cloud.calibrating:  # a round in slices (round_budget_s): back after a short gap
+                                wait = slice_wait
                             cloud.step_rail()  # carriage batches
                             # Bridges take passes at their vehicle's current calibration only, so a
                             # round just published leaves them as they are until recomputed.
