@@ -523,6 +523,32 @@ class Cloud:
         return (c.rounds, tuple(sorted((vid, st.version) for vid, st in c.vehicles.items())),
                 tuple(sorted(c.sample_intervals.items())), c.round_key(dict(enumerate(segments)), {}))
 
+    def _export_ready(self) -> None:
+        """The pending idle work an export does first: every held segment where it will stay."""
+        self._reapply_alignments()
+        self.fuse_pending()
+        self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
+
+    def table_job(self) -> Callable[[], tuple[tuple, list[dict]]] | None:
+        """The vehicle table of an export, to build without the daemon's lock (its cost grows with the
+        fleet): called under the lock, it does the export's pending idle work and returns a job that
+        builds the table from a snapshot of the calibrator and the held segments, touching nothing of
+        the cloud's; hand its result to :meth:`keep_table` (under the lock) before :meth:`export`.
+        None if there is no calibrator, or the table is built already."""
+        if self.calibrator is None:
+            return None
+        self._export_ready()
+        segments = self.fused_segments()
+        key = self._table_key(segments)
+        if self._table is not None and self._table[0] == key:
+            return None
+        calibrator = self.calibrator.snapshot()
+        return lambda: (key, calibrator.table(segments))
+
+    def keep_table(self, key: tuple, rows: list[dict]) -> None:
+        """A table a :meth:`table_job` built: :meth:`vehicle_rows` uses it while its key holds."""
+        self._table = (key, rows)
+
     def vehicle_rows(self) -> list[dict]:
         """Rows of ``vehicles.parquet`` from the calibrator: a shard's own vehicles only (a vehicle it
         calibrated before its passes elsewhere made another shard its owner is that one's now). The
@@ -681,10 +707,9 @@ class Cloud:
 
     def export(self, out_dir: Path) -> list[Path]:
         """Every estimate as Parquet tables in ``out_dir`` (interfaces.md §3), a function of the held
-        segments: pending idle work (fusion, rail batches, bridge estimates) is done first."""
-        self._reapply_alignments()
-        self.fuse_pending()
-        self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
+        segments: pending idle work (fusion, rail batches, bridge estimates) is done first. The
+        vehicle table is the one :meth:`table_job` built if nothing it depends on changed since."""
+        self._export_ready()
         snaps = self.snapshot()
         frames = {rid: FLEET_FRAME if self.aligner.frames.get(rid) else REGISTRY_FRAME for rid in snaps}
         tables = {"profile": profile_table(snaps, frames)}

@@ -179,6 +179,11 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
                 query.reply_err(b"no export directory: pass ?dir=PATH or start the daemon with --export")
                 return
             with lock:
+                job = cloud.table_job()
+            table = job() if job is not None else None  # the vehicle table without the lock (a snapshot's)
+            with lock:
+                if table is not None:
+                    cloud.keep_table(*table)
                 try:
                     written = cloud.export(Path(target))
                 except OSError as e:
@@ -195,7 +200,12 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
 
     def on_tables(query):  # what `driveby export` writes: the export's files travel, the client writes them
         with query:
+            with lock:
+                job = cloud.table_job()
+            table = job() if job is not None else None  # the vehicle table without the lock (a snapshot's)
             with lock, tempfile.TemporaryDirectory(prefix="driveby-export-") as tmp:
+                if table is not None:
+                    cloud.keep_table(*table)
                 try:
                     written = cloud.export(Path(tmp))
                     files = {p.name: p.read_bytes() for p in written}
