@@ -19,6 +19,7 @@ import math
 import pytest
 
 from cloud.daemon.settings import CloudSettings
+from cloud.road.fleet_calibration import FleetCalibrator
 from cloud.view import View
 from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
@@ -88,4 +89,11 @@ def test_sliced_rounds_and_view_tables_are_the_whole_ones(fleet, tmp_path):
     whole.cloud.keep_table(key, rows)
     assert whole.cloud.table_job() is None  # nothing changed since: kept
     assert rows and whole.cloud.vehicle_rows() == rows == sliced.cloud.vehicle_rows()
+    # every table above reused the vehicles' AP responses from the tables before; a calibrator
+    # restored from the same state, with none to reuse, builds the same table
+    c = whole.cloud.calibrator
+    fresh = FleetCalibrator(site, None)
+    fresh.load_state(c.state())
+    fresh.continuous_aps, fresh.sample_intervals = c.continuous_aps, dict(c.sample_intervals)
+    assert fresh.table(whole.cloud.fused_segments()) == rows
     assert (tmp_path / "view.rrd").stat().st_size > 0

@@ -156,6 +156,10 @@ class FleetCalibrator:
         #: were taken against, per vehicle (its parameters' key, its fit), and per model the continuous
         #: consensus they used. Not state: a function of the round's data, dropped with the estimator.
         self._prepared: tuple[object, dict, dict] | None = None
+        #: Per vehicle, its APs' response to its ratios as the last vehicle table built it (its inputs'
+        #: key, the response): a function of the vehicle's parameters and passes alone, so most of a
+        #: fleet's carries over from one table to the next. Shared with :meth:`snapshot`'s copies.
+        self._responses: dict[str, tuple[str, list]] = {}
 
     # -- durable state (cloud/daemon/durable.py journals it after every round) --------------------
     def state(self) -> dict:
@@ -722,7 +726,10 @@ class FleetCalibrator:
                 sens = ConsensusSensitivity(st.model, st.params, items, class_prior(st.model, cls.mean, cls.std),
                                             st.params[ref], ap_gamma=0.5 if self._continuous(st.model) else None)
                 moves = sens.moves(deltas)
-                response = sens.ap_response()
+                key = self._response_key(st, items)
+                hit = self._responses.get(vid)
+                response = hit[1] if hit is not None and hit[0] == key else sens.ap_response()
+                self._responses[vid] = (key, response)
             except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
                 log.warning("consensus sensitivity failed for %s: %s", vid, e)
                 continue
@@ -767,6 +774,17 @@ class FleetCalibrator:
             for k, vid in enumerate(vids):
                 out[vid] = np.where(frozen, var_frozen[k], np.minimum(var[k], var_frozen[k]))
         return out
+
+    def _response_key(self, st: VehicleState, items: list[tuple[PassAp, np.ndarray]]) -> str:
+        """What :meth:`ConsensusSensitivity.ap_response` is a function of: the vehicle's parameters and
+        step, and per pass its AP (and speed, grid, sample interval) and where its consensus has data
+        (which sets the span the channels are rebuilt over)."""
+        h = hashlib.sha1(repr((st.model, sorted(st.params.items()), self._continuous(st.model))).encode())
+        for ap, cons in items:
+            h.update(repr((ap.start_index, ap.spacing_m, ap.speed_mps, ap.dt_s, ap.values.shape)).encode())
+            h.update(np.ascontiguousarray(ap.values, dtype=float).tobytes())
+            h.update(np.isfinite(cons).tobytes())
+        return h.hexdigest()
 
     def _fixed_point(self, coupled: dict[str, _Coupled], snaps: dict):
         """The operator ``r ↦ (I − M)⁻¹ r`` of :meth:`_fleet_error` on stacked per-vehicle log changes
