@@ -24,6 +24,7 @@ REGISTRY: dict[str, str] = {
     "rail": "benchmarks.rail",
     "edge": "benchmarks.edge",
     "align": "benchmarks.align",
+    "calib": "benchmarks.calib",
 }
 
 

@@ -85,10 +85,17 @@ class Harness:
     def settle(self) -> int:
         """Idle work and delivery until nothing more happens; returns the rounds (sweeps included)."""
         rounds = 0
-        while self.idle():
-            rounds += not self.cloud.aligner.sweeping  # (a slice of an alignment sweep is not a round)
+        c = self.cloud.calibrator
+        while True:  # (idle's work, told apart: a slice of a sweep, a round or its view table is not a round)
+            self.cloud.fuse_pending()
+            if self.cloud.maybe_align():
+                rounds += not self.cloud.aligner.sweeping
+            else:
+                before = c.rounds if c is not None else 0
+                if not self.cloud.maybe_calibrate():
+                    return rounds
+                rounds += c.rounds - before
             self.pump()
-        return rounds
 
 
 def run_in_process(logs: Iterable[DriveLog], site: Site, export_dir: Path | None,

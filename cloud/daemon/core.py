@@ -97,6 +97,11 @@ class Cloud:
         self.ownership = Ownership(s.shard, self.aggregator.vehicle_routes)
         self.aligner = ChainageAligner(s)
         self._unfused: dict[tuple[str, str], None] = {}  # acknowledged passes whose correction is due (ordered)
+        #: the round whose vehicle steps are being taken in slices: (its segments' key, its consensus)
+        self._round: tuple[str, MeanProfile] | None = None
+        #: the vehicle table of the last round for the view, being built in slices: (its key, the steps)
+        self._view_table: tuple[tuple, object] | None = None
+        self._table: tuple[tuple, list[dict]] | None = None  # the last vehicle table built: (its key, rows)
         #: ``record(kind, payload)``: the daemon's journal for the cloud's own decisions (an epoch's start,
         #: the calibrator's state after a round, an alarm), written before what they cause is published.
         self.record: Callable[[str, bytes], None] | None = None
@@ -406,7 +411,10 @@ class Cloud:
             self.record("epoch", json.dumps(self.epochs.state()).encode())
 
     def maybe_calibrate(self, tail: bool | None = None) -> bool:
-        """Run one calibration round if one is due; publish what changed. True if a round ran.
+        """Run one calibration round if one is due; publish what changed. True if a round ran, or a
+        slice of one: its vehicle steps are taken in slices of about ``round_budget_s``
+        (:meth:`FleetCalibrator.prepare`), as long as its segments stay the same, and the round is
+        applied with the last (the same round as in one call).
 
         A round is due when the current epoch has not finished and all of its passes are at their
         vehicle's current calibration; it sees those passes only, against a consensus of them alone
@@ -419,6 +427,9 @@ class Cloud:
         c = self.calibrator
         if c is None:
             return False
+        if self._view_table is not None:  # the last round's table for the view first, in slices
+            self._step_view_table()
+            return True
         epochs = self.epochs
         size = epochs.next_size(tail)
         if size is not None:
@@ -439,41 +450,116 @@ class Cloud:
         # The vehicle step sees what the posterior fuses: continuous-time APs (FleetCalibrator.continuous_aps).
         self.fuse_pending()
         segs = dict(zip(segs, self.aggregator.as_fused(segs.values())))
+        # each round pass's sample interval at the edge (its pass-done's), for the models of the passes
+        intervals = {key: ps.sample_interval_s for key in {(s.vehicle_id, s.pass_id) for s in segs.values()}
+                     if (ps := self.aggregator.passes.get(key)) is not None}
         # The leave-one-out consensus of the round: the epoch's passes only, summed in a fixed order
-        # (the running consensus holds passes beyond the epoch and rounding from its history).
-        consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
-        for seg in segs.values():
-            consensus.update(seg)
+        # (the running consensus holds passes beyond the epoch and rounding from its history). Kept
+        # while the round's vehicle steps are taken in slices, for as long as its segments are the same.
+        key = c.round_key(segs, intervals)
+        if self._round is None or self._round[0] != key:
+            consensus = MeanProfile({r.id: r.length_m for r in self.site.routes}, self.consensus.spacing_m)
+            for seg in segs.values():
+                consensus.update(seg)
+            self._round = (key, consensus)
+        consensus = self._round[1]
         if self.settings.shard is not None:  # the others' vehicles inform the consensus; their owners calibrate them
             segs = {sl: seg for sl, seg in segs.items() if self.owns(seg.vehicle_id)}
         c.estimator = consensus
-        # each round pass's sample interval at the edge (its pass-done's), for the models of the passes
-        c.sample_intervals = {key: ps.sample_interval_s for key in {(s.vehicle_id, s.pass_id) for s in segs.values()}
-                              if (ps := self.aggregator.passes.get(key)) is not None}
+        own = {(s.vehicle_id, s.pass_id) for s in segs.values()}
+        c.sample_intervals = {k: v for k, v in intervals.items() if k in own}
         try:
+            # The vehicle steps in slices of about round_budget_s (idle work, as alignment's): the
+            # serve loop takes input between them; the round then only applies them.
+            if not c.prepare(segs, Slice(self.clock, self.settings.round_budget_s)):
+                return True
             cals = c.round(segs)
         finally:
             c.estimator = self.consensus
+        self._round = None
         if self.record is not None:  # the round's outcome is on disk before any of it is published
             self.record("calibrator", json.dumps(c.state()).encode())
         for cal in cals:
             self.publish(keys.calib_key(self.net, cal.vehicle_id), cal.encode())
             epochs.issued(cal.vehicle_id)
         if self.view is not None:
-            try:
-                self.view.log_calibration(self.vehicle_rows())  # this round's vehicles, with their intervals
-            except Exception:  # the view is a side subscriber: never let it take the daemon down
-                log.exception("rerun calibration view update failed")
+            # This round's vehicles with their intervals: the table of the calibrator and the held
+            # segments as they are now, built in slices by the next calls (its cost grows with the fleet).
+            segments = self.fused_segments()
+            self._view_table = (self._table_key(segments), c.snapshot().table_steps(segments))
             self._log_view()  # the profile as the round left it, at the current pass count
         self.publish_status()
         return True
 
+    @property
+    def calibrating(self) -> bool:
+        """A round's vehicle steps, or its table for the view, are being taken in slices
+        (:meth:`maybe_calibrate`)."""
+        return self._round is not None or self._view_table is not None
+
+    def _step_view_table(self) -> None:
+        """One slice (``round_budget_s``) of the view's vehicle table; logged when it is complete."""
+        key, steps = self._view_table
+        work = Slice(self.clock, self.settings.round_budget_s)
+        try:
+            while work.more():
+                next(steps)
+                work.spent()
+        except StopIteration as done:
+            self._view_table = None
+            self._table = (key, done.value)
+            try:
+                self.view.log_calibration([r for r in done.value if self.owns(r["vehicle_id"])])
+            except Exception:  # the view is a side subscriber: never let it take the daemon down
+                log.exception("rerun calibration view update failed")
+        except Exception:
+            self._view_table = None
+            log.exception("rerun calibration view update failed")
+
+    def _table_key(self, segments: list) -> tuple:
+        """What the vehicle table is a function of: the calibrator's rounds and versions, its passes'
+        sample intervals, and the held segments."""
+        c = self.calibrator
+        return (c.rounds, tuple(sorted((vid, st.version) for vid, st in c.vehicles.items())),
+                tuple(sorted(c.sample_intervals.items())), c.round_key(dict(enumerate(segments)), {}))
+
+    def _export_ready(self) -> None:
+        """The pending idle work an export does first: every held segment where it will stay."""
+        self._reapply_alignments()
+        self.fuse_pending()
+        self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
+
+    def table_job(self) -> Callable[[], tuple[tuple, list[dict]]] | None:
+        """The vehicle table of an export, to build without the daemon's lock (its cost grows with the
+        fleet): called under the lock, it does the export's pending idle work and returns a job that
+        builds the table from a snapshot of the calibrator and the held segments, touching nothing of
+        the cloud's; hand its result to :meth:`keep_table` (under the lock) before :meth:`export`.
+        None if there is no calibrator, or the table is built already."""
+        if self.calibrator is None:
+            return None
+        self._export_ready()
+        segments = self.fused_segments()
+        key = self._table_key(segments)
+        if self._table is not None and self._table[0] == key:
+            return None
+        calibrator = self.calibrator.snapshot()
+        return lambda: (key, calibrator.table(segments))
+
+    def keep_table(self, key: tuple, rows: list[dict]) -> None:
+        """A table a :meth:`table_job` built: :meth:`vehicle_rows` uses it while its key holds."""
+        self._table = (key, rows)
+
     def vehicle_rows(self) -> list[dict]:
         """Rows of ``vehicles.parquet`` from the calibrator: a shard's own vehicles only (a vehicle it
-        calibrated before its passes elsewhere made another shard its owner is that one's now)."""
+        calibrated before its passes elsewhere made another shard its owner is that one's now). The
+        table the view's slices built is used while nothing it depends on has changed."""
         if self.calibrator is None:
             return []
-        return [r for r in self.calibrator.table(self.fused_segments()) if self.owns(r["vehicle_id"])]
+        segments = self.fused_segments()
+        key = self._table_key(segments)
+        if self._table is None or self._table[0] != key:
+            self._table = (key, self.calibrator.table(segments))
+        return [r for r in self._table[1] if self.owns(r["vehicle_id"])]
 
     # -- bridges ---------------------------------------------------------------------------------
     def _bridge_uncertainty(self, vehicle_id: str, model: str, calib_version: int) -> dict | None:
@@ -621,10 +707,9 @@ class Cloud:
 
     def export(self, out_dir: Path) -> list[Path]:
         """Every estimate as Parquet tables in ``out_dir`` (interfaces.md §3), a function of the held
-        segments: pending idle work (fusion, rail batches, bridge estimates) is done first."""
-        self._reapply_alignments()
-        self.fuse_pending()
-        self.step_rail(force=True)  # every acknowledged carriage run calibrated and re-keyed
+        segments: pending idle work (fusion, rail batches, bridge estimates) is done first. The
+        vehicle table is the one :meth:`table_job` built if nothing it depends on changed since."""
+        self._export_ready()
         snaps = self.snapshot()
         frames = {rid: FLEET_FRAME if self.aligner.frames.get(rid) else REGISTRY_FRAME for rid in snaps}
         tables = {"profile": profile_table(snaps, frames)}

@@ -179,6 +179,11 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
                 query.reply_err(b"no export directory: pass ?dir=PATH or start the daemon with --export")
                 return
             with lock:
+                job = cloud.table_job()
+            table = job() if job is not None else None  # the vehicle table without the lock (a snapshot's)
+            with lock:
+                if table is not None:
+                    cloud.keep_table(*table)
                 try:
                     written = cloud.export(Path(target))
                 except OSError as e:
@@ -195,7 +200,12 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
 
     def on_tables(query):  # what `driveby export` writes: the export's files travel, the client writes them
         with query:
+            with lock:
+                job = cloud.table_job()
+            table = job() if job is not None else None  # the vehicle table without the lock (a snapshot's)
             with lock, tempfile.TemporaryDirectory(prefix="driveby-export-") as tmp:
+                if table is not None:
+                    cloud.keep_table(*table)
                 try:
                     written = cloud.export(Path(tmp))
                     files = {p.name: p.read_bytes() for p in written}
@@ -286,6 +296,8 @@ def serve(session: zenoh.Session, cloud: Cloud, stop: threading.Event, default_e
                         else:
                             # (A round journals the calibrator through cloud.record before publishing.)
                             cloud.maybe_calibrate(tail=cloud.since_new_pass_s() >= settings.epoch_tail_s)
+                            if cloud.calibrating:  # a round in slices (round_budget_s): back after a short gap
+                                wait = slice_wait
                             cloud.step_rail()  # carriage batches
                             # Bridges take passes at their vehicle's current calibration only, so a
                             # round just published leaves them as they are until recomputed.

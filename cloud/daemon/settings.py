@@ -71,6 +71,10 @@ class CloudSettings:
         raw data evicted from the edge's spool) is left out of the epoch's rounds.
     reissue_after_s : …and only this long after the vehicle's current calibration was published:
         before that, the edge may simply not have started recomputing.
+    round_budget_s : a round's vehicle steps are taken in slices of about this long (each overruns it
+        by at most one vehicle's step), one per quiet tick, and the round applied with the last, so the
+        daemon's lock is never held for a whole round (whose cost grows with the vehicles); the same
+        result as one call. ``inf``: a whole round per call.
 
     Scheduling
     ----------
@@ -113,6 +117,7 @@ class CloudSettings:
     epoch_tail_s: float = 1.0
     refresh_wait_s: float = 5.0
     reissue_after_s: float = 1.0
+    round_budget_s: float = 0.25
 
     quiet_s: float = 0.2
     status_interval_s: float = 0.1
@@ -139,6 +144,7 @@ class CloudSettings:
         require(self.align_iterations >= 1, "align_iterations", ">= 1")
         require(0.0 < self.align_max_stretch < 1.0, "align_max_stretch", "a fraction in (0, 1)")
         require(self.align_budget_s >= 0, "align_budget_s", "a duration >= 0 (s; inf: unbounded)")
+        require(self.round_budget_s >= 0, "round_budget_s", "a duration >= 0 (s; inf: unbounded)")
         for name in ("align_tol_m", "align_apply_m", "epoch_tail_s", "refresh_wait_s", "reissue_after_s",
                      "quiet_s", "status_interval_s", "status_heartbeat_s", "flush_budget_s"):
             value = getattr(self, name)

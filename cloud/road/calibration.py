@@ -44,7 +44,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
-from shared.dynamics.forward import channels_from_ap
+from shared.dynamics.forward import channels_from_ap, channels_transpose
 from shared.dynamics.inverse import InverseStream, build_inverse, edge_gamma
 from shared.dynamics.newmark import newmark_constants
 from shared.vehicles import vehicle_from_params
@@ -557,10 +557,8 @@ class PassRemap:
     def consensus_response(self, params: dict, delta: np.ndarray) -> np.ndarray:
         """The change of :meth:`residual` when the consensus changes by ``delta`` (m, on the pass's grid
         slice, (n_points, n_contacts)): the prediction is linear in the profile it is driven by."""
-        x, xt, off, spacing = self._grid
-        d = np.where(np.isfinite(delta), delta, 0.0)
-        if self.settings.lowpass_cpm:
-            d = _lowpass_grid(d, spacing, self.settings.lowpass_cpm)
+        x, xt, off, _ = self._grid
+        d = self.consensus_input(delta)
         d_t = np.stack([np.interp(xt + off[i], x, d[:, i]) for i in range(d.shape[1])], axis=1)
         gamma = edge_gamma(self.model) if self.predict_gamma is None else self.predict_gamma
         pred = channels_from_ap(vehicle_from_params(self.model, params).system(), d_t, newmark_constants(self.dt, gamma))
@@ -568,6 +566,42 @@ class PassRemap:
         if self.start_basis is not None:
             r = r - self.start_basis @ (self.start_basis.T @ r)
         return r
+
+    def consensus_weights(self, params: dict, weights: np.ndarray) -> np.ndarray:
+        """The transpose of :meth:`consensus_response`: for rows ``weights`` (b, residual length), the
+        weights ``G`` (b, n_points, n_contacts) on the consensus change with ``weights @
+        consensus_response(params, delta) = Σ G · d`` (up to rounding), ``d`` the change as
+        :meth:`consensus_response` drives the vehicle with it (holes as zero, low-passed where the
+        settings say). The prediction is linear in the profile, so a fixed set of rows (a Jacobian's)
+        is one map, and any number of changes cost a product each instead of a forward run."""
+        x, xt, off, _ = self._grid
+        w = np.atleast_2d(np.asarray(weights, float))
+        if self.start_basis is not None:  # the projection is symmetric: it moves to the weights' side
+            w = w - (w @ self.start_basis) @ self.start_basis.T
+        n_ch = self.z.shape[1]
+        on_channels = np.zeros((w.shape[0], self.z.shape[0], n_ch))
+        on_channels[:, self.skip:] = w.reshape(w.shape[0], self.n, n_ch) / self.scale
+        gamma = edge_gamma(self.model) if self.predict_gamma is None else self.predict_gamma
+        on_time = channels_transpose(vehicle_from_params(self.model, params).system(), on_channels,
+                                     newmark_constants(self.dt, gamma))  # (b, samples, n_contacts)
+        out = np.zeros((w.shape[0], x.size, on_time.shape[2]))
+        for i in range(on_time.shape[2]):
+            # np.interp's weights on the grid: two neighbours inside, the end value beyond either end
+            xq = xt + off[i]
+            j = np.clip(np.searchsorted(x, xq, side="right") - 1, 0, x.size - 2)
+            t = np.clip((xq - x[j]) / (x[j + 1] - x[j]), 0.0, 1.0)
+            for r in range(w.shape[0]):
+                out[r, :, i] = (np.bincount(j, on_time[r, :, i] * (1.0 - t), minlength=x.size)
+                                + np.bincount(j + 1, on_time[r, :, i] * t, minlength=x.size))
+        return out
+
+    def consensus_input(self, delta: np.ndarray) -> np.ndarray:
+        """A consensus change (n_points, n_contacts) as :meth:`consensus_response` drives the vehicle
+        with it on the grid: holes as zero, low-passed where the settings say."""
+        d = np.where(np.isfinite(delta), delta, 0.0)
+        if self.settings.lowpass_cpm:
+            d = _lowpass_grid(d, self._grid[3], self.settings.lowpass_cpm)
+        return d
 
 
 def fit_vehicle(model: str, params0: dict, passes: list[tuple[PassAp, np.ndarray]],
@@ -630,7 +664,7 @@ class ConsensusSensitivity:
     ``passes`` as :func:`fit_vehicle`'s, at the vehicle's fitted ``params``. Linearised at ``params``
     with :func:`fit_vehicle`'s weights (misfit scale, effective sample count, class prior), a change
     of the consensus moves the optimum by one Gauss–Newton step, ``δθ = −(JᵀJ)⁻¹ Jᵀ δr``; the matrices
-    are built once, so that many changes (draws, or the fleet's own moves) cost one forward run each.
+    are built once, and a change costs a product with each pass's map (:meth:`PassRemap.consensus_weights`).
     """
 
     def __init__(self, model: str, params: dict, passes: list[tuple[PassAp, np.ndarray]],
@@ -655,6 +689,15 @@ class ConsensusSensitivity:
             J[:, j] = (self._data_res(self.theta + step) - self._data_res(self.theta - step)) / (2 * FD_STEP) * self.w
         self.J = J
         self.A = J.T @ J + np.diag(1.0 / sd**2)
+        # Per pass, the map from its consensus change (as its remap drives the vehicle with it) to
+        # Jᵀ δr: the step's response is linear in the change and J is fixed, so one transposed
+        # forward model per pass replaces a forward run per change (:meth:`moves`).
+        self.weights = []
+        row = 0
+        for r in self.remaps:
+            size = r.n * r.z.shape[1]
+            self.weights.append(r.consensus_weights(params, self.w * J[row : row + size].T))
+            row += size
 
     def _data_res(self, th: np.ndarray) -> np.ndarray:
         params = from_calibration(self.model, dict(zip(self.names, np.exp(th))), self.ref_value)
@@ -663,11 +706,12 @@ class ConsensusSensitivity:
     def moves(self, deltas: list[np.ndarray]) -> np.ndarray:
         """``deltas[p]`` (K, n_points, n_contacts): K changes of pass p's consensus (the same K for every
         pass). Returns (K, quantities): the fit's moves, log units, in :func:`calibration_names` order."""
-        out = np.zeros((deltas[0].shape[0] if deltas else 0, self.theta.size))
-        for k in range(out.shape[0]):
-            dr = np.concatenate([r.consensus_response(self.params, d[k]) for r, d in zip(self.remaps, deltas)]) * self.w
-            out[k] = -np.linalg.solve(self.A, self.J.T @ dr)
-        return out
+        k = deltas[0].shape[0] if deltas else 0
+        jr = np.zeros((self.theta.size, k))  # Jᵀ δr per change, through each pass's map
+        for r, g, d in zip(self.remaps, self.weights, deltas):
+            inputs = np.stack([r.consensus_input(d[i]) for i in range(k)]) if k else np.zeros((0,) + g.shape[1:])
+            jr += np.einsum("qnc,knc->qk", g, inputs)
+        return -np.linalg.solve(self.A, jr).T if k else np.zeros((0, self.theta.size))
 
     def ap_response(self) -> list[np.ndarray]:
         """Per pass, (quantities, n_points, n_contacts): the change of the pass's AP on its grid slice per

@@ -44,6 +44,7 @@ import hashlib
 import logging
 import math
 import time
+from collections.abc import Generator
 
 import numpy as np
 
@@ -151,6 +152,14 @@ class FleetCalibrator:
         #: (vehicle, pass) → the sample interval (s) the edge inverted the pass at (its pass-done; the
         #: daemon sets this before a round, as it sets ``estimator``); a pass not here was a 500 Hz log's.
         self.sample_intervals: dict[tuple[str, str], float] = {}
+        #: Vehicle steps taken ahead of a round in bounded slices (:meth:`prepare`): the estimator they
+        #: were taken against, per vehicle (its parameters' key, its fit), and per model the continuous
+        #: consensus they used. Not state: a function of the round's data, dropped with the estimator.
+        self._prepared: tuple[object, dict, dict] | None = None
+        #: Per vehicle, its APs' response to its ratios as the last vehicle table built it (its inputs'
+        #: key, the response): a function of the vehicle's parameters and passes alone, so most of a
+        #: fleet's carries over from one table to the next. Shared with :meth:`snapshot`'s copies.
+        self._responses: dict[str, tuple[str, list]] = {}
 
     # -- durable state (cloud/daemon/durable.py journals it after every round) --------------------
     def state(self) -> dict:
@@ -229,8 +238,8 @@ class FleetCalibrator:
                 return False
         return len({s.pass_id for s in segments.values()}) >= self.min_passes
 
-    def round(self, segments: dict[tuple, ApSegment]) -> list[Calibration]:
-        """One vehicle step for every model's vehicles with data; the calibrations that changed."""
+    def _groups(self, segments: dict[tuple, ApSegment]) -> tuple[dict, dict]:
+        """A round's segments per vehicle, and per model its vehicles with usable passes (sorted)."""
         by_vehicle: dict[str, list[ApSegment]] = {}
         for seg in segments.values():
             by_vehicle.setdefault(seg.vehicle_id, []).append(seg)
@@ -242,6 +251,78 @@ class FleetCalibrator:
             items = self._passes(segs, self.sample_intervals)
             if items:
                 by_model.setdefault(st.model, []).append((vid, items))
+        return by_vehicle, by_model
+
+    @staticmethod
+    def round_key(segments: dict[tuple, ApSegment], sample_intervals: dict) -> str:
+        """A fingerprint of what a round's consensus and vehicle steps are made of (the segments, in
+        order, and their passes' sample intervals): the vehicle steps :meth:`prepare` took hold for a
+        round on segments of the same key, against a consensus built from them."""
+        h = hashlib.sha1()
+        for sl, seg in segments.items():
+            h.update(repr((sl, seg.vehicle_id, seg.pass_id, seg.route_id, seg.axle, seg.start_index, seg.spacing_m,
+                           seg.calib_version, seg.speed_mps,
+                           sample_intervals.get((seg.vehicle_id, seg.pass_id)))).encode())
+            h.update(np.ascontiguousarray(seg.values, dtype=float).tobytes())
+            h.update(np.ascontiguousarray(seg.sigma, dtype=float).tobytes())
+        return h.hexdigest()
+
+    def prepare(self, segments: dict[tuple, ApSegment], work=None) -> bool:
+        """Idle work ahead of a round on ``segments``: its per-vehicle models' vehicle steps, in the
+        round's order, against ``estimator`` as the round would take them, as many as ``work`` allows
+        (an object with ``more()`` and ``spent()``, as :class:`cloud.daemon.chainage.Slice`; None:
+        all). True when every one is taken; :meth:`round` on the same segments and estimator then
+        only applies them, so a round's work can be spread over many short calls with the same result.
+
+        A step is a function of the vehicle's parameters, its segments and the estimator (the caller
+        gives the same estimator object only for segments of the same :meth:`round_key`); a step whose
+        vehicle's parameters changed meanwhile is taken again by :meth:`round`. Changes nothing the
+        calibrator journals."""
+        by_vehicle, by_model = self._groups(segments)
+        if self._prepared is None or self._prepared[0] is not self.estimator:
+            self._prepared = (self.estimator, {}, {})
+        _, fits, conts = self._prepared
+        for model, group in sorted(by_model.items()):
+            if model not in PER_VEHICLE:
+                continue
+            vids = [vid for vid, _ in group]
+            estimator, cont = self.estimator, {}
+            if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
+                key = self._params_key(vids)
+                if conts.get(model, (None,))[0] != key:
+                    if work is not None and not work.more():
+                        return False
+                    conts[model] = (key, *self._continuous_estimator(model, vids, by_vehicle))
+                    if work is not None:
+                        work.spent()
+                _, estimator, cont = conts[model]
+            for vid in vids:
+                key = self._step_key(model, vid, vids)
+                if fits.get(vid, (None,))[0] == key:
+                    continue
+                if work is not None and not work.more():
+                    return False
+                fits[vid] = (key, self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid)))
+                if work is not None:
+                    work.spent()
+        return True
+
+    def _params_key(self, vids: list[str]) -> str:
+        return repr([(vid, sorted(self.vehicles[vid].params.items())) for vid in vids])
+
+    def _step_key(self, model: str, vid: str, vids: list[str]) -> str:
+        """What a prepared vehicle step depends on beyond the round's segments and estimator: the
+        vehicle's parameters, and for a continuous consensus every vehicle's of the model."""
+        if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
+            return self._params_key(vids)
+        return self._params_key([vid])
+
+    def round(self, segments: dict[tuple, ApSegment]) -> list[Calibration]:
+        """One vehicle step for every model's vehicles with data; the calibrations that changed. The
+        steps :meth:`prepare` took for these segments against this estimator are used as they are."""
+        by_vehicle, by_model = self._groups(segments)
+        prepared = self._prepared if self._prepared is not None and self._prepared[0] is self.estimator else None
+        self._prepared = None
         self.rounds += 1
         self.dirty = False
         out = []
@@ -251,7 +332,7 @@ class FleetCalibrator:
             cls = self.site.vehicle_class(model)
             prior = class_prior(model, cls.mean, cls.std)
             if model in PER_VEHICLE:
-                moved, big = self._refine(model, [vid for vid, _ in group], by_vehicle, prior)
+                moved, big = self._refine(model, [vid for vid, _ in group], by_vehicle, prior, prepared)
                 out += moved
                 biggest = max(biggest, big)
                 continue
@@ -301,19 +382,26 @@ class FleetCalibrator:
         return Calibration(vehicle_id=vid, version=st.version, vehicle_model=st.model, params=st.params,
                            source="fleet")
 
-    def _refine(self, model: str, vids: list[str], by_vehicle: dict, prior) -> tuple[list[Calibration], float]:
+    def _refine(self, model: str, vids: list[str], by_vehicle: dict, prior,
+                prepared: tuple | None = None) -> tuple[list[Calibration], float]:
         """A refinement round for vehicles the joint step has placed: each vehicle against the
         leave-one-out consensus of the profile estimator, in acceleration space, the fleet-wide
         common part of the changes over-relaxed (alternation's slow mode is the fleet drifting
-        together)."""
+        together). ``prepared``: steps :meth:`prepare` took (used where their key still holds)."""
         self.refinements += 1
         self._start_round(model, vids, {s.pass_id for vid in vids for s in by_vehicle[vid]})
         steps = {}
+        _, fits, conts = prepared if prepared is not None else (None, {}, {})
         estimator, cont = self.estimator, {}
         if model in CONTINUOUS_CONSENSUS and not self._continuous(model):
-            estimator, cont = self._continuous_estimator(model, vids, by_vehicle)
+            if conts.get(model, (None,))[0] == self._params_key(vids):
+                _, estimator, cont = conts[model]
+            else:
+                estimator, cont = self._continuous_estimator(model, vids, by_vehicle)
         for vid in vids:
-            fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid))
+            key, fit = fits.get(vid, (None, None))
+            if key != self._step_key(model, vid, vids):
+                fit = self._vehicle_step(self.vehicles[vid], by_vehicle[vid], estimator, cont.get(vid))
             if fit is not None:
                 current = np.log([to_calibration(model, self.vehicles[vid].params)[n] for n in fit.names])
                 steps[vid] = (np.log(fit.mean) - current, fit)
@@ -519,8 +607,20 @@ class FleetCalibrator:
         from ``segments``, the held segments as the vehicle step sees them; without them, the step's
         spread alone): the consensus it was fitted against, and the part of that error every vehicle
         shares."""
+        steps = self.table_steps(segments)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                return done.value
+
+    def table_steps(self, segments: list[ApSegment] | None = None) -> Generator[None, None, list[dict]]:
+        """:meth:`table` one vehicle's linearisation at a time: a generator that yields between them and
+        returns the rows, so that the caller can spread the work over bounded calls. It reads the
+        calibrator as it is at each step: to build the table of one moment while rounds go on, run it
+        on a :meth:`snapshot`."""
         rows = []
-        extra = self._fleet_error(segments or [])
+        extra = yield from self._fleet_error(segments or [])
         for vid, st in sorted(self.vehicles.items()):
             if st.fit is None:
                 continue
@@ -533,9 +633,22 @@ class FleetCalibrator:
                              "hi95": cal[n] * math.exp(1.96 * se[i])})
         return rows
 
-    def _fleet_error(self, segments: list[ApSegment], n_draws: int = CONSENSUS_DRAWS) -> dict[str, np.ndarray]:
+    def snapshot(self) -> FleetCalibrator:
+        """A copy of the calibrator as it is now, for :meth:`table_steps` while this one goes on
+        (the vehicles, the trend and the sample intervals copied; no estimator, nothing prepared)."""
+        out = copy.copy(self)
+        out.vehicles = copy.deepcopy(self.vehicles)
+        out.common_trend = copy.deepcopy(self.common_trend)
+        out.trend_passes = dict(self.trend_passes)
+        out.sample_intervals = dict(self.sample_intervals)
+        out.estimator, out._prepared = None, None
+        return out
+
+    def _fleet_error(self, segments: list[ApSegment],
+                     n_draws: int = CONSENSUS_DRAWS) -> Generator[None, None, dict[str, np.ndarray]]:
         """Per vehicle of a :data:`PER_VEHICLE` model, the variance (log units) its step's Laplace
-        interval leaves out (errors in variables), from the held ``segments``.
+        interval leaves out (errors in variables), from the held ``segments`` (a generator: it
+        yields before each vehicle's linearisation and returns the variances).
 
         * the consensus's own error: ``n_draws`` draws of it (the precision-weighted mean's stated
           error, with the passes' excess error, :func:`cloud.road.long_wave.pass_error_draws`), the
@@ -608,11 +721,15 @@ class FleetCalibrator:
                 continue
             cls = self.site.vehicle_class(st.model)
             ref, _ = REFERENCE[st.model]
+            yield  # a vehicle's linearisation is the unit of work
             try:
                 sens = ConsensusSensitivity(st.model, st.params, items, class_prior(st.model, cls.mean, cls.std),
                                             st.params[ref], ap_gamma=0.5 if self._continuous(st.model) else None)
                 moves = sens.moves(deltas)
-                response = sens.ap_response()
+                key = self._response_key(st, items)
+                hit = self._responses.get(vid)
+                response = hit[1] if hit is not None and hit[0] == key else sens.ap_response()
+                self._responses[vid] = (key, response)
             except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
                 log.warning("consensus sensitivity failed for %s: %s", vid, e)
                 continue
@@ -657,6 +774,17 @@ class FleetCalibrator:
             for k, vid in enumerate(vids):
                 out[vid] = np.where(frozen, var_frozen[k], np.minimum(var[k], var_frozen[k]))
         return out
+
+    def _response_key(self, st: VehicleState, items: list[tuple[PassAp, np.ndarray]]) -> str:
+        """What :meth:`ConsensusSensitivity.ap_response` is a function of: the vehicle's parameters and
+        step, and per pass its AP (and speed, grid, sample interval) and where its consensus has data
+        (which sets the span the channels are rebuilt over)."""
+        h = hashlib.sha1(repr((st.model, sorted(st.params.items()), self._continuous(st.model))).encode())
+        for ap, cons in items:
+            h.update(repr((ap.start_index, ap.spacing_m, ap.speed_mps, ap.dt_s, ap.values.shape)).encode())
+            h.update(np.ascontiguousarray(ap.values, dtype=float).tobytes())
+            h.update(np.isfinite(cons).tobytes())
+        return h.hexdigest()
 
     def _fixed_point(self, coupled: dict[str, _Coupled], snaps: dict):
         """The operator ``r ↦ (I − M)⁻¹ r`` of :meth:`_fleet_error` on stacked per-vehicle log changes

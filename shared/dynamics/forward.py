@@ -127,6 +127,69 @@ def channels_from_ap(system: VehicleSystem, ap: np.ndarray, c: NewmarkConstants,
     return measured_channels(system, ap_response(system, ap, c, u0, v0))
 
 
+def _smooth_size(n: int) -> int:
+    """The least 2^a·3^b·5^c ≥ n: a length the FFT is fast at."""
+    best = 1 << max(n - 1, 0).bit_length()
+    p5 = 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            p = p35
+            while p < n:
+                p *= 2
+            best = min(best, p)
+            p35 *= 3
+        p5 *= 5
+    return best
+
+
+def channels_transpose(system: VehicleSystem, weights: np.ndarray, c: NewmarkConstants) -> np.ndarray:
+    """The transpose of :func:`channels_from_ap` (from static equilibrium): per row of ``weights``,
+    the weights on the profile that give the same sum.
+
+    :func:`channels_from_ap` is linear in the profile and, away from its first sample, time-invariant
+    (a profile that is zero up to step j leaves the vehicle at rest until j), so it is the causal
+    convolution of each contact's impulse response plus, for the first sample, the free response from
+    static equilibrium on it. Its transpose is therefore a cross-correlation with the same responses
+    (FFT), and a weighted sum over the first sample's: two forward runs per contact in all, where
+    applying the model to many profiles costs one run each.
+
+    Parameters
+    ----------
+    system : VehicleSystem
+    weights : ndarray
+        (b, n, n_channels) (or (n, n_channels)): weights on the channels, one row per step ``c.dt``.
+    c : NewmarkConstants
+
+    Returns
+    -------
+    ndarray
+        (b, n, n_contacts) (or (n, n_contacts)) ``V`` with ``Σ weights[r] · channels_from_ap(system, ap, c)
+        = Σ V[r] · ap`` for every profile ``ap`` (n, n_contacts), up to rounding.
+    """
+    w = np.asarray(weights, dtype=float)
+    w3 = w[None] if w.ndim == 2 else w
+    if w3.ndim != 3 or w3.shape[2] != len(system.channels) or w3.shape[1] < 2:
+        raise ValueError(f"weights: expected (b, n >= 2, {len(system.channels)}), got {w.shape}")
+    b, n, _ = w3.shape
+    nc = system.n_contacts
+    impulses = np.zeros((2 * nc, n, nc))
+    for i in range(nc):
+        impulses[i, 1, i] = 1.0  # the time-invariant part: an impulse after the start
+        impulses[nc + i, 0, i] = 1.0  # the start: static equilibrium on the first sample, then zero
+    resp = channels_from_ap(system, impulses, c)  # (2 nc, n, n_channels)
+    size = _smooth_size(2 * n - 1)  # no wrap-around of the lags read
+    fw = np.fft.rfft(w3, size, axis=1)  # (b, f, n_channels)
+    out = np.empty((b, n, nc))
+    for i in range(nc):
+        # V[j] = Σ_m Σ_ch w[j + m, ch] g[m, ch], g[m] the response m + 1 steps after an impulse
+        fg = np.fft.rfft(resp[i, 1:], size, axis=0)  # (f, n_channels)
+        corr = np.fft.irfft(np.einsum("bfh,fh->bf", fw, np.conj(fg)), size, axis=1)
+        out[:, 1:, i] = corr[:, 1:n]
+        out[:, 0, i] = np.einsum("bnh,nh->b", w3, resp[nc + i])
+    return out[0] if w.ndim == 2 else out
+
+
 def contact_forces(system: VehicleSystem, ap: np.ndarray, state: NewmarkState, dt: float) -> np.ndarray:
     """Dynamic contact forces kc·(y − Gᵀq) + cc·(ẏ − Gᵀq̇) of :func:`ap_response`'s ``state`` on
     ``ap`` (N, positive pressing the surface down; the static load is not included), shaped like ``ap``."""

@@ -87,19 +87,23 @@ def step(M, C, K, f_next, state: NewmarkState, c: NewmarkConstants, K_eff_inv=No
 
 @kernel
 def _integrate_kernel(K_eff_inv, M, C, f, u0, v0, a0_, k):
-    """The recurrence of :func:`step` for ``m`` load cases ``f`` (m, n_steps, n) from (m, n) states."""
+    """The recurrence of :func:`step` for ``m`` load cases ``f`` (m, n_steps, n) from (m, n) states
+    (scalar loops: no temporary per step, the same operations in the same order)."""
     m, n_steps, n = f.shape
     u = np.empty((m, n_steps, n))
     v = np.empty((m, n_steps, n))
     a = np.empty((m, n_steps, n))
     rhs = np.empty(n)
+    pu = np.empty(n)
+    pc = np.empty(n)
     for b in range(m):
         u[b, 0] = u0[b]
         v[b, 0] = v0[b]
         a[b, 0] = a0_[b]
         for s in range(1, n_steps):
-            pu = k[0] * u[b, s - 1] + k[2] * v[b, s - 1] + k[3] * a[b, s - 1]
-            pc = k[1] * u[b, s - 1] + k[4] * v[b, s - 1] + k[5] * a[b, s - 1]
+            for j in range(n):
+                pu[j] = k[0] * u[b, s - 1, j] + k[2] * v[b, s - 1, j] + k[3] * a[b, s - 1, j]
+                pc[j] = k[1] * u[b, s - 1, j] + k[4] * v[b, s - 1, j] + k[5] * a[b, s - 1, j]
             for i in range(n):
                 acc = f[b, s, i]
                 for j in range(n):
