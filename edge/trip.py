@@ -447,9 +447,31 @@ def imu_bias(runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], t_fix: np.nd
     sol, *_ = np.linalg.lstsq(A, y, rcond=None)
     resid = (y - A @ sol)[: len(ys)] * sd_v
     cov = np.linalg.inv(A.T @ A) * sd_v**-2
-    # The fixes' errors are correlated over the GNSS error's time constant: one independent value
-    # per that many fixes, so the formal 1σ grows by the root of their number.
-    rate = (len(t_fix) - 1) / max(float(t_fix[-1] - t_fix[0]), 1e-9)
-    inflate = max(1.0, rate * settings.fusion.gnss_tau_s)
+    # Consecutive rows share most of their error (overlapping windows, the GNSS error's wander), so
+    # the rows are worth fewer independent values: the formal variance grows by the residuals' own
+    # integrated correlation length, in rows.
+    inflate = correlation_length(resid, np.asarray(run_of))
     sd_b = float(np.sqrt(cov[n_runs + 1, n_runs + 1] * float(np.mean(resid**2)) * inflate))
     return ImuBias(float(sol[n_runs + 1]), sd_b, float(sol[n_runs]))
+
+
+def correlation_length(resid: np.ndarray, group: np.ndarray) -> float:
+    """The integrated correlation length (in samples, at least 1) of the residual series ``resid``
+    made of runs labelled by ``group``: 1 + 2·Σρ_k over the lags k whose autocorrelation ρ_k, pooled
+    over the runs, is still positive (Geyer's initial positive sequence). The variance of a mean of
+    correlated samples is the white formula's times this."""
+    resid = np.asarray(resid, float)
+    group = np.asarray(group)
+    total = float(np.sum(resid**2))
+    if total <= 0.0:
+        return 1.0
+    out = 1.0
+    for k in range(1, len(resid)):
+        same = group[k:] == group[:-k]
+        if not same.any():
+            break
+        rho = float(np.sum(resid[k:][same] * resid[:-k][same])) / total
+        if rho <= 0.0:
+            break
+        out += 2.0 * rho
+    return max(out, 1.0)
