@@ -18,7 +18,7 @@ frame and in the fleet's, with the band's coverage; IRI per 100 m):
 * ``draws``: the comparison of `tests/test_network_accuracy.py` — the mean profile error of the
   ``mm`` passes and of the ``matched`` ones over :data:`DRAWS` noise draws added alike to both, each
   draw's error and the ratio per route (a route's mean is carried by a draw whose alignment failed
-  as much as by the typical one, so the draws are listed);
+  as much as by the typical one, so the draws are listed); ``draws-nominal`` is the test's reading;
 * ``chainage``: per pass, the edge's chainage error against the truth: its shift, its stretch and
   what a shift and a stretch leave (rms, max; what the cloud's alignment cannot remove).
 
