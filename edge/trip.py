@@ -4,7 +4,7 @@ Steps, each its own module: the raw IMU's orientation (`edge.orientation`; its v
 gyro's turn axis and gravity taken between standstills, over ``level_window_s`` blocks), the logger's timestamps
 onto the nominal grid, cut at IMU gaps (`edge.resample`), GNSS fixes matched to the network
 (`edge.mapmatch`), the longitudinal accelerometer's bias once per drive from the GNSS track's
-speed (`imu_bias`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
+speed and the standstills (`imu_bias`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
 IMU's along-track acceleration (`edge.fusion`). What is left is cut into passes; a sample is kept
 only if the vehicle is on one unambiguously matched route, moving in the route's direction faster
 than ``min_speed_mps``, with |longitudinal acceleration| at most ``max_long_acc_mps2``, |lateral
