@@ -14,6 +14,8 @@ frame and in the fleet's, with the band's coverage; IRI per 100 m):
   (what the edge's field steps cost apart from chainage);
 * ``affine`` / ``shift``: the truth's chainage plus what a perfect shift-and-stretch / shift-only
   alignment of each pass would leave of the edge's chainage error;
+* ``frame``: the truth's chainage plus only the shift and stretch of the edge's error (what the
+  cloud's alignment is there to remove: a route worse here than under ``truth`` is misaligned);
 * ``mm``: the network passes as the edge cuts them (map matching and fusion);
 * ``draws``: the comparison of `tests/test_network_accuracy.py` — the mean profile error of the
   ``mm`` passes and of the ``matched`` ones over :data:`DRAWS` noise draws added alike to both, each
@@ -81,15 +83,15 @@ def with_true_chainage(passes, truth):
 def with_residual_chainage(passes, truth, model: str):
     """The passes with the truth's chainage plus the part of the edge's chainage error that a
     perfect pass alignment would leave: ``affine`` removes each pass's best shift and stretch,
-    ``shift`` its mean error only, anything else nothing."""
+    ``shift`` its mean error only, anything else nothing; ``frame`` keeps only the shift and stretch."""
     out = []
     for p in passes:
         t, c, v = _truth_track(truth, p.meta.pass_id.rsplit("-", 2)[0])
         ct = np.interp(p.t, t, c)
         e = p.chainage - ct
-        A = np.stack([np.ones_like(ct), ct - ct.mean()], 1)[:, : {"affine": 2, "shift": 1}.get(model, 0)]
+        A = np.stack([np.ones_like(ct), ct - ct.mean()], 1)[:, : {"affine": 2, "shift": 1, "frame": 2}.get(model, 0)]
         sol, *_ = np.linalg.lstsq(A, e, rcond=None) if A.shape[1] else (np.zeros(0),)
-        r = e - A @ sol
+        r = A @ sol if model == "frame" else e - A @ sol
         # The edge's chainage within a pass is the integrated speed: the speed carries the residual.
         out.append(dataclasses.replace(p, chainage=ct + r, speed=np.interp(p.t, t, v) + np.gradient(r, p.t)))
     return out
@@ -222,7 +224,7 @@ def main(argv: list[str]) -> None:
             site, passes, cut = network_passes(netdir)
             if var.startswith("matched"):
                 passes = matched_clean(cleandir, passes)
-            elif var.startswith(("affine", "shift", "speed")):
+            elif var.startswith(("affine", "shift", "speed", "frame")):
                 passes = with_residual_chainage(passes, truth, var.split("-")[0])
             elif var.startswith("truth"):
                 passes, e = with_true_chainage(passes, truth)
