@@ -36,17 +36,20 @@ class FusionSettings:
     ``gnss_tau_s``: time constant of the fixes' correlated error, s; ``gnss_correlated_share``: the
     share of a fix's variance that is correlated (0: white fixes).
 
-    ``q_acc`` is a phone accelerometer's own noise density (~1e-5) with a margin for what a small
-    tilt error leaks in of the body's vibration; ``q_bias`` lets the bias move by millimetres per
-    second squared over a pass. Together they let the IMU, not the fixes' wander, shape the track
-    within a pass, so that its chainage error is a shift and a stretch — provided the bias is known
-    (from the whole drive, `edge.trip.imu_bias`): a bias wrong by 0.01 m/s² bends a 20 s pass by
-    decimetres. A road's changing grade enters as a changing bias (g times the grade's change), so
-    on hilly roads ``q_bias`` must grow with it."""
+    ``q_acc`` is a phone accelerometer's own noise density (~1e-5) with a margin of two for what a
+    tilt error of a milliradian leaks in of the body's vibration (far less); ``q_bias`` is a phone
+    accelerometer's bias instability (about a milli-g over an hour, with temperature). Any freedom
+    beyond the sensor's own is freedom for the fixes' wander to shape the track: a model that lets
+    the acceleration or the bias move by millimetres per second squared over a pass lets a wander
+    of metres over tens of seconds bend the pass's chainage by centimetres, which no pass alignment
+    (a shift and a stretch) removes. So the IMU, not the fixes, shapes the track within a pass,
+    provided the bias is known (from the whole drive, `edge.trip.imu_bias`): a bias wrong by
+    0.01 m/s² bends a 20 s pass by decimetres. A road's changing grade enters as a changing bias
+    (g times the grade's change), so on hilly roads ``q_bias`` must grow with it."""
 
-    q_acc: float = 0.0002
+    q_acc: float = 2e-5
     q_acc_no_imu: float = 2.0
-    q_bias: float = 1e-6
+    q_bias: float = 3e-8
     bias_sd: float = 0.3
     rate_hz: float = 50.0
     gnss_tau_s: float = 30.0

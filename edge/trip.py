@@ -4,7 +4,7 @@ Steps, each its own module: the raw IMU's orientation (`edge.orientation`; its v
 gyro's turn axis and gravity taken between standstills, over ``level_window_s`` blocks), the logger's timestamps
 onto the nominal grid, cut at IMU gaps (`edge.resample`), GNSS fixes matched to the network
 (`edge.mapmatch`), the longitudinal accelerometer's bias once per drive from the GNSS track's
-speed (`imu_bias`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
+speed and the standstills (`imu_bias`), and per matched stretch a smoothed chainage and speed fusing the fixes with the
 IMU's along-track acceleration (`edge.fusion`). What is left is cut into passes; a sample is kept
 only if the vehicle is on one unambiguously matched route, moving in the route's direction faster
 than ``min_speed_mps``, with |longitudinal acceleration| at most ``max_long_acc_mps2``, |lateral
@@ -71,13 +71,14 @@ class TripSettings:
     heading_window_s: float = 5.0
     max_turn_rad: float = 0.2
     level_window_s: float = 1.0
+    max_bridge_s: float = 2.0
     resample: ResampleSettings = field(default_factory=ResampleSettings)
     match: MatchSettings = field(default_factory=MatchSettings)
     fusion: FusionSettings = field(default_factory=FusionSettings)
 
     def __post_init__(self):
         for k in ("min_speed_mps", "max_long_acc_mps2", "max_lat_acc_mps2", "lat_window_s", "pad_s", "max_fix_gap_s", "min_pass_m", "heading_window_s",
-                  "max_turn_rad", "level_window_s"):
+                  "max_turn_rad", "level_window_s", "max_bridge_s"):
             v = getattr(self, k)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"TripSettings.{k}: must be a positive finite number, got {v!r}")
@@ -186,7 +187,10 @@ def split_trip(log: DriveLog, network: Network, settings: TripSettings = TripSet
             per_run.append((dict(run.signals), None, None))
     bias = None
     if raw:
-        bias = imu_bias([(run.t, la, lt) for run, (_, la, lt) in zip(runs, per_run)], t_fix, lat, lon, settings)
+        window = max(2, int(round(settings.level_window_s * fs)))
+        rests = [rest_samples(np.column_stack([r.signals[c] for c in ACC_COLUMNS]) @ frame.up, la, window)
+                 for r, (_, la, _) in zip(runs, per_run)]
+        bias = imu_bias([(run.t, la, lt) for run, (_, la, lt) in zip(runs, per_run)], t_fix, lat, lon, settings, rests)
     passes: list[DriveLog] = []
     for run, (channels, long_acc, lat_raw) in zip(runs, per_run):
         lat_acc = None
@@ -397,7 +401,7 @@ class ImuBias(NamedTuple):
 
 
 def imu_bias(runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], t_fix: np.ndarray, lat: np.ndarray,
-             lon: np.ndarray, settings: TripSettings) -> ImuBias | None:
+             lon: np.ndarray, settings: TripSettings, rests: list[np.ndarray] | None = None) -> ImuBias | None:
     """The longitudinal accelerometer's bias and yaw leak, once per drive, from the GNSS track's speed.
 
     ``runs``: per IMU run (time, longitudinal, lateral acceleration). Per fix, the GNSS speed and the
@@ -408,6 +412,11 @@ def imu_bias(runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], t_fix: np.nd
     single stretch's fixes (tens of seconds) leave it to centimetres per second squared — a bend of
     decimetres in every pass's chainage. Fixes while turning are left out (the fitted speed cuts the
     corner), standing ones count as speed zero. None when too few fixes are usable.
+
+    ``rests``: per run, the samples where the IMU itself says the vehicle stands (`edge.orientation.
+    standstills`). There the speed is zero exactly, not to the GNSS fit's decimetres per second: two
+    rests a minute apart pin the bias to a fraction of a mm/s² (the accelerometer's noise
+    integrated between them), the GNSS speed then mainly tells the yaw leak and the runs' rests apart.
     """
     w = settings.heading_window_s
     vel, _, fitted = _track_fits(t_fix, lat, lon, w)
@@ -416,11 +425,14 @@ def imu_bias(runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], t_fix: np.nd
     speed = np.where(speed < 0.3, 0.0, speed)  # standing: the fit's speed is noise
     usable = fitted & valid & (np.abs(yaw_rate) * w < settings.max_turn_rad)
     rows, ys, run_of = [], [], []
+    still_rows, still_ys = [], []
     for r, (t, a_long, a_lat) in enumerate(runs):
         h = float(t[1] - t[0])
         P = np.empty((len(t), 3))
+        vint = np.empty((len(t), 2))
         for j, a in enumerate((a_long, a_lat)):
             v = np.concatenate([[0.0], np.cumsum(0.5 * (a[1:] + a[:-1]) * h)])
+            vint[:, j] = v
             P[:, j] = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * h)])
         P[:, 2] = 0.5 * (t - t[0]) ** 2
         inside = np.flatnonzero(usable & (t_fix - w / 2 >= t[0]) & (t_fix + w / 2 <= t[-1]))
@@ -433,23 +445,101 @@ def imu_bias(runs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], t_fix: np.nd
             rows.append((r, coef[1, 1], coef[1, 2], 2.0 * coef[2, 0]))  # run, integrated lateral, integrated time, acc
             ys.append(speed[i] - coef[1, 0])
             run_of.append(r)
+        for j in ([] if rests is None else rests[r]):
+            still_rows.append((r, vint[j, 1], float(t[j] - t[0]), 0.0))  # standing: no acceleration either
+            still_ys.append(-vint[j, 0])
     n_runs = len(runs)
     if len(ys) < 10 * (n_runs + 2):
         return None
+    # Across a short IMU gap the speed goes on: the next run starts where this one ends plus what
+    # the acceleration at the gap's edges adds over it (its change within a fraction of a second of
+    # steady driving: ~0.1 m/s², hence the row's 1σ).
+    bridge_rows, bridge_ys, bridge_sd = [], [], []
+    for r in range(n_runs - 1):
+        (t0, a0, l0), (t1, a1, _) = runs[r], runs[r + 1]
+        gap = float(t1[0] - t0[-1])
+        if gap > settings.max_bridge_s:
+            continue
+        k = max(1, int(round(0.2 / float(t0[1] - t0[0]))))
+        h = float(t0[1] - t0[0])
+        v_end = float(np.sum(0.5 * (a0[1:] + a0[:-1]) * h))
+        lat_end = float(np.sum(0.5 * (l0[1:] + l0[:-1]) * h))
+        edge_acc = 0.5 * (float(np.mean(a0[-k:])) + float(np.mean(a1[:k])))
+        bridge_rows.append((r, lat_end, float(t0[-1] - t0[0])))
+        bridge_ys.append(v_end + edge_acc * gap)
+        bridge_sd.append(0.01 + 0.1 * gap)
     # speed − ∫a_long = v0_run − δ·∫a_lat − b·(t − t_run); weak priors keep δ and b finite without turns.
-    sd_v, prior = 0.2, 0.05  # m/s per fix; a prior 1σ of 0.05 (rad, m/s²): far wider than either
-    A = np.zeros((len(ys) + 2, n_runs + 3))
-    for k, (r, sl, st, ac) in enumerate(rows):
-        A[k, r], A[k, n_runs], A[k, n_runs + 1], A[k, n_runs + 2] = 1.0, -sl, -st, ac
-    A[: len(ys)] /= sd_v
-    y = np.concatenate([np.asarray(ys) / sd_v, [0.0, 0.0]])
-    A[len(ys), n_runs], A[len(ys) + 1, n_runs + 1] = 1.0 / prior, 1.0 / prior
-    sol, *_ = np.linalg.lstsq(A, y, rcond=None)
-    resid = (y - A @ sol)[: len(ys)] * sd_v
-    cov = np.linalg.inv(A.T @ A) * sd_v**-2
-    # The fixes' errors are correlated over the GNSS error's time constant: one independent value
-    # per that many fixes, so the formal 1σ grows by the root of their number.
-    rate = (len(t_fix) - 1) / max(float(t_fix[-1] - t_fix[0]), 1e-9)
-    inflate = max(1.0, rate * settings.fusion.gnss_tau_s)
-    sd_b = float(np.sqrt(cov[n_runs + 1, n_runs + 1] * float(np.mean(resid**2)) * inflate))
-    return ImuBias(float(sol[n_runs + 1]), sd_b, float(sol[n_runs]))
+    # A fix's speed errs by ~0.2 m/s (m/s; refined below); a standstill's by the accelerometer's noise
+    # integrated over a minute and a creeping vehicle: centimetres per second. The priors' 1σ of 0.05
+    # (rad, m/s²) is far wider than either.
+    sd_v, sd_still, prior = 0.2, 0.02, 0.05
+    n, m, nb = len(ys), len(still_ys), len(bridge_ys)
+    A0 = np.zeros((n + m + nb + 2, n_runs + 3))
+    for k, (r, sl, st, ac) in enumerate(rows + still_rows):
+        A0[k, r], A0[k, n_runs], A0[k, n_runs + 1], A0[k, n_runs + 2] = 1.0, -sl, -st, ac
+    # v0[r+1] − v0[r] + δ·∫a_lat + b·T = ∫a_long over run r, plus the gap's share.
+    for k, (r, sl, st) in enumerate(bridge_rows):
+        A0[n + m + k, r + 1], A0[n + m + k, r], A0[n + m + k, n_runs], A0[n + m + k, n_runs + 1] = 1.0, -1.0, sl, st
+    A0[n + m + nb, n_runs], A0[n + m + nb + 1, n_runs + 1] = 1.0 / prior, 1.0 / prior
+    y0 = np.concatenate([ys, still_ys, bridge_ys, [0.0, 0.0]])
+    w_rows = np.concatenate([np.full(n, 1.0 / sd_v), np.full(m, 1.0 / sd_still), 1.0 / np.asarray(bridge_sd, float),
+                             [1.0, 1.0]])
+    sol, *_ = np.linalg.lstsq(A0 * w_rows[:, None], y0 * w_rows, rcond=None)
+    resid = (y0 - A0 @ sol)[:n]
+    # Consecutive fixes share most of their error (overlapping windows, the GNSS error's wander), so
+    # they are worth fewer independent values: their variance is the residuals' own, grown by the
+    # residuals' integrated correlation length, in rows. Refitted with that weight.
+    var_v = float(np.mean(resid**2)) * correlation_length(resid, np.asarray(run_of))
+    w_rows[:n] = 1.0 / math.sqrt(max(var_v, 1e-12))
+    A = A0 * w_rows[:, None]
+    sol, *_ = np.linalg.lstsq(A, y0 * w_rows, rcond=None)
+    cov = np.linalg.inv(A.T @ A)
+    return ImuBias(float(sol[n_runs + 1]), float(np.sqrt(cov[n_runs + 1, n_runs + 1])), float(sol[n_runs]))
+
+
+def correlation_length(resid: np.ndarray, group: np.ndarray) -> float:
+    """The integrated correlation length (in samples, at least 1) of the residual series ``resid``
+    made of runs labelled by ``group``: 1 + 2·Σρ_k over the lags k whose autocorrelation ρ_k, pooled
+    over the runs, is still positive (Geyer's initial positive sequence). The variance of a mean of
+    correlated samples is the white formula's times this."""
+    resid = np.asarray(resid, float)
+    group = np.asarray(group)
+    total = float(np.sum(resid**2))
+    if total <= 0.0:
+        return 1.0
+    out = 1.0
+    for k in range(1, len(resid)):
+        same = group[k:] == group[:-k]
+        if not same.any():
+            break
+        rho = float(np.sum(resid[k:][same] * resid[:-k][same])) / total
+        if rho <= 0.0:
+            break
+        out += 2.0 * rho
+    return max(out, 1.0)
+
+
+def rest_samples(vertical: np.ndarray, long_acc: np.ndarray, window: int, still_ratio: float = 0.1,
+                 max_long_mps2: float = 0.05) -> np.ndarray:
+    """Per standstill of one run, a sample where the vehicle surely stands: the middle of the
+    quietest ``window`` (vertical specific force ``vertical``, m/s²) among those quieter than
+    ``still_ratio`` of the run's median whose mean longitudinal acceleration (``long_acc``, m/s²)
+    is within ``max_long_mps2`` of zero.
+
+    Rolling, the road shakes the body at any speed worth a pass, but at walking pace only a little:
+    quiet windows also take in the pulling away and the last metres of braking, which the
+    longitudinal acceleration (tenths of m/s² or more) tells apart from standing.
+    """
+    z = np.asarray(vertical, float)
+    if len(z) < 3 * window:
+        return np.zeros(0, np.int64)
+    c1 = np.concatenate([[0.0], np.cumsum(z - z.mean())])
+    c2 = np.concatenate([[0.0], np.cumsum((z - z.mean()) ** 2)])
+    m1 = (c1[window:] - c1[:-window]) / window
+    sd = np.sqrt(np.maximum((c2[window:] - c2[:-window]) / window - m1**2, 0.0))
+    cl = np.concatenate([[0.0], np.cumsum(np.asarray(long_acc, float))])
+    along = np.abs(cl[window:] - cl[:-window]) / window
+    still = (sd < still_ratio * np.median(sd)) & (along < max_long_mps2)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
+    return np.asarray([a + int(np.argmin(sd[a:b])) + window // 2 for a, b in zip(edges[::2], edges[1::2])
+                       if b - a >= window // 2], np.int64)

@@ -16,7 +16,6 @@ from the drives) and to the clean ones, run in process; the drives themselves go
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import subprocess
 import sys
@@ -25,80 +24,67 @@ import numpy as np
 import pytest
 
 from shared.registry import load_site
-from shared.sensors import add_noise
-from simfleet.harness import run_in_process
 from simfleet.run import run
-from cloud.daemon.settings import CloudSettings
-from tests.network_diagnosis import matched_clean, network_passes, score_routes
+from tests.network_diagnosis import DRAWS, draw_scores, matched_clean, mean_scores, network_passes, score_routes
 
 SEED = 0
 RATIO = 1.2  # the issue's goal: within 1.2x of the clean passes
-#: Noise draws the mean error is taken over. Each is added on top of the simulation's own 2 % noise,
-#: the same process on both sides (2 % of each pass channel's std), so the comparison is at ~2.8 %.
-DRAWS = 4
-NOISE_PCT = 2.0
 
 
 @pytest.fixture(scope="module")
 def sims(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("network_accuracy")
-    for name, out in (("network", tmp / "net"), ("network-clean", tmp / "clean")):
-        r = subprocess.run([sys.executable, "-m", "simfleet", "sim", name, "--out", str(out), "--seed", str(SEED),
-                            "--nominal", "true"], capture_output=True, text=True, timeout=600)
-        assert r.returncode == 0, r.stderr
+    # The two worlds side by side: independent simulations, one process each.
+    procs = [subprocess.Popen([sys.executable, "-m", "simfleet", "sim", name, "--out", str(out), "--seed", str(SEED),
+                               "--nominal", "true"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for name, out in (("network", tmp / "net"), ("network-clean", tmp / "clean"))]
+    for p in procs:
+        _, err = p.communicate(timeout=600)
+        assert p.returncode == 0, err
     return tmp
 
 
-def test_field_drives_run_end_to_end_over_zenoh(sims):
+@pytest.fixture(scope="module")
+def draws(sims):
+    """Per noise draw (:data:`tests.network_diagnosis.DRAWS` of them, each added on top of the
+    simulation's own 2 % noise, the same process on both sides), the scores of the field passes as
+    the edge cut them from the drives and of the coverage-matched clean passes, run in process."""
+    tmp = sims
+    site, passes, _ = network_passes(tmp / "net")
+    truth = json.loads((tmp / "net" / "truth.json").read_text())
+    return draw_scores(passes, site, matched_clean(tmp / "clean", passes), load_site(tmp / "clean" / "site.toml"),
+                       truth, tmp / "draws", DRAWS), passes
+
+
+def test_field_drives_run_end_to_end_over_zenoh(sims, draws):
     """Every pass the drives hold goes through ``driveby run`` and every route the clean passes score
     is scored from the field drives too."""
     tmp = sims
+    runs, passes = draws
     res = run(tmp / "net" / "logs", tmp / "net" / "site.toml", tmp / "export", calibration="nominal", progress=False)
-    assert res.passes >= 8 and res.acked == res.passes
-    _, passes, _ = network_passes(tmp / "net")  # the passes driveby run cut, for their coverage
-    run_in_process(matched_clean(tmp / "clean", passes), load_site(tmp / "clean" / "site.toml"), tmp / "matched",
-                   CloudSettings(calibration="nominal"))
+    assert res.passes == len(passes) >= 8 and res.acked == res.passes
     truth = json.loads((tmp / "net" / "truth.json").read_text())
-    field, clean = score_routes(tmp / "export", truth), score_routes(tmp / "matched", truth)
-    for rid, ref in clean.items():
+    field = score_routes(tmp / "export", truth)
+    for rid, ref in runs["clean"][0].items():  # the first draw's clean passes: the same coverage
         print(f"{rid}: field {field.get(rid)}\n    clean {ref}")
         if "profile_stretch_frame" in ref:
             assert np.isfinite(field.get(rid, {}).get("profile_stretch_frame", np.nan)), rid
 
 
-def _noisy(passes, rng):
-    return [dataclasses.replace(p, channels={k: add_noise(v, NOISE_PCT, rng).astype(np.float32)
-                                             for k, v in p.channels.items()}) for p in passes]
-
-
 @pytest.fixture(scope="module")
-def mean_scores(sims):
-    """Per route, the mean over :data:`DRAWS` noise draws of each score, field and clean."""
-    tmp = sims
-    site, passes, _ = network_passes(tmp / "net")
-    clean_passes = matched_clean(tmp / "clean", passes)
-    clean_site = load_site(tmp / "clean" / "site.toml")
-    truth = json.loads((tmp / "net" / "truth.json").read_text())
-    runs = {"field": [], "clean": []}
-    for d in range(DRAWS):
-        for name, ps, st in (("field", passes, site), ("clean", clean_passes, clean_site)):
-            out = tmp / f"{name}-draw{d}"
-            run_in_process(_noisy(ps, np.random.default_rng(1000 + d)), st, out, CloudSettings(calibration="nominal"))
-            runs[name].append(score_routes(out, truth))
-    out = {}
-    for name, rs in runs.items():
-        out[name] = {rid: {key: float(np.mean([r.get(rid, {}).get(key, np.inf) for r in rs]))
-                           for key in ("profile_stretch_frame", "iri_median") if key in rs[0][rid]}
-                     for rid in rs[0]}
-    return out["field"], out["clean"]
+def mean_scores_(draws):
+    """Per route, the mean over the noise draws of each score, field and clean."""
+    runs, _ = draws
+    return mean_scores(runs["field"]), mean_scores(runs["clean"])
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "open: R1's and R3's profile. Over noise draws the field drives' mean profile error on R1 (the drives' "
-    "GNSS dropout: chainage beyond a shift and a stretch) and on R3 exceeds 1.2x the clean passes'; R2's and "
-    "R4's profile and both IRIs are within it"))
-def test_field_drives_are_within_1p2x_of_the_same_coverage_driven_clean(mean_scores):
-    field, clean = mean_scores
+    "open: R1's and R3's profile. R1: the drive's accelerometer bias, known from the GNSS track to "
+    "millimetres per second squared, still bends a long pass's chainage by centimetres beyond a shift and a "
+    "stretch; R3: over the limit even with the truth's chainage and speed (what the field passes cost apart "
+    "from chainage). R2's and R4's profile and both IRIs are within it"))
+def test_field_drives_are_within_1p2x_of_the_same_coverage_driven_clean(mean_scores_):
+    field, clean = mean_scores_
     for rid in sorted(clean):
         print(f"{rid}: field {field.get(rid)}\n    clean {clean[rid]}")
     worse = []
