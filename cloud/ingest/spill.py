@@ -121,10 +121,11 @@ class SpillMap(MutableMapping):
         """The key's row holds ``value`` (inserted with the key's place if it has none yet)."""
         tag = self._tag(value) if self._tag is not None else None
         if key in self._rowed:
-            self._db.execute("UPDATE m SET tag = ?, v = ? WHERE ord = ?", (tag, self._encode(value), self._ord[key]))
+            self._db.execute("UPDATE m SET tag = ?, v = ? WHERE ord = ?",
+                             (tag, self.encode_entry(key, value), self._ord[key]))
         else:
             self._index().execute("INSERT INTO m (ord, k, tag, v) VALUES (?, ?, ?, ?)",
-                                  (self._ord[key], _key_text(key), tag, self._encode(value)))
+                                  (self._ord[key], _key_text(key), tag, self.encode_entry(key, value)))
             self._rowed.add(key)
             if self._filter is None:
                 self._filter = bytearray(FILTER_BITS // 8)
@@ -192,7 +193,7 @@ class SpillMap(MutableMapping):
         row = self._cold(key, "ord, v")
         if row is None:
             raise KeyError(key)
-        value = self._decode(row[1])
+        value = self.decode_entry(key, row[1])
         self.reads += 1
         if self._promote:  # its row keeps a stale copy, rewritten when it spills again
             self._hot[key] = value
@@ -311,7 +312,7 @@ class SpillMap(MutableMapping):
                 blob = row[2] if row is not None else (self._cold(key) or (None,))[0]
                 if blob is None:  # deleted while walking
                     continue
-                value = self._decode(blob)
+                value = self.decode_entry(key, blob)
                 self.reads += 1
             yield key, value
 
@@ -319,6 +320,15 @@ class SpillMap(MutableMapping):
         return (v for _, v in self.items())
 
     # -- beyond a dict -------------------------------------------------------------------------
+    def encode_entry(self, key, value) -> bytes:
+        """What ``key``'s row holds for ``value`` (the ``encode`` given; a subclass may write less
+        for a value kept elsewhere, and read it back in :meth:`decode_entry`)."""
+        return self._encode(value)
+
+    def decode_entry(self, key, blob: bytes):
+        """``key``'s value from what its row holds (the inverse of :meth:`encode_entry`)."""
+        return self._decode(blob)
+
     def peek(self, key):
         """The value if it is in memory (no read), else None."""
         return self._hot.get(key)
@@ -337,13 +347,13 @@ class SpillMap(MutableMapping):
         """``(key, encoded value)`` in order, without decoding spilled values (e.g. a snapshot)."""
         if self.max_resident is None:
             for key, value in list(self._hot.items()):
-                yield key, self._encode(value)
+                yield key, self.encode_entry(key, value)
             return
         for key, value, row in self._walk(", v"):
             if row is not None and (value is _MISSING or key in self._clean):
                 yield key, row[2]
             elif value is not _MISSING:
-                yield key, self._encode(value)
+                yield key, self.encode_entry(key, value)
             else:
                 blob = self._cold(key)
                 if blob is not None:
