@@ -41,7 +41,6 @@ from cloud.export import (FLEET_FRAME, REGISTRY_FRAME, bridge_bearings_table, br
 from cloud.ingest.aggregator import Aggregator
 from cloud.ingest.segment_store import HeldSegments, SegmentStore
 from cloud.ingest.spill import SpillMap
-from cloud.ingest.wire import encode_flat
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
 from cloud.road.fleet_calibration import FleetCalibrator
 from cloud.road.gmrf_profile import GmrfProfile
@@ -184,7 +183,7 @@ class Cloud:
             v["last_pass"] = ack.pass_id
             v["calib_version"] = ack.calib_version
             v["segments"] += ack.n_segments_accepted
-            self.publish(keys.ack_key(self.net, ack.vehicle_id), encode_flat(ack))
+            self.publish(keys.ack_key(self.net, ack.vehicle_id), ack.encode())
             if first:  # the `pass` timeline counts distinct passes; recalibrated ones update in place
                 self.passes_complete += 1
                 if self.view is not None:
