@@ -1410,8 +1410,8 @@ class _ColumnPlan:
     # name → (layout, first index in what ``numbers`` reads, data buffer offset, data length)
     columns: dict
     types: dict  # name → numpy type of a list column's values
-    # (positions in what ``numbers`` reads, lowest, highest) of the scalars the kind's rules bound
-    ranges: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    # (getter of the scalars the kind's rules bound from what ``numbers`` reads, lowest, highest)
+    ranges: tuple[Any, np.ndarray, np.ndarray] | None
 
 
 @functools.lru_cache(maxsize=256)
@@ -1516,7 +1516,8 @@ def _column_plan(schema_message: bytes, meta: bytes) -> _ColumnPlan | None:
     if ranges is not None:  # each bounded scalar's place and bounds (closed: an open end is the next float)
         ranges = [(columns[name][1] + r, lo if not lo_open else math.nextafter(lo, math.inf), hi)
                   for name, (lo, hi, lo_open) in ranges.items() for r in range(rows)]
-        ranges = tuple(np.array(v) for v in zip(*ranges))
+        at, lo, hi = zip(*ranges)
+        ranges = (operator.itemgetter(*at), np.array(lo), np.array(hi))
     return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types, ranges)
 
 
@@ -1545,7 +1546,7 @@ def _columns_of(payload) -> tuple[str, int, dict] | None:
     if plan.ranges is not None:
         at, lo, hi = plan.ranges
         # (as floats: the integer bounds are below 2⁵³, so no value is misjudged; NaN fails both)
-        a = np.array(numbers, dtype=np.float64)[at]
+        a = np.array(at(numbers), dtype=np.float64)
         if not ((a >= lo) & (a <= hi)).all():
             return None
     out = {}
@@ -1634,13 +1635,14 @@ def _ap_segments_of(rows: int, c: dict) -> list[ApSegment] | None:
 
 
 def _frozen_copies(flat: np.ndarray, bounds) -> list[np.ndarray]:
-    """Each row's values, a read-only copy (a segment holds its own arrays, not the payload)."""
-    out = []
-    for a, b in zip(bounds, bounds[1:]):
-        a = flat[a:b].copy()
-        a.flags.writeable = False
-        out.append(a)
-    return out
+    """Each row's values, read-only: views of one copy of the rows' values (a segment holds its
+    own arrays, not the payload; one copy per column of a batch, not one per row)."""
+    first, last = bounds[0], bounds[-1]
+    copy = flat[first:last].copy()
+    copy.flags.writeable = False
+    if len(bounds) == 2:
+        return [copy]
+    return [copy[a - first : b - first] for a, b in zip(bounds, bounds[1:])]
 
 
 def decode_ap(payload: bytes) -> list[ApSegment]:
