@@ -202,6 +202,17 @@ class SpillMap(MutableMapping):
             self._trim()
         return value
 
+    def get(self, key, default=None):
+        """``self[key]`` if present, else ``default`` (a resident key without the mapping's detour
+        through an exception: the ingest path asks for a pass's state per segment)."""
+        value = self._hot.get(key, _MISSING)
+        if value is not _MISSING:
+            return value
+        try:
+            return self[key]
+        except KeyError:
+            return default
+
     def __setitem__(self, key, value) -> None:
         hot = self._hot
         if self.max_resident is None:
