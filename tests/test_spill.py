@@ -16,14 +16,16 @@ from cloud.ingest.spill import SpillMap
 from shared.schema import ApSegment
 
 
-def _map(tmp_path, n, promote=False):
-    return SpillMap(n, tmp_path, pickle.dumps, pickle.loads, tag=len, promote=promote)
+def _map(tmp_path, n, promote=False, group=None):
+    return SpillMap(n, tmp_path, pickle.dumps, pickle.loads, tag=len, promote=promote, spill_group=group)
 
 
-@pytest.mark.parametrize("bound,promote", [(None, False), (1, False), (3, True), (7, False)])
-def test_random_writes_reads_and_deletes_match_a_dict(tmp_path, bound, promote):
+@pytest.mark.parametrize("bound,promote,group", [(None, False, None), (1, False, None), (3, True, None),
+                                                 (7, False, None), (7, False, 4), (6, True, 3), (5, False, 5)])
+def test_random_writes_reads_and_deletes_match_a_dict(tmp_path, bound, promote, group):
+    """(``group``: values spilled at once, in one transaction.)"""
     rng = random.Random(bound or 0)
-    m, ref = _map(tmp_path, bound, promote), {}
+    m, ref = _map(tmp_path, bound, promote, group), {}
     keys = [("v", f"p{i}", i % 3) for i in range(25)]
     for step in range(1500):
         k = rng.choice(keys)
