@@ -1411,7 +1411,7 @@ class _ColumnPlan:
     columns: dict
     types: dict  # name → numpy type of a list column's values
     # (getter of the scalars the kind's rules bound from what ``numbers`` reads, lowest, highest)
-    ranges: tuple[Any, np.ndarray, np.ndarray] | None
+    ranges: tuple[Any, tuple, tuple] | None
 
 
 @functools.lru_cache(maxsize=256)
@@ -1517,7 +1517,8 @@ def _column_plan(schema_message: bytes, meta: bytes) -> _ColumnPlan | None:
         ranges = [(columns[name][1] + r, lo if not lo_open else math.nextafter(lo, math.inf), hi)
                   for name, (lo, hi, lo_open) in ranges.items() for r in range(rows)]
         at, lo, hi = zip(*ranges)
-        ranges = (operator.itemgetter(*at), np.array(lo), np.array(hi))
+        get = operator.itemgetter(*at)
+        ranges = (get if len(at) > 1 else lambda numbers: (get(numbers),), lo, hi)
     return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types, ranges)
 
 
@@ -1545,9 +1546,9 @@ def _columns_of(payload) -> tuple[str, int, dict] | None:
     numbers = plan.numbers.unpack_from(payload, body + plan.start)
     if plan.ranges is not None:
         at, lo, hi = plan.ranges
-        # (as floats: the integer bounds are below 2⁵³, so no value is misjudged; NaN fails both)
-        a = np.array(at(numbers), dtype=np.float64)
-        if not ((a >= lo) & (a <= hi)).all():
+        # (Python's comparisons: exact between ints and floats, as the constructor's; NaN fails both)
+        a = at(numbers)
+        if not (all(map(operator.le, lo, a)) and all(map(operator.le, a, hi))):
             return None
     out = {}
     for name, (layout, i, data, limit) in plan.columns.items():
