@@ -12,6 +12,10 @@ so that superseding a slot needs no read) and its place in the iteration order a
 Iteration order is that of a ``dict`` with the same writes, so anything summed over the segments
 sums in the same order whether they are resident or not.
 
+An estimator that keeps the segments it holds (the profile posterior: exact retraction, the per-pass
+drift) keeps them in a :class:`HeldSegments` over the store: bounded the same way, and on disk only
+where it holds something other than the stored segment itself (one payload per segment on disk).
+
 The index belongs to one process lifetime (a restarted cloud rebuilds it from its journal).
 """
 
