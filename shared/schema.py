@@ -1148,75 +1148,121 @@ def _ap_columns(segments: list[ApSegment] | tuple[ApSegment, ...]) -> dict[str, 
     return cols
 
 
-# AP payloads written into a template of their layout. Arrow's IPC bytes of a batch whose columns
-# are texts, int64 and float64 scalars and lists of numbers depend on the values only through the
-# contents of the value buffers: the metadata (buffer offsets and lengths, list and text offsets,
-# padding) is fixed by the layout (the rows, each row's text lengths in bytes and array sizes). So
-# the first payload of a layout is encoded by Arrow and the positions of its value buffers read back;
-# every later payload of that layout is its values written at those positions into a copy of it, byte
-# for byte what Arrow writes, without building arrays and a record batch each time.
-_AP_TEXTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_string(t))
-_AP_LISTS = tuple(name for name, t in _AP_COLUMNS if pa.types.is_list(t))
-_AP_NUMBERS = tuple((names, operator.attrgetter(*names), dtype)
-                    for names, dtype in ((_AP_INT64, np.int64), (_AP_FLOAT64, np.float64)))
-_AP_LIST_READERS = tuple((name, operator.attrgetter(name), _NUMPY_OF[t.value_type])
-                         for name, t in _AP_COLUMNS if pa.types.is_list(t))
-_MAX_AP_LAYOUTS = 1024
-_ap_templates: dict[tuple, tuple[bytes, tuple] | None] = {}  # layout → template (a memo of this process)
+# Payloads written into a template of their layout (AP segments and batches, acknowledgements: the
+# messages the cloud writes per segment or per pass). Arrow's IPC bytes of a batch whose columns
+# are texts, int64 and float64 scalars and lists of numbers, each a field of the row objects, depend
+# on the values only through the contents of the value buffers: the metadata (buffer offsets and
+# lengths, list and text offsets, padding) is fixed by the layout (the rows, each row's text lengths
+# in bytes and array sizes). So the first payload of a layout is encoded by Arrow and the positions
+# of its value buffers read back; every later payload of that layout is its values written at those
+# positions into a copy of it, byte for byte what Arrow writes, without building arrays and a record
+# batch each time.
+
+
+@dataclass(frozen=True)
+class _Flat:
+    """How the template encoder reads a kind whose wire columns are its row objects' fields."""
+
+    names: tuple[str, ...]  # every column, in the wire's order
+    texts: tuple[str, ...]
+    lists: tuple[tuple[str, Any, type], ...]  # (name, getter, numpy type of the values)
+    numbers: tuple[tuple[tuple[str, ...], Any, type], ...]  # the scalar columns per numpy type, their getter
+    packs: dict  # a scalar column's name → how one value is packed (one-row payloads)
+
+
+def _flat(columns) -> _Flat:
+    scalars = {np.int64: [], np.float64: []}
+    for name, t in columns:
+        if pa.types.is_int64(t) or pa.types.is_float64(t):
+            scalars[_NUMPY_OF[t]].append(name)
+        elif not (pa.types.is_string(t) or (pa.types.is_list(t) and t.value_type in _NUMPY_OF)):
+            raise TypeError(f"{name}: {t} is not a column the template encoder writes")
+    return _Flat(names=tuple(name for name, _ in columns),
+                 texts=tuple(name for name, t in columns if pa.types.is_string(t)),
+                 lists=tuple((name, operator.attrgetter(name), _NUMPY_OF[t.value_type])
+                             for name, t in columns if pa.types.is_list(t)),
+                 numbers=tuple((tuple(names), operator.attrgetter(*names), dtype)
+                               for dtype, names in scalars.items() if names),
+                 packs={name: (struct.Struct("<q") if pa.types.is_int64(t) else struct.Struct("<d")).pack_into
+                        for name, t in columns if pa.types.is_int64(t) or pa.types.is_float64(t)})
+
+
+_AP_FLAT = _flat(_AP_COLUMNS)
+_MAX_LAYOUTS = 1024
+_templates: dict[tuple, tuple[bytes, dict] | None] = {}  # layout → template (a memo of this process)
 
 
 def _encode_ap(kind: str, segments: tuple[ApSegment, ...]) -> bytes:
     """The Arrow IPC payload of AP ``segments`` (an ``ap_segment`` or ``ap_batch``)."""
-    texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
+    return _encode_templated(kind, _AP_FLAT, segments, _ap_columns)
+
+
+def _encode_templated(kind: str, flat: _Flat, rows: tuple, columns_of) -> bytes:
+    """The Arrow IPC payload of ``rows`` (objects whose fields are the columns ``flat`` reads),
+    from the template of its layout; ``columns_of(rows)``: its Arrow columns (a new layout's)."""
+    texts = [[getattr(r, name).encode() for r in rows] for name in flat.texts]
     layout = (kind, *(len(b) for col in texts for b in col),
-              *(getattr(s, name).size for name in _AP_LISTS for s in segments))
-    hit = _ap_templates.get(layout, False)
+              *(get(r).size for _, get, _ in flat.lists for r in rows))
+    hit = _templates.get(layout, False)
     if hit is False:
-        if len(_ap_templates) >= _MAX_AP_LAYOUTS:
-            _ap_templates.clear()
-        payload = _encode(kind, _ap_columns(segments))
-        _ap_templates[layout] = _ap_template(payload, segments)
+        if len(_templates) >= _MAX_LAYOUTS:
+            _templates.clear()
+        payload = _encode(kind, columns_of(rows))
+        _templates[layout] = _template(payload, flat, rows)
         return payload
     if hit is None:  # (a layout whose buffers could not be placed: Arrow writes each payload)
-        return _encode(kind, _ap_columns(segments))
+        return _encode(kind, columns_of(rows))
     template, places = hit
     out = bytearray(template)
-    for pos, raw in zip(places, _ap_buffers(segments, texts)):
-        out[pos : pos + len(raw)] = raw
+    if len(rows) == 1:  # (its scalars packed in place: no array per type)
+        values = rows[0].__dict__
+        for name, pack_into in flat.packs.items():
+            pack_into(out, places[name], values[name])
+        buffers = _buffers(flat, rows, texts, scalars=False)
+    else:
+        buffers = _buffers(flat, rows, texts)
+    for name, raw in buffers.items():
+        if raw:
+            pos = places[name]
+            out[pos : pos + len(raw)] = raw
     return bytes(out)
 
 
-def _ap_buffers(segments: tuple[ApSegment, ...], texts: list[list[bytes]] | None = None) -> list[bytes]:
-    """The contents of each AP column's value buffer, in the columns' order."""
+def _buffers(flat: _Flat, rows: tuple, texts: list[list[bytes]] | None = None, scalars: bool = True) -> dict:
+    """The contents of each column's value buffer (the scalar ones only if ``scalars``), by name."""
     if texts is None:
-        texts = [[getattr(s, name).encode() for s in segments] for name in _AP_TEXTS]
-    by_name = dict(zip(_AP_TEXTS, map(b"".join, texts)))
-    for names, get, dtype in _AP_NUMBERS:
-        by_name.update(zip(names, map(np.ndarray.tobytes, np.array(list(map(get, segments)), dtype=dtype).T)))
-    for name, get, dtype in _AP_LIST_READERS:
-        by_name[name] = np.concatenate(list(map(get, segments))).astype(dtype, copy=False).tobytes()
-    return list(map(by_name.__getitem__, _AP_NAMES))
+        texts = [[getattr(r, name).encode() for r in rows] for name in flat.texts]
+    out = dict(zip(flat.texts, map(b"".join, texts)))
+    if scalars:
+        for names, get, dtype in flat.numbers:
+            table = np.array(list(map(get, rows)), dtype=dtype).reshape(len(rows), len(names))
+            out.update(zip(names, map(np.ndarray.tobytes, table.T)))
+    for name, get, dtype in flat.lists:
+        out[name] = np.concatenate(list(map(get, rows))).astype(dtype, copy=False).tobytes()
+    return out
 
 
-def _ap_template(payload: bytes, segments: tuple[ApSegment, ...]) -> tuple[bytes, tuple] | None:
-    """``(payload, positions)``: where each column's value buffer lies in ``payload``, or None when
-    a buffer is not found there holding what the segments hold (Arrow chose another placement)."""
+def _template(payload: bytes, flat: _Flat, rows: tuple) -> tuple[bytes, dict] | None:
+    """``(payload, positions)``: where each column's value buffer lies in ``payload``, by name, or
+    None when a buffer is not found there holding what the rows hold (Arrow chose another placement)."""
     buf = pa.py_buffer(payload)
     batch = pa.ipc.open_stream(buf).read_next_batch()
     base = buf.address
-    places = []
-    for (name, t), raw in zip(_AP_COLUMNS, _ap_buffers(segments)):
-        col = batch.column(name)
+    buffers = _buffers(flat, rows)
+    places = {}
+    for name in flat.names:
+        col, raw = batch.column(name), buffers[name]
+        t = col.type
         data = (col.values.buffers()[1] if pa.types.is_list(t) else
                 col.buffers()[2] if pa.types.is_string(t) else col.buffers()[1])
         if not raw:
-            places.append(0)  # (nothing to write)
+            places[name] = 0  # (nothing to write)
             continue
         pos = -1 if data is None else data.address - base
         if not 0 <= pos <= len(payload) - len(raw) or payload[pos : pos + len(raw)] != raw:
             return None
-        places.append(pos)
-    return payload, tuple(places)
+        places[name] = pos
+    return payload, places
 
 
 def _ap_segments(r: _Row) -> list[ApSegment]:
@@ -1364,8 +1410,8 @@ class _ColumnPlan:
     # name → (layout, first index in what ``numbers`` reads, data buffer offset, data length)
     columns: dict
     types: dict  # name → numpy type of a list column's values
-    # (positions in what ``numbers`` reads, lowest, highest) of the scalars the kind's rules bound
-    ranges: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    # (getter of the scalars the kind's rules bound from what ``numbers`` reads, lowest, highest)
+    ranges: tuple[Any, tuple, tuple] | None
 
 
 @functools.lru_cache(maxsize=256)
@@ -1470,7 +1516,9 @@ def _column_plan(schema_message: bytes, meta: bytes) -> _ColumnPlan | None:
     if ranges is not None:  # each bounded scalar's place and bounds (closed: an open end is the next float)
         ranges = [(columns[name][1] + r, lo if not lo_open else math.nextafter(lo, math.inf), hi)
                   for name, (lo, hi, lo_open) in ranges.items() for r in range(rows)]
-        ranges = tuple(np.array(v) for v in zip(*ranges))
+        at, lo, hi = zip(*ranges)
+        get = operator.itemgetter(*at)
+        ranges = (get if len(at) > 1 else lambda numbers: (get(numbers),), lo, hi)
     return _ColumnPlan(kind, rows, body_length, reads[0][0], struct.Struct("".join(fmt)), columns, types, ranges)
 
 
@@ -1498,9 +1546,9 @@ def _columns_of(payload) -> tuple[str, int, dict] | None:
     numbers = plan.numbers.unpack_from(payload, body + plan.start)
     if plan.ranges is not None:
         at, lo, hi = plan.ranges
-        # (as floats: the integer bounds are below 2⁵³, so no value is misjudged; NaN fails both)
-        a = np.array(numbers, dtype=np.float64)[at]
-        if not ((a >= lo) & (a <= hi)).all():
+        # (Python's comparisons: exact between ints and floats, as the constructor's; NaN fails both)
+        a = at(numbers)
+        if not (all(map(operator.le, lo, a)) and all(map(operator.le, a, hi))):
             return None
     out = {}
     for name, (layout, i, data, limit) in plan.columns.items():
@@ -1588,13 +1636,14 @@ def _ap_segments_of(rows: int, c: dict) -> list[ApSegment] | None:
 
 
 def _frozen_copies(flat: np.ndarray, bounds) -> list[np.ndarray]:
-    """Each row's values, a read-only copy (a segment holds its own arrays, not the payload)."""
-    out = []
-    for a, b in zip(bounds, bounds[1:]):
-        a = flat[a:b].copy()
-        a.flags.writeable = False
-        out.append(a)
-    return out
+    """Each row's values, read-only: views of one copy of the rows' values (a segment holds its
+    own arrays, not the payload; one copy per column of a batch, not one per row)."""
+    first, last = bounds[0], bounds[-1]
+    copy = flat[first:last].copy()
+    copy.flags.writeable = False
+    if len(bounds) == 2:
+        return [copy]
+    return [copy[a - first : b - first] for a, b in zip(bounds, bounds[1:])]
 
 
 def decode_ap(payload: bytes) -> list[ApSegment]:
@@ -1846,16 +1895,19 @@ class Ack(_Message):
         object.__setattr__(self, "calib_version", _int("calib_version", self.calib_version, 0, MAX_INT32))
 
     def encode(self) -> bytes:
-        """Arrow IPC payload of this acknowledgement."""
-        return _encode(
-            self.KIND,
-            {
-                "pass_id": _scalar(self.pass_id, pa.string()),
-                "vehicle_id": _scalar(self.vehicle_id, pa.string()),
-                "n_segments_accepted": _scalar(self.n_segments_accepted, pa.int64()),
-                "calib_version": _scalar(self.calib_version, pa.int64()),
-            },
-        )
+        """Arrow IPC payload of this acknowledgement (the cloud writes one per pass: from the
+        template of its layout)."""
+        return _encode_templated(self.KIND, _ACK_FLAT, (self,), _ack_columns)
+
+
+_ACK_COLUMNS = (("pass_id", pa.string()), ("vehicle_id", pa.string()), ("n_segments_accepted", pa.int64()),
+                ("calib_version", pa.int64()))
+_ACK_FLAT = _flat(_ACK_COLUMNS)
+
+
+def _ack_columns(acks: tuple[Ack]) -> dict[str, pa.Array]:
+    (ack,) = acks
+    return {name: _scalar(getattr(ack, name), t) for name, t in _ACK_COLUMNS}
 
 
 def _build_ack(r: _Row) -> Ack:

@@ -3,8 +3,8 @@
 These tests feed the same segments as ``ap_batch`` payloads and as one ``ap_segment`` each, through
 each layer (the decoder, the aggregator, the cloud's export), and compare what comes out exactly:
 the posterior is a sum of each segment's information, taken in the same order either way, so
-nothing may differ, not even in the last bit. The segment store and the acknowledgements encode
-through templates of a message's layout (:mod:`cloud.ingest.wire`): byte for byte Arrow's payload.
+nothing may differ, not even in the last bit. Segments (spilled by the store) and acknowledgements
+encode through templates of a message's layout (``shared.schema``): byte for byte Arrow's payload.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from cloud.daemon.durable import GroupCommit
 from cloud.daemon.journal import Journal
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.aggregator import Aggregator
-from cloud.ingest.wire import encode_flat, encode_segment
 from cloud.road.gmrf_profile import GmrfProfile
 from cloud.road.mean_profile import MeanProfile
 from shared import keys
@@ -154,7 +153,7 @@ def test_cloud_exports_equal_bit_for_bit(tmp_path):
 
 
 def test_spill_encoding_is_the_encoders_byte_for_byte():
-    """The template encoder (cloud.ingest.wire) against Arrow's, over layouts: lengths, error models,
+    """The template encoder (shared.schema) against Arrow's, over layouts: lengths, error models,
     multi-byte text, negative start, one-point segments; from a batch (no payload of its own)."""
     rng = np.random.default_rng(9)
     for k in range(120):
@@ -167,15 +166,19 @@ def test_spill_encoding_is_the_encoders_byte_for_byte():
                              t_last=float(k) + 2.0, seq=k % 4, n_segments_in_pass=[-1, 4][k % 2], flags=k % 2,
                              error_model=em)
         for s in (seg, decode_ap(ApBatch((seg, seg)).encode())[1]):
-            assert encode_segment(s) == s.encode()
-            assert decode_ap(encode_segment(s)) == [seg]
+            arrow = schema._encode(ApSegment.KIND, schema._ap_columns((s,)))
+            assert s.encode() == arrow and s.encode() == arrow  # (the first of a layout, then its template)
+            assert decode_ap(s.encode()) == [seg]
+        pair = (seg, decode_ap(ApBatch((seg, seg)).encode())[1])
+        assert ApBatch(pair).encode() == schema._encode(ApBatch.KIND, schema._ap_columns(pair))
 
 
 def test_ack_encoding_is_the_encoders_byte_for_byte():
     for k in range(40):
         ack = Ack(pass_id=["p", "pässe", "a pass"][k % 3] + "x" * (k % 9), vehicle_id=f"veh-{k}",
                   n_segments_accepted=k * 7919 % 1000, calib_version=k % 5)
-        assert encode_flat(ack) == ack.encode() and decode_ack(encode_flat(ack)) == ack
+        arrow = schema._encode(Ack.KIND, schema._ack_columns((ack,)))
+        assert ack.encode() == arrow and ack.encode() == arrow and decode_ack(ack.encode()) == ack
 
 
 def _general(payload):

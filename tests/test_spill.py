@@ -1,5 +1,6 @@
 """The spill map (cloud.ingest.spill) behaves as a dict — order included — with a bounded number of values in
-memory, and the segment store built on it reads spilled segments back exactly."""
+memory, the segment store built on it reads spilled segments back exactly, and an estimator's held
+segments (:class:`HeldSegments`) spill the store's own segments as references, not a second copy."""
 
 from __future__ import annotations
 
@@ -10,19 +11,21 @@ import random
 import numpy as np
 import pytest
 
-from cloud.ingest.segment_store import SegmentStore
+from cloud.ingest.segment_store import HeldSegments, SegmentStore
 from cloud.ingest.spill import SpillMap
 from shared.schema import ApSegment
 
 
-def _map(tmp_path, n, promote=False):
-    return SpillMap(n, tmp_path, pickle.dumps, pickle.loads, tag=len, promote=promote)
+def _map(tmp_path, n, promote=False, group=None):
+    return SpillMap(n, tmp_path, pickle.dumps, pickle.loads, tag=len, promote=promote, spill_group=group)
 
 
-@pytest.mark.parametrize("bound,promote", [(None, False), (1, False), (3, True), (7, False)])
-def test_random_writes_reads_and_deletes_match_a_dict(tmp_path, bound, promote):
+@pytest.mark.parametrize("bound,promote,group", [(None, False, None), (1, False, None), (3, True, None),
+                                                 (7, False, None), (7, False, 4), (6, True, 3), (5, False, 5)])
+def test_random_writes_reads_and_deletes_match_a_dict(tmp_path, bound, promote, group):
+    """(``group``: values spilled at once, in one transaction.)"""
     rng = random.Random(bound or 0)
-    m, ref = _map(tmp_path, bound, promote), {}
+    m, ref = _map(tmp_path, bound, promote, group), {}
     keys = [("v", f"p{i}", i % 3) for i in range(25)]
     for step in range(1500):
         k = rng.choice(keys)
@@ -139,3 +142,64 @@ def test_reading_while_iterating_sees_every_key_once_in_order(tmp_path):
         seen.append((k, v))
         m[(k * 5) % 12]  # promote another key, spilling the oldest resident one
     assert seen == list(ref.items())
+
+
+def _seg(rng, tile, calib_version=0, n=300):
+    return ApSegment.make(rng.normal(0, 1e-3, n), np.full(n, 2e-4), vehicle_id="v1", pass_id=f"p{tile % 4}",
+                          route_id="R1", tile=tile, axle=1, start_index=tile * n, spacing_m=0.05,
+                          calib_version=calib_version, speed_mps=10.0, t_first=0.0, t_last=5.0, seq=tile)
+
+
+@pytest.mark.parametrize("bound", [1, 3, 6])
+def test_held_segments_spill_the_stores_segments_as_references(tmp_path, bound):
+    """As the aggregator drives them: a segment stored, then held (the same object); some replaced
+    by another object (an aligned or fused form), some superseded (released, then stored and held
+    anew). The held map reads and iterates as a dict with the same writes, and of what it spilled
+    only the replacements carry a payload."""
+    rng = random.Random(bound)
+    nprng = np.random.default_rng(bound)
+    store, held, ref = SegmentStore(bound, tmp_path), HeldSegments(None, bound, tmp_path), {}
+    held.store = store
+    replaced = set()
+    for step in range(200):
+        tile = rng.randrange(30)
+        slot = ("v1", f"p{tile % 4}", "R1", tile, 1)
+        op = rng.random()
+        if slot in store and op < 0.3:  # another object in its place (same identity)
+            seg = store[slot]
+            other = ApSegment.make(seg.values + 1e-4, seg.sigma, **{k: getattr(seg, k) for k in (
+                "vehicle_id", "pass_id", "route_id", "tile", "axle", "start_index", "spacing_m", "calib_version",
+                "speed_mps", "t_first", "t_last", "seq")})
+            held[seg.identity] = ref[seg.identity] = other
+            replaced.add(seg.identity)
+            continue
+        version = 0
+        if slot in store:  # superseded: released from the estimator first, as the aggregator does
+            old = store.calib_version(slot)
+            identity = (*slot, old)
+            del held[identity], ref[identity]
+            replaced.discard(identity)
+            version = old + 1
+        seg = _seg(nprng, tile, version)
+        store[slot] = seg
+        held[seg.identity] = ref[seg.identity] = seg
+    assert list(held) == list(ref) and held.spilled > 0
+    for (key, value), (rkey, rvalue) in zip(held.items(), ref.items()):
+        assert key == rkey and value.identity == key and value.encode() == rvalue.encode()
+    for key, row in held.encoded():
+        if held.peek(key) is None:  # spilled: its row is what was written when it left memory
+            assert (row == b"\0") == (key not in replaced), key
+    assert all(held[k].encode() == v.encode() for k, v in ref.items())
+
+
+def test_held_segments_without_payload_are_much_smaller_on_disk(tmp_path):
+    rng = np.random.default_rng(1)
+    store, held = SegmentStore(2, tmp_path), None
+    held = HeldSegments(store, 2, tmp_path)
+    for tile in range(150):
+        seg = _seg(rng, tile, n=1000)
+        store[seg.identity[:5]] = seg
+        held[seg.identity] = seg
+    assert held.spilled == store.spilled == 148
+    assert all(row == b"\0" for key, row in held.encoded() if held.peek(key) is None)
+    assert held.disk_bytes() < store.disk_bytes() / 10  # (a row of ~50 bytes against ~4.6 kB)

@@ -39,8 +39,8 @@ from cloud.export import (FLEET_FRAME, REGISTRY_FRAME, bridge_bearings_table, br
                           bridge_summary_table, profile_draws, profile_table, roughness_table, track_quality_table,
                           vehicles_table, write_export)
 from cloud.ingest.aggregator import Aggregator
-from cloud.ingest.segment_store import SegmentEncoder, SegmentStore
-from cloud.ingest.wire import encode_flat
+from cloud.ingest.segment_store import HeldSegments, SegmentStore
+from cloud.ingest.spill import SpillMap
 from cloud.road.continuous import CONTINUOUS_MODELS, continuous_segments
 from cloud.road.fleet_calibration import FleetCalibrator
 from cloud.road.gmrf_profile import GmrfProfile
@@ -79,17 +79,16 @@ class Cloud:
         # the random-walk prior's smoothing of the shortest wavelengths would bias tyre stiffness.
         self.consensus = MeanProfile(routes, s.spacing_m)
         # Segments and passes beyond the resident bounds live on disk, read back when needed, so
-        # memory does not grow with the passes. The profile's store holds the same segments: each is
-        # encoded once for both.
-        encoder = SegmentEncoder()
+        # memory does not grow with the passes.
         self.aggregator = Aggregator(site, [self.profile, self.consensus], foreign_routes=foreign,
-                                     store=SegmentStore(s.max_resident, s.spill_dir, encoder),
+                                     store=SegmentStore(s.max_resident, s.spill_dir),
                                      max_resident_passes=s.max_resident_passes, spill_dir=s.spill_dir,
                                      fused=self.profile if s.continuous_aps else None)
         if s.max_resident is not None and isinstance(getattr(self.profile, "segments", None), dict):
             # The profile estimator keeps each segment it holds too (exact retraction, the per-pass
-            # drift assembled at snapshot time): bounded the same way.
-            self.profile.segments = SegmentStore(s.max_resident, s.spill_dir, encoder)
+            # drift assembled at snapshot time): bounded the same way, and on disk only where it is
+            # not the aggregator's stored segment itself (which the store keeps, once).
+            self.profile.segments = HeldSegments(self.aggregator.segments, s.max_resident, s.spill_dir)
         self.calibrator = FleetCalibrator(site, self.consensus) if s.calibration == "fleet" else None
         if self.calibrator is not None:
             self.calibrator.continuous_aps = s.continuous_aps
@@ -189,7 +188,7 @@ class Cloud:
             v["last_pass"] = ack.pass_id
             v["calib_version"] = ack.calib_version
             v["segments"] += ack.n_segments_accepted
-            self.publish(keys.ack_key(self.net, ack.vehicle_id), encode_flat(ack))
+            self.publish(keys.ack_key(self.net, ack.vehicle_id), ack.encode())
             if first:  # the `pass` timeline counts distinct passes; recalibrated ones update in place
                 self.passes_complete += 1
                 if self.view is not None:
@@ -247,7 +246,7 @@ class Cloud:
         the settings' ``flush_budget_s``."""
         budget_s = self.settings.flush_budget_s if budget_s is None else budget_s
         for store in (self.aggregator.segments, self.profile.segments):
-            if isinstance(store, SegmentStore):
+            if isinstance(store, SpillMap):
                 store.flush(budget_s / 2)
 
     def maybe_align(self) -> bool:

@@ -202,12 +202,13 @@ class Aggregator:
                 return self._maybe_ack(seg.vehicle_id, seg.pass_id)
             self._release(slot)
         self.segments[slot] = seg
-        self.held.hide(slot)  # the estimators hold nothing of it until set here
         held = on_route(seg)
         if held is not None:
             self.held[slot] = held
             for est in self.estimators:
                 est.update(held)
+        else:
+            self.held.hide(slot)  # the estimators hold nothing of it
         self.accepted += 1
         self.updates += 1
         ps = self._pass_of(seg)

@@ -12,18 +12,20 @@ so that superseding a slot needs no read) and its place in the iteration order a
 Iteration order is that of a ``dict`` with the same writes, so anything summed over the segments
 sums in the same order whether they are resident or not.
 
+An estimator that keeps the segments it holds (the profile posterior: exact retraction, the per-pass
+drift) keeps them in a :class:`HeldSegments` over the store: bounded the same way, and on disk only
+where it holds something other than the stored segment itself (one payload per segment on disk).
+
 The index belongs to one process lifetime (a restarted cloud rebuilds it from its journal).
 """
 
 from __future__ import annotations
 
-import collections
 from pathlib import Path
 
 from shared.schema import ApSegment, decode_ap
 
 from cloud.ingest.spill import SpillMap
-from cloud.ingest.wire import encode_segment
 
 #: Default for the daemon: ~4 kB each, so ~80 MB of decoded segments at most.
 DEFAULT_MAX_RESIDENT = 20_000
@@ -34,46 +36,20 @@ def _decode_one(payload: bytes) -> ApSegment:
     return seg
 
 
-#: Segments whose payload a :class:`SegmentEncoder` remembers: more than the stores sharing it spill
-#: between two spills of the same segment (one each, in the same order).
-ENCODER_MEMO = 64
+def _encode_one(seg: ApSegment) -> bytes:
+    return seg.encode()
 
 
-class SegmentEncoder:
-    """A segment's payload (:func:`encode_segment`), encoded once for every store that spills it.
-
-    The aggregator's store and the profile estimator's hold the same segment objects, written in the
-    same order, so each spills a segment soon after the other did: the second takes the payload the
-    first encoded. Remembered by identity (the segment itself is kept with its payload, so its id is
-    not reused while remembered), for the last :data:`ENCODER_MEMO` segments encoded.
-    """
-
-    def __init__(self, memo: int = ENCODER_MEMO):
-        self.memo = memo
-        self._recent: collections.OrderedDict[int, tuple[ApSegment, bytes]] = collections.OrderedDict()
-        self.encoded = 0  # segments encoded (the rest of the calls were answered from the memo)
-
-    def __call__(self, seg: ApSegment) -> bytes:
-        hit = self._recent.get(id(seg))
-        if hit is not None and hit[0] is seg:
-            return hit[1]
-        payload = encode_segment(seg)
-        self.encoded += 1
-        self._recent[id(seg)] = (seg, payload)
-        if len(self._recent) > self.memo:
-            self._recent.popitem(last=False)
-        return payload
+def _code_bytes(segments) -> int:
+    return sum(s.values_q.nbytes + s.sigma_q.nbytes for s in segments)
 
 
 class SegmentStore(SpillMap):
-    """``slot → ApSegment``, at most ``max_resident`` decoded in memory (None: all of them).
+    """``slot → ApSegment``, at most ``max_resident`` decoded in memory (None: all of them)."""
 
-    ``encoder``: shared by stores that hold the same segments (:class:`SegmentEncoder`)."""
-
-    def __init__(self, max_resident: int | None = None, spill_dir: str | Path | None = None,
-                 encoder: SegmentEncoder | None = None):
-        super().__init__(max_resident, spill_dir, encode=encoder if encoder is not None else SegmentEncoder(),
-                         decode=_decode_one, tag=lambda seg: seg.calib_version, prefix="segments-")
+    def __init__(self, max_resident: int | None = None, spill_dir: str | Path | None = None):
+        super().__init__(max_resident, spill_dir, encode=_encode_one, decode=_decode_one,
+                         tag=lambda seg: seg.calib_version, prefix="segments-")
 
     def calib_version(self, slot: tuple) -> int:
         """The slot's calibration version, without reading a spilled segment."""
@@ -81,8 +57,62 @@ class SegmentStore(SpillMap):
 
     def resident_bytes(self) -> int:
         """Bytes of the decoded segments' arrays in memory (their wire codes)."""
-        return sum(s.values_q.nbytes + s.sigma_q.nbytes for s in self.resident_values())
+        return _code_bytes(self.resident_values())
 
     def stats(self) -> dict:
         return {"segments_resident": self.resident, "segments_spilled": self.spilled,
                 "spill_bytes": self.disk_bytes(), "spill_reads": self.reads}
+
+
+#: What a :class:`HeldSegments` row holds for a value that is the store's own segment of its slot.
+_IN_STORE = b"\0"
+
+
+class HeldSegments(SpillMap):
+    """``identity → ApSegment``: the segments an estimator holds (``GmrfProfile.segments``), bounded
+    like the aggregator's ``store``, with nothing the store holds written twice.
+
+    The aggregator is the one writer of held segments: almost every value here is the very segment
+    the store holds for its slot (``identity[:5]``). Such a value spills as a reference (its row:
+    its key, its place in this map's order and a one-byte marker, no payload) and is read back from
+    the store, which keeps it until the aggregator releases the slot, and the estimator with it
+    (:meth:`cloud.ingest.aggregator.Aggregator.apply` releases before it replaces). Any other value
+    (a chainage-aligned replacement, a fused form, the on-route part of a segment) spills whole.
+    Iteration follows this map's own writes, as a ``dict``'s would: the estimator's sums keep their order.
+    """
+
+    def __init__(self, store: SegmentStore, max_resident: int | None = None, spill_dir: str | Path | None = None):
+        super().__init__(max_resident, spill_dir, encode=_encode_one, decode=_decode_one, prefix="held-")
+        self.store = store
+        # Resident keys whose value was the store's segment of its slot when written (until their
+        # row is written: a later write decides afresh).
+        self._in_store: set = set()
+
+    def __setitem__(self, key, value) -> None:
+        if value is self.store.peek(key[:5]):
+            self._in_store.add(key)
+        else:
+            self._in_store.discard(key)
+        super().__setitem__(key, value)
+
+    def __delitem__(self, key) -> None:
+        self._in_store.discard(key)
+        super().__delitem__(key)
+
+    def encode_entry(self, key, value) -> bytes:
+        if key in self._in_store:
+            self._in_store.discard(key)
+            return _IN_STORE
+        return super().encode_entry(key, value)
+
+    def resident_bytes(self) -> int:
+        """Bytes of the resident segments' arrays (their wire codes; shared with the store where it holds them too)."""
+        return _code_bytes(self.resident_values())
+
+    def decode_entry(self, key, blob: bytes):
+        if blob != _IN_STORE:
+            return super().decode_entry(key, blob)
+        seg = self.store[key[:5]]
+        if seg.identity != key:  # the store replaced the slot while this map held it: a broken rule
+            raise RuntimeError(f"held segment {key}: the store holds {seg.identity} in its place")
+        return seg

@@ -11,8 +11,9 @@ index is keyed random access with updates and deletes, and its page cache is bou
 A key gets its row when its value first leaves memory, not when it is written: until the resident
 bound is reached the map costs what a dict costs (the cloud's ingest writes three maps per
 segment; a row per write would be a large share of its CPU), and after that each write of a new key costs
-the one spill it causes, plus an indexed lookup (is it a spilled key?) only if a fixed-size filter of
-the keys that have rows says it may be one (:data:`FILTER_BITS`).
+the one spill it causes (spilled in groups, one transaction each: :data:`SPILL_GROUP`), plus an indexed
+lookup (is it a spilled key?) only if a fixed-size filter of the keys that have rows says it may be one
+(:data:`FILTER_BITS`).
 
 Semantics are a ``dict``'s: iteration follows first insertion (a write to an existing key keeps
 its place; a key deleted and written again goes last), so anything summed over the values sums in
@@ -44,6 +45,14 @@ FILTER_BITS = 1 << 23
 _FILTER_MASK = FILTER_BITS - 1
 _BATCH = 64  # rows per read while iterating (spilled segments: ~0.5 MB)
 _KEY_TEXT = json.JSONEncoder(separators=(",", ":")).encode  # one encoder (json.dumps builds one per call)
+#: Most values spilled together, in one transaction: SQLite's cost of a row is mostly that of its
+#: statement and commit, not its bytes, so a group of rows costs little more than one. A map spills
+#: a group when it passes its bound, down to a group below it: memory stays within the bound. Maps of
+#: fewer than ``SPILL_GROUP * SPILL_GROUP_SHARE`` values spill fewer at a time (one, when small).
+SPILL_GROUP = 32
+SPILL_GROUP_SHARE = 64
+_INSERT = "INSERT INTO m (ord, k, tag, v) VALUES (?, ?, ?, ?)"
+_UPDATE = "UPDATE m SET tag = ?, v = ? WHERE ord = ?"
 
 
 def _key_text(key) -> str:
@@ -65,10 +74,16 @@ class SpillMap(MutableMapping):
 
     def __init__(self, max_resident: int | None, spill_dir: str | Path | None,
                  encode: Callable[[object], bytes], decode: Callable[[bytes], object],
-                 tag: Callable[[object], int] | None = None, promote: bool = False, prefix: str = "spill-"):
+                 tag: Callable[[object], int] | None = None, promote: bool = False, prefix: str = "spill-",
+                 spill_group: int | None = None):
         if max_resident is not None and max_resident < 1:
             raise ValueError(f"max_resident: expected >= 1 or None, got {max_resident}")
+        if spill_group is None:
+            spill_group = max(1, min(SPILL_GROUP, (max_resident or 0) // SPILL_GROUP_SHARE))
+        if max_resident is not None and not 1 <= spill_group <= max_resident:
+            raise ValueError(f"spill_group: expected 1 to max_resident ({max_resident}), got {spill_group}")
         self.max_resident = max_resident
+        self.spill_group = spill_group  # values spilled at once (see SPILL_GROUP)
         self._encode, self._decode, self._tag, self._promote = encode, decode, tag, promote
         self._spill_dir = Path(spill_dir) if spill_dir is not None else None
         self._prefix = prefix
@@ -119,18 +134,21 @@ class SpillMap(MutableMapping):
 
     def _write(self, key, value) -> None:
         """The key's row holds ``value`` (inserted with the key's place if it has none yet)."""
+        statement, row = self._row(key, value, self._ord[key])
+        self._index().execute(statement, row)
+
+    def _row(self, key, value, ordinal: int) -> tuple[str, tuple]:
+        """The statement (and its parameters) that makes the key's row hold ``value``."""
         tag = self._tag(value) if self._tag is not None else None
         if key in self._rowed:
-            self._db.execute("UPDATE m SET tag = ?, v = ? WHERE ord = ?", (tag, self._encode(value), self._ord[key]))
-        else:
-            self._index().execute("INSERT INTO m (ord, k, tag, v) VALUES (?, ?, ?, ?)",
-                                  (self._ord[key], _key_text(key), tag, self._encode(value)))
-            self._rowed.add(key)
-            if self._filter is None:
-                self._filter = bytearray(FILTER_BITS // 8)
-            h = hash(key)
-            for bit in (h & _FILTER_MASK, (h >> 23) & _FILTER_MASK):
-                self._filter[bit >> 3] |= 1 << (bit & 7)
+            return _UPDATE, (tag, self.encode_entry(key, value), ordinal)
+        self._rowed.add(key)
+        if self._filter is None:
+            self._filter = bytearray(FILTER_BITS // 8)
+        h = hash(key)
+        for bit in (h & _FILTER_MASK, (h >> 23) & _FILTER_MASK):
+            self._filter[bit >> 3] |= 1 << (bit & 7)
+        return _INSERT, (ordinal, _key_text(key), tag, self.encode_entry(key, value))
 
     def _may_have_row(self, key) -> bool:
         """False if ``key`` has never had a row (the filter); True if it may have one."""
@@ -141,15 +159,27 @@ class SpillMap(MutableMapping):
         a, b = h & _FILTER_MASK, (h >> 23) & _FILTER_MASK
         return bool(f[a >> 3] >> (a & 7) & 1 and f[b >> 3] >> (b & 7) & 1)
 
-    def _spill_oldest(self) -> None:
-        key, value = next(iter(self._hot.items()))
-        if key not in self._clean:
-            self._write(key, value)
-        del self._hot[key]
-        del self._ord[key]
-        self._clean.discard(key)
-        self._rowed.discard(key)
-        self.spilled_total += 1
+    def _spill_oldest(self, n: int) -> None:
+        """The ``n`` oldest resident values out to their rows, in one transaction."""
+        hot, rows = self._hot, {_INSERT: [], _UPDATE: []}
+        for _ in range(n):
+            key, value = hot.popitem(last=False)
+            ordinal = self._ord.pop(key)
+            if key not in self._clean:
+                statement, row = self._row(key, value, ordinal)
+                rows[statement].append(row)
+            self._clean.discard(key)
+            self._rowed.discard(key)
+            self.spilled_total += 1
+        if rows[_INSERT] or rows[_UPDATE]:
+            db = self._index()
+            db.execute("BEGIN")
+            try:
+                for statement, params in rows.items():
+                    if params:
+                        db.executemany(statement, params)
+            finally:
+                db.execute("COMMIT")
 
     def flush(self, budget_s: float) -> int:
         """Write resident values to their rows ahead of time, oldest first, for at most about
@@ -192,7 +222,7 @@ class SpillMap(MutableMapping):
         row = self._cold(key, "ord, v")
         if row is None:
             raise KeyError(key)
-        value = self._decode(row[1])
+        value = self.decode_entry(key, row[1])
         self.reads += 1
         if self._promote:  # its row keeps a stale copy, rewritten when it spills again
             self._hot[key] = value
@@ -200,6 +230,17 @@ class SpillMap(MutableMapping):
             self._rowed.add(key)
             self._trim()
         return value
+
+    def get(self, key, default=None):
+        """``self[key]`` if present, else ``default`` (a resident key without the mapping's detour
+        through an exception: the ingest path asks for a pass's state per segment)."""
+        value = self._hot.get(key, _MISSING)
+        if value is not _MISSING:
+            return value
+        try:
+            return self[key]
+        except KeyError:
+            return default
 
     def __setitem__(self, key, value) -> None:
         hot = self._hot
@@ -227,8 +268,9 @@ class SpillMap(MutableMapping):
         self._trim()
 
     def _trim(self) -> None:
-        while len(self._hot) > self.max_resident:
-            self._spill_oldest()
+        over = len(self._hot) - self.max_resident
+        if over > 0:  # down to a group below the bound: the next group spills together
+            self._spill_oldest(min(over + self.spill_group - 1, len(self._hot)))
 
     def __delitem__(self, key) -> None:
         if self.max_resident is None:
@@ -311,7 +353,7 @@ class SpillMap(MutableMapping):
                 blob = row[2] if row is not None else (self._cold(key) or (None,))[0]
                 if blob is None:  # deleted while walking
                     continue
-                value = self._decode(blob)
+                value = self.decode_entry(key, blob)
                 self.reads += 1
             yield key, value
 
@@ -319,6 +361,15 @@ class SpillMap(MutableMapping):
         return (v for _, v in self.items())
 
     # -- beyond a dict -------------------------------------------------------------------------
+    def encode_entry(self, key, value) -> bytes:
+        """What ``key``'s row holds for ``value`` (the ``encode`` given; a subclass may write less
+        for a value kept elsewhere, and read it back in :meth:`decode_entry`)."""
+        return self._encode(value)
+
+    def decode_entry(self, key, blob: bytes):
+        """``key``'s value from what its row holds (the inverse of :meth:`encode_entry`)."""
+        return self._decode(blob)
+
     def peek(self, key):
         """The value if it is in memory (no read), else None."""
         return self._hot.get(key)
@@ -337,13 +388,13 @@ class SpillMap(MutableMapping):
         """``(key, encoded value)`` in order, without decoding spilled values (e.g. a snapshot)."""
         if self.max_resident is None:
             for key, value in list(self._hot.items()):
-                yield key, self._encode(value)
+                yield key, self.encode_entry(key, value)
             return
         for key, value, row in self._walk(", v"):
             if row is not None and (value is _MISSING or key in self._clean):
                 yield key, row[2]
             elif value is not _MISSING:
-                yield key, self._encode(value)
+                yield key, self.encode_entry(key, value)
             else:
                 blob = self._cold(key)
                 if blob is not None:
