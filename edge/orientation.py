@@ -109,6 +109,16 @@ def _wahba(A: np.ndarray, B: np.ndarray, w: np.ndarray) -> np.ndarray:
     return Vt.T @ D @ U.T
 
 
+def window_sd(z: np.ndarray, window: int) -> np.ndarray:
+    """The sd of ``z`` over each run of ``window`` consecutive samples (``len(z) - window + 1`` of
+    them), from cumulative sums of ``z`` less its mean (which keeps them small)."""
+    d = np.asarray(z, float) - np.mean(z)
+    c1 = np.concatenate([[0.0], np.cumsum(d)])
+    c2 = np.concatenate([[0.0], np.cumsum(d**2)])
+    m1 = (c1[window:] - c1[:-window]) / window
+    return np.sqrt(np.maximum((c2[window:] - c2[:-window]) / window - m1**2, 0.0))
+
+
 def standstills(acc: np.ndarray, up: np.ndarray, window: int, still_ratio: float = 0.1) -> np.ndarray:
     """Sample indices in the middle of each standstill of one run of uniform samples ``acc`` (n, 3).
 
@@ -120,10 +130,7 @@ def standstills(acc: np.ndarray, up: np.ndarray, window: int, still_ratio: float
     z = np.asarray(acc, float) @ up
     if len(z) < 3 * window:
         return np.zeros(0, np.int64)
-    c1 = np.concatenate([[0.0], np.cumsum(z - z.mean())])
-    c2 = np.concatenate([[0.0], np.cumsum((z - z.mean()) ** 2)])
-    m1 = (c1[window:] - c1[:-window]) / window
-    sd = np.sqrt(np.maximum((c2[window:] - c2[:-window]) / window - m1**2, 0.0))
+    sd = window_sd(z, window)
     still = sd < still_ratio * np.median(sd)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
     mids = [(a + b) // 2 + window // 2 for a, b in zip(edges[::2], edges[1::2]) if b - a >= window // 2]

@@ -43,7 +43,7 @@ from shared.registry import Site
 
 from .fusion import FusionSettings, smooth_track
 from .mapmatch import MatchSettings, Network, build_network, match
-from .orientation import LoggerFrame, estimate_frame, level_vertical, vehicle_channels
+from .orientation import LoggerFrame, estimate_frame, level_vertical, vehicle_channels, window_sd
 from .resample import ResampleSettings, resample
 
 logger = logging.getLogger(__name__)
@@ -533,10 +533,7 @@ def rest_samples(vertical: np.ndarray, long_acc: np.ndarray, window: int, still_
     z = np.asarray(vertical, float)
     if len(z) < 3 * window:
         return np.zeros(0, np.int64)
-    c1 = np.concatenate([[0.0], np.cumsum(z - z.mean())])
-    c2 = np.concatenate([[0.0], np.cumsum((z - z.mean()) ** 2)])
-    m1 = (c1[window:] - c1[:-window]) / window
-    sd = np.sqrt(np.maximum((c2[window:] - c2[:-window]) / window - m1**2, 0.0))
+    sd = window_sd(z, window)
     cl = np.concatenate([[0.0], np.cumsum(np.asarray(long_acc, float))])
     along = np.abs(cl[window:] - cl[:-window]) / window
     still = (sd < still_ratio * np.median(sd)) & (along < max_long_mps2)
