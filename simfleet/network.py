@@ -106,7 +106,8 @@ def network_scenarios(fleet_table: dict) -> dict[str, NetworkScenario]:
                         "stops, braking, turns, 5 Hz GNSS with metres of error and a dropout, a tilted 200 Hz "
                         "phone IMU with jitter and a gap", **cls)
     ref = NetworkScenario("network-clean", "the network's roads and vehicles as clean single-route passes (each "
-                          "vehicle once along every route at its field trip's cruise speed, exact chainage): the reference",
+                          "vehicle once along every route at its field trip's cruise speed, exact chainage): the "
+                          "reference",
                           clean=True, **cls)
     return {s.name: s, ref.name: ref}
 
