@@ -18,6 +18,7 @@ segmentation, the bridge worlds test bridges.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -105,7 +106,8 @@ def network_scenarios(fleet_table: dict) -> dict[str, NetworkScenario]:
                         "stops, braking, turns, 5 Hz GNSS with metres of error and a dropout, a tilted 200 Hz "
                         "phone IMU with jitter and a gap", **cls)
     ref = NetworkScenario("network-clean", "the network's roads and vehicles as clean single-route passes (each "
-                          "vehicle once along every route at constant speed, exact chainage): the reference",
+                          "vehicle once along every route at its field trip's cruise speed, exact chainage): the "
+                          "reference",
                           clean=True, **cls)
     return {s.name: s, ref.name: ref}
 
@@ -218,6 +220,16 @@ def logger_rotation(roll_deg: float, pitch_deg: float, yaw_deg: float) -> np.nda
     return (Rz @ Ry @ Rx).T
 
 
+def trip_cruise(sc: NetworkScenario, rng: np.random.Generator) -> float:
+    """A trip's cruise speed (m/s): the first draw of the trip's own generator."""
+    return float(rng.uniform(*sc.cruise_mps))
+
+
+def trip_seeds(rng: np.random.Generator, n_trips: int) -> list[int]:
+    """The trips' seeds, drawn from the world's generator right after its vehicles."""
+    return [int(rng.integers(2**31)) for _ in range(n_trips)]
+
+
 def simulate_trip(sc: NetworkScenario, legs: list[tuple[str, int]], geoms: dict[str, RouteGeometry],
                   surfaces: dict[str, RoadProfile], params: dict, vehicle_id: str, index: int, seed: int,
                   nominal: dict | None) -> tuple[DriveLog, dict]:
@@ -227,7 +239,7 @@ def simulate_trip(sc: NetworkScenario, legs: list[tuple[str, int]], geoms: dict[
     dt = 1.0 / (fs * SUBSTEPS)
     lengths = [geoms[r].length_m for r, _ in legs]
     starts = np.concatenate(([0.0], np.cumsum(lengths)))
-    cruise = float(rng.uniform(*sc.cruise_mps))
+    cruise = trip_cruise(sc, rng)
     # Stops at every other junction and at a light on the last route; a braking along the first.
     stops = [float(starts[k]) for k in range(1, len(legs)) if k % 2 == 1]
     stops.append(float(starts[-2] + 0.7 * lengths[-1]))  # a light along the last route
@@ -338,9 +350,15 @@ def generate_network(sc: NetworkScenario, out_dir: Path, seed: int = 0, passes: 
     fleet = [{k_: float(mean[k_] + std[k_] * np.clip(rng.standard_normal(), -3, 3)) for k_ in mean}
              for _ in range(sc.n_vehicles)]
     if sc.clean:
+        # Each vehicle drives the clean passes at the cruise of its (first) field trip of this seed, so
+        # the reference differs from the field world only in what a drive brings (GNSS, stops, turns,
+        # tilt, jitter, gaps), not in speed, on which the inverse's bandwidth and error model depend.
+        # The field trips' seeds come from a copy of the generator, so the clean passes' own seeds stay.
+        field_seeds = trip_seeds(copy.deepcopy(rng), sc.n_vehicles)
+        cruise = [trip_cruise(sc, np.random.default_rng(s_)) for s_ in field_seeds]
         records = [simulate_clean_pass(sc, rid, geoms[rid], surfaces[rid], fleet[v], f"veh-{v + 1:04d}",
                                        int(rng.integers(2**31)), dict(fleet[v]) if nominal == "true" else dict(mean),
-                                       out_dir / "logs")
+                                       out_dir / "logs", cruise[v])
                    for v in range(sc.n_vehicles) for rid in sorted(geoms)]
         write_network_site(out_dir / "site.toml", geoms, mean, std, sc.vehicle_model)
         doc = network_truth(sc, seed, geoms, surfaces, fleet, [])
@@ -348,12 +366,11 @@ def generate_network(sc: NetworkScenario, out_dir: Path, seed: int = 0, passes: 
         (out_dir / "truth.json").write_text(json.dumps(doc))
         return doc
     trips = []
-    for i in range(n_trips):
+    for i, trip_seed in enumerate(trip_seeds(rng, n_trips)):
         vid = f"veh-{i % sc.n_vehicles + 1:04d}"
         params = fleet[i % sc.n_vehicles]
         nom = dict(params) if nominal == "true" else dict(mean)
-        log, truth = simulate_trip(sc, TRIPS[i % len(TRIPS)], geoms, surfaces, params, vid, i,
-                                   int(rng.integers(2**31)), nom)
+        log, truth = simulate_trip(sc, TRIPS[i % len(TRIPS)], geoms, surfaces, params, vid, i, trip_seed, nom)
         write_drive_log(out_dir / "logs" / f"{log.meta.pass_id}.parquet", log)
         trips.append(truth)
     write_network_site(out_dir / "site.toml", geoms, mean, std, sc.vehicle_model)
@@ -363,12 +380,11 @@ def generate_network(sc: NetworkScenario, out_dir: Path, seed: int = 0, passes: 
 
 
 def simulate_clean_pass(sc: NetworkScenario, rid: str, geom: RouteGeometry, surface: RoadProfile, params: dict,
-                        vehicle_id: str, seed: int, nominal: dict | None, logs_dir: Path) -> dict:
-    """One clean pass of ``rid``: in motion from before chainage 0 at a constant speed, the logger's
-    own sample grid, exact chainage and speed (the surface is flat beyond the route's tapered ends)."""
+                        vehicle_id: str, seed: int, nominal: dict | None, logs_dir: Path, speed: float) -> dict:
+    """One clean pass of ``rid``: in motion from before chainage 0 at the constant ``speed`` (m/s), the
+    logger's own sample grid, exact chainage and speed (the surface is flat beyond the route's tapered ends)."""
     rng = np.random.default_rng(seed)
     fs = sc.sample_rate_hz
-    speed = float(rng.uniform(*sc.cruise_mps))
     L = geom.length_m
 
     def elevation(x):
