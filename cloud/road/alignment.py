@@ -284,6 +284,17 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     # two windows (or a pass this little covered by the others) disagree beyond any plausible
     # stretch, it is placed by a shift alone — its best-correlated window's — its stretch (a few per
     # mille of tens of metres) left as reported.
+    if good.sum() >= 3:
+        # A few windows cannot out-vote a false peak in a robust line either (with three or four,
+        # half the pairwise slopes involve it). Windows whose shifts differ by more than any
+        # plausible stretch cannot both be right: the line goes through the largest set that agrees
+        # with one window, the best-correlated such window's.
+        idx = np.flatnonzero(good)
+        dx, dd = np.abs(x_t[idx, None] - x_t[None, idx]), np.abs(d[idx, None] - d[None, idx])
+        agree = dd <= FINE_LAG_M + max_stretch * dx
+        support = agree.sum(axis=1) + r[idx] / 2.0  # ties go to the better correlated window
+        good = np.zeros_like(good)
+        good[idx[agree[int(np.argmax(support))]]] = True
     shift_only = good.sum() < 2
     if good.sum() == 2:  # a line through two windows only if they agree on a plausible stretch
         (i1, i2) = np.flatnonzero(good)
