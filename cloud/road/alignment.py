@@ -284,6 +284,17 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     # two windows (or a pass this little covered by the others) disagree beyond any plausible
     # stretch, it is placed by a shift alone — its best-correlated window's — its stretch (a few per
     # mille of tens of metres) left as reported.
+    if good.sum() >= 3:
+        # A few windows cannot out-vote a false peak in a robust line either (with three or four,
+        # half the pairwise slopes involve it). Windows whose shifts differ by more than any
+        # plausible stretch cannot both be right: the line goes through the largest set that agrees
+        # with one window, the best-correlated such window's.
+        idx = np.flatnonzero(good)
+        dx, dd = np.abs(x_t[idx, None] - x_t[None, idx]), np.abs(d[idx, None] - d[None, idx])
+        agree = dd <= FINE_LAG_M + max_stretch * dx
+        support = agree.sum(axis=1) + r[idx] / 2.0  # ties go to the better correlated window
+        good = np.zeros_like(good)
+        good[idx[agree[int(np.argmax(support))]]] = True
     shift_only = good.sum() < 2
     if good.sum() == 2:  # a line through two windows only if they agree on a plausible stretch
         (i1, i2) = np.flatnonzero(good)
@@ -302,6 +313,7 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
     lag = int(np.ceil(FINE_LAG_M / h))
     score = 0.0
     for _ in range(2):
+        unconfirmed = 0.0  # a stretch dropped this step: the pass is re-gridded without it once more
         al = Alignment(b, eps, x_ref, 0.0)
         lo, hi = np.ceil(al.reported_to_true(x_rep[0]) / h), np.floor(al.reported_to_true(x_rep[-1]) / h)
         xg = np.arange(max(lo, np.ceil(xc[0] / h)), min(hi, np.floor(xc[-1] / h)) + 1) * h
@@ -319,6 +331,14 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
         # true chainage there is larger by kk·h, i.e. its shift smaller by (1+ε)·kk·h.
         yk = -(1.0 + eps) * kk[g] * h
         db, de, inl = _line(xm[g] - x_ref, yk, rr[g], robust=g.sum() >= 3, floor_m=0.02)
+        if not shift_only and g.sum() < 2:
+            # One window confirms the coarse line: a stretch needs two places where the pass matches
+            # the consensus, and the coarse line's other windows may be false peaks (windows the
+            # consensus only partly covers, against its zero padding). A stretch the overlap cannot
+            # confirm is not applied: the pass is placed by a shift alone, its line's shift at the
+            # confirming window, its stretch left as reported.
+            shift_only, unconfirmed = True, eps
+            b, eps = b + eps * (xm[g][0] - x_ref), 0.0
         if shift_only:  # the best window's residual shift, the others' left out
             best = int(np.argmax(rr[g]))
             db, de, inl = float(yk[best]), 0.0, np.arange(g.sum()) == best
@@ -332,7 +352,7 @@ def estimate_alignment(x_rep: np.ndarray, ap: np.ndarray, x_cons: np.ndarray, co
         aw_c = np.interp(al.true_to_reported(xg), x_rep, a_coarse)
         cw_c = np.interp(xg, xc, c_coarse)
         score = float(np.sum(aw_c * cw_c) / (np.sqrt(np.sum(aw_c * aw_c) * np.sum(cw_c * cw_c)) + 1e-30))
-        if abs(db) < 1e-3 and abs(de) < 1e-5:
+        if abs(db) < 1e-3 and abs(de) < 1e-5 and unconfirmed == 0.0:
             break
     if abs(eps) > max_stretch * 1.5 or abs(b) > max_shift_m + 2.0:
         return None
