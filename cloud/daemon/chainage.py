@@ -264,7 +264,12 @@ class ChainageAligner:
     def _centre(self, agg, sw: _Sweep) -> None:
         """Each route's estimates still current centred on their mean (each route has its own frame:
         the mean of its own passes' errors), queued to apply; routes with fewer than
-        ``align_min_passes`` estimates have no frame and are left as they are."""
+        ``align_min_passes`` estimates have no frame and are left as they are: they keep the maps
+        their last frame applied (and the passes with no estimate in a framed route keep theirs).
+        Reverting them instead would make a route whose estimates straddle the threshold alternate
+        between re-gridded and stored from one sweep to the next (a reverted pass is estimated
+        afresh, undamped), so its series would run to ``align_iterations`` and end on whichever
+        state the last sweep happened to leave."""
         found = {rid: {key: est for key, est in f.items() if self._current(agg, key, est)}
                  for rid, f in sw.found.items()}
         sw.stale += sum(len(f) for f in sw.found.values()) - sum(len(f) for f in found.values())
