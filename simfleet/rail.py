@@ -37,19 +37,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from shared.drivelog import DriveLog, DriveLogMeta, write_drive_log
 from shared.dynamics.train_track import simulate_train_track
-from shared.progress import Progress
 from shared.registry import Bridge, Route, Site, VehicleClass, dump_site
 from shared.sensors import add_noise
 from shared.track import BridgeSpan, RailIrregularity, TrackParams, build_track, damaged_ei_factor
 from shared.vehicles.carriage import TABLE_3_1, Carriage
+
+from .jobs import run_jobs
 
 ROUTE_ID = "L1"
 BRIDGE_ID = "C1"
@@ -288,18 +287,7 @@ def generate_rail(scenario: RailScenario, out_dir: Path, seed: int = 0, passes: 
     for i, run in enumerate(runs):
         nom = dict(mean) if nominal == "class" else {**carriage, **{k: run[k] for k in RUN_NAMES}}
         jobs.append((scenario, i, carriage, run, seed, noise, out_dir, nom))
-    workers = workers if workers is not None else min(len(jobs), os.cpu_count() or 1, 4)
-    records = []
-    with Progress(len(jobs), f"sim {scenario.name}", enabled=progress) as bar:
-        if workers > 1 and len(jobs) > 1:
-            with ProcessPoolExecutor(workers) as pool:
-                for rec in pool.map(_run_one, jobs):
-                    records.append(rec)
-                    bar.advance()
-        else:
-            for job in jobs:
-                records.append(_run_one(job))
-                bar.advance()
+    records = run_jobs(_run_one, jobs, f"sim {scenario.name}", workers, progress)
     _write_site(scenario, out_dir / "site.toml", mean, std)
     truth = _truth(scenario, seed, carriage, records, noise)
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=1))

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,12 +11,12 @@ import numpy as np
 from shared.drivelog import DriveLog, DriveLogMeta, write_drive_log
 from shared.fe.beam import Beam, crack_ei_factor, global_ei_factor, natural_frequencies
 from shared.profiles import RoadProfile, carpet_profile, draw_lane, iso8608_profile, tyre_filter
-from shared.progress import Progress
 from shared.registry import Bridge, Route, Site, VehicleClass, dump_site
 from shared.sensors import add_noise
 from shared.vbi import simulate_vbi
 from shared.vehicles import vehicle_from_params
 
+from .jobs import run_jobs
 from .network import generate_network
 from .rail import generate_rail
 from .scenarios import Scenario, draw_fleet, fleet_class
@@ -198,18 +196,7 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
         surface = lanes[plan.lane] if plan.lane is not None else lanes[0]
         nominal_params = dict(plan.params) if nominal == "true" else dict(mean)
         jobs.append((scenario, plan, surface, beam, noise, out_dir, nominal_params))
-    workers = workers if workers is not None else min(len(jobs), os.cpu_count() or 1, 4)
-    records = []
-    with Progress(len(jobs), f"sim {scenario.name}", enabled=progress) as bar:
-        if workers > 1 and len(jobs) > 1:
-            with ProcessPoolExecutor(workers) as pool:
-                for rec in pool.map(_run_one, jobs, chunksize=max(1, len(jobs) // (4 * workers))):
-                    records.append(rec)
-                    bar.advance()
-        else:
-            for job in jobs:
-                records.append(_run_one(job))
-                bar.advance()
+    records = run_jobs(_run_one, jobs, f"sim {scenario.name}", workers, progress)
 
     write_site(scenario, out_dir / "site.toml", mean, std)
     truth = build_truth(scenario, seed, lanes, fleet, ids, records, beam, noise)

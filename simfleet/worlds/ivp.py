@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,9 +26,9 @@ import numpy as np
 
 from shared.drivelog import DriveLog, DriveLogMeta, write_drive_log
 from shared.profiles import RoadProfile, carpet_profile, draw_lane, iso8608_profile, tyre_filter
-from shared.progress import Progress
 from shared.sensors import add_noise
 
+from ..jobs import run_jobs
 from ..scenarios import Scenario, draw_fleet, fleet_class
 from ..sim import BRIDGE_ID, ROUTE_ID, TRUTH_SPACING_M, deck_window, write_site
 from .logger import AntiAlias, integrated_chainage, odometer
@@ -213,18 +211,7 @@ def generate(scenario: Scenario, out_dir: Path, seed: int = 0, passes: int | Non
         nominal_params = dict(plan.params) if nominal == "true" else dict(mean)
         jobs.append((scenario, plan, lanes[lane if lane is not None else 0], beam, noise, out_dir, nominal_params,
                      settings))
-    workers = workers if workers is not None else min(len(jobs), os.cpu_count() or 1, 4)
-    records = []
-    with Progress(len(jobs), f"sim/ivp {scenario.name}", enabled=progress) as bar:
-        if workers > 1 and len(jobs) > 1:
-            with ProcessPoolExecutor(workers) as pool:
-                for rec in pool.map(_run_one, jobs, chunksize=max(1, len(jobs) // (4 * workers))):
-                    records.append(rec)
-                    bar.advance()
-        else:
-            for job in jobs:
-                records.append(_run_one(job))
-                bar.advance()
+    records = run_jobs(_run_one, jobs, f"sim/ivp {scenario.name}", workers, progress)
     write_site(scenario, out_dir / "site.toml", mean, std)
     truth = build_truth(scenario, seed, lanes, fleet, ids, records, beam, noise, settings)
     (out_dir / "truth.json").write_text(json.dumps(truth, indent=1))
