@@ -14,6 +14,7 @@ from cloud.bridge.setup import Setup, whiten_all
 from shared.fe.beam import Beam, influence_line, moving_load_deflection
 from shared.vbi import simulate_vbi
 from shared.vehicles import QuarterCar
+from tests.support import drive_logs, edge_messages
 from tests.test_bridge_passdata import BRIDGE, QC, edge_pass
 
 
@@ -68,22 +69,15 @@ def test_uncalibrated_vehicles_give_no_false_alarm_and_a_band_that_knows_it(tmp_
     from cloud.bridge.estimator import BridgeEstimator, BridgeSettings, class_weight_prior
     from cloud.bridge.passdata import group_segments
     from cloud.bridge.vehicle_error import class_log_sd
-    from edge.node import Edge
-    from shared.drivelog import list_drive_logs, read_drive_log
     from shared.registry import load_site
     from shared.schema import decode_ap
     from simfleet import sim
-    from simfleet.replay import chunks_of
     from simfleet.scenarios import SCENARIOS
 
     sim.generate(SCENARIOS["bridge-healthy"], tmp_path, seed=5, passes=8, nominal="class", workers=1, progress=False)
     site = load_site(tmp_path / "site.toml")
-    segments = []
-    edge = Edge("net", lambda k, p: segments.extend(decode_ap(p)) if "/ap/" in k else None, site, "nominal")
-    logs = [read_drive_log(p) for p in list_drive_logs(tmp_path / "logs")]
-    for log in logs:
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode())
+    logs = drive_logs(tmp_path)
+    segments = [seg for key, payload in edge_messages(site, logs, "net") if "/ap/" in key for seg in decode_ap(payload)]
     used = {log.meta.vehicle_id: dict(log.meta.nominal_params) for log in logs}
     assert all(u == dict(site.vehicle_class("quarter_car").mean) for u in used.values())
     est = BridgeEstimator(site.bridges[0], class_weight_prior(site, "quarter_car"), BridgeSettings())

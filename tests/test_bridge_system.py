@@ -26,7 +26,6 @@ import pytest
 import zenoh
 
 from shared import keys
-from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
 from shared.schema import decode_alarm
 from shared.transport import run_router, zenoh_config
@@ -34,6 +33,7 @@ from simfleet.scenarios import SCENARIOS, BridgeSpec
 from simfleet.sim import generate
 
 from tests.bridge_cache import kept
+from tests.support import drive, drive_logs
 
 NET = "tb"
 ELEMENT_COLUMNS = ["bridge_id", "element", "x_start_m", "x_end_m", "EI_mean", "EI_lo95", "EI_hi95", "stiffness_ratio"]
@@ -123,11 +123,10 @@ def new_fed_monitor(global_loss: float):
     from cloud.bridge.estimator import BridgeSettings
     from cloud.bridge.monitor import BridgeMonitor
     from edge.node import Edge
-    from simfleet.replay import chunks_of
 
     sim = simulated(global_loss, 12, "true")
     site = load_site(sim / "site.toml")
-    logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
+    logs = drive_logs(sim)
     used = {log.meta.vehicle_id: dict(log.meta.nominal_params) for log in logs}
     agg = Aggregator(site, [])
 
@@ -137,10 +136,7 @@ def new_fed_monitor(global_loss: float):
         elif "/done/" in key:
             agg.on_pass_done(payload)
 
-    edge = Edge("net", publish, site, "nominal")
-    for log in logs:
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode())
+    drive(Edge("net", publish, site, "nominal"), logs)
     monitor = BridgeMonitor(site, BridgeSettings(deck="smooth"), clock=lambda: "2026-01-01T00:00:00+00:00")
     added = monitor.sync(agg.passes, agg.held, lambda vid, model, version: used[vid])
     return monitor, added, agg, used

@@ -22,15 +22,15 @@ from cloud.daemon.core import Cloud
 from cloud.daemon.settings import CloudSettings
 from edge.node import Edge
 from shared import keys
-from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
 from shared.schema import decode_ack, decode_ap
 from shared.transport import run_router, zenoh_config
 from simfleet.harness import Harness
-from simfleet.replay import chunks_of
 from simfleet.run import run
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
+
+from tests.support import drive, drive_logs, edge_messages
 
 NET = "t"
 
@@ -39,17 +39,6 @@ NET = "t"
 def road(tmp_path_factory):
     out = tmp_path_factory.mktemp("road")
     generate(SCENARIOS["road-qc"], out, seed=11, passes=4, workers=1, progress=False)
-    return out
-
-
-def _messages(road) -> list[tuple[str, bytes]]:
-    site = load_site(road / "site.toml")
-    out: list[tuple[str, bytes]] = []
-    edge = Edge(NET, lambda k, p: out.append((k, p)), site, "nominal")
-    for path in list_drive_logs(road / "logs"):
-        log = read_drive_log(path)
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
     return out
 
 
@@ -64,7 +53,7 @@ def _feed(cloud, msgs, durability=None):
 @pytest.fixture(scope="module")
 def messages(road) -> tuple[tuple[str, bytes], ...]:
     """The edge's messages for the road's passes, made once for the module (a tuple: no test changes them)."""
-    return tuple(_messages(road))
+    return tuple(edge_messages(load_site(road / "site.toml"), drive_logs(road), NET))
 
 
 def _cloud(road):
@@ -200,7 +189,7 @@ def _fleet_loop(road, state_dir, crash_after_rounds=None, max_resident=None, sna
 
     h = Harness(site, settings, net=NET, on_publish=on_publish, on_deliver=on_deliver)
     recovered(h.cloud)
-    h.replay([read_drive_log(p) for p in list_drive_logs(road / "logs")])
+    h.replay(drive_logs(road))
     rounds = 0
     while h.idle():  # the daemon's idle work when the bus is quiet
         rounds += 1
@@ -269,13 +258,10 @@ def test_a_restarted_cloud_does_not_raise_a_standing_alarm_again(tmp_path):
     # parameters (as tests/test_bridge_system.py, with 4 passes: enough for a certain alarm).
     sim = simulated(0.30, 4, "true")
     site = load_site(sim / "site.toml")
-    logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
+    logs = drive_logs(sim)
     used = {log.meta.vehicle_id: dict(log.meta.nominal_params) for log in logs}
     agg = Aggregator(site, [])
-    edge = Edge("net", lambda k, p: agg.on_segment(p) if "/ap/" in k else agg.on_pass_done(p), site, "nominal")
-    for log in logs:
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode())
+    drive(Edge("net", lambda k, p: agg.on_segment(p) if "/ap/" in k else agg.on_pass_done(p), site, "nominal"), logs)
     monitor = BridgeMonitor(site, BridgeSettings(deck="smooth"), clock=lambda: "2026-01-01T00:00:00+00:00")
     assert monitor.sync(agg.passes, agg.held, lambda vid, model, version: used[vid]) == 4
     published: list[str] = []

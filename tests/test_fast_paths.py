@@ -43,6 +43,8 @@ from simfleet.replay import chunks_of
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
 
+from tests.support import drive, drive_logs
+
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 NET = "t"
 
@@ -341,11 +343,7 @@ def test_pass_segments_do_not_depend_on_chunking(road):
 def _run_edge(road, **kw) -> tuple[list[tuple[str, bytes]], Edge]:
     site = load_site(road / "site.toml")
     published: list[tuple[str, bytes]] = []
-    edge = Edge(NET, lambda k, p: published.append((k, p)), site, "nominal", **kw)
-    for path in list_drive_logs(road / "logs"):
-        log = read_drive_log(path)
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
+    edge = drive(Edge(NET, lambda k, p: published.append((k, p)), site, "nominal", **kw), drive_logs(road))
     return published, edge
 
 

@@ -84,11 +84,11 @@ import pyarrow as pa  # noqa: E402
 from cloud.daemon.core import Cloud  # noqa: E402
 from cloud.daemon.settings import CloudSettings  # noqa: E402
 from edge.node import Edge  # noqa: E402
-from shared.drivelog import list_drive_logs, read_drive_log  # noqa: E402
 from shared.registry import load_site  # noqa: E402
-from simfleet.replay import chunks_of  # noqa: E402
 from simfleet.scenarios import SCENARIOS  # noqa: E402
 from simfleet.sim import generate  # noqa: E402
+
+from tests.support import drive, drive_logs, edge_messages  # noqa: E402
 
 NET = "t"
 
@@ -98,13 +98,6 @@ def road(tmp_path_factory):
     out = tmp_path_factory.mktemp("road")
     generate(SCENARIOS["road-qc"], out, seed=7, passes=3, workers=1, progress=False)
     return out
-
-
-def _drive(road, edge):
-    for path in list_drive_logs(road / "logs"):
-        log = read_drive_log(path)
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
 
 
 def _cloud(road, sent):
@@ -123,15 +116,14 @@ def _deliver(cloud, edge, msgs):
 def test_an_outage_delays_delivery_but_changes_nothing(road, tmp_path):
     site = load_site(road / "site.toml")
     # Reference: cloud present throughout, no outbox.
-    direct: list = []
     ref = _cloud(road, [])
-    _drive(road, Edge(NET, lambda k, p: direct.append((k, p)), site, "nominal"))
+    direct = edge_messages(site, drive_logs(road), NET)
     _deliver(ref, None, direct)
     # Outage: no aggregator alive while the fleet drives; the edge only stores.
     wire: list = []
     edge = Edge(NET, lambda k, p: wire.append((k, p)), site, "nominal", outbox=Outbox(tmp_path / "spool"))
     edge.on_cloud_presence(False)
-    _drive(road, edge)
+    drive(edge, drive_logs(road))
     assert wire == [] and len(edge.outbox.pending) == 3
     # The cloud comes back: everything is sent once, acknowledged, and the store empties.
     acks: list = []
@@ -158,12 +150,8 @@ def test_a_resend_carries_each_messages_own_trace(road, tmp_path):
     from a restarted edge's spool."""
     site = load_site(road / "site.toml")
 
-    def traced_drive(edge):
-        for path in list_drive_logs(road / "logs"):
-            log = read_drive_log(path)
-            for chunk in chunks_of(log):
-                edge.trace = f"{log.meta.vehicle_id}/{chunk.seq}".encode()  # as the daemon tags each chunk
-                edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
+    def traced_drive(edge):  # each chunk tagged as the daemon tags it
+        drive(edge, drive_logs(road), trace=lambda log, chunk: f"{log.meta.vehicle_id}/{chunk.seq}".encode())
 
     def wired(outbox):
         wire: list = []

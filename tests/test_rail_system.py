@@ -20,21 +20,21 @@ from cloud.daemon.durable import AP, DONE, Durability
 from cloud.daemon.journal import Journal
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.aggregator import on_route
-from cloud.rail.batches import RailBatches, rebuild_pass
+from cloud.rail.batches import rebuild_pass
 from cloud.rail.bridge import bogie_influence
 from cloud.rail.records import RailRun
 from cloud.reference.cross_entropy import population_aps
 from cloud.view import View
-from edge.node import Edge
 from shared.drivelog import MODEL_CHANNELS, list_drive_logs, read_drive_log, write_drive_log
 from shared.registry import load_site
 from shared.schema import decode_alarm
 from shared.track_quality import d1_longitudinal_level
-from simfleet.replay import chunks_of
 from simfleet.reproduce import run_in_process
 from simfleet.run import run
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
+
+from tests.support import edge_messages
 
 N_RUNS = 12
 BRIDGE_RUNS = 6  # per batch: a load regression over fewer runs' masses is often not a deflection line
@@ -197,12 +197,7 @@ def _session(site, logs, state, view=None):
     durable.recover()
     durable.live = True
     cloud.record = durable.record_own
-    msgs = []
-    edge = Edge("t", lambda key, payload: msgs.append((key, payload)), site, "nominal")
-    for log in logs:
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
-    for key, payload in msgs:
+    for key, payload in edge_messages(site, logs, "t"):
         kind = AP if "/ap/" in key else DONE
         durable.record(kind, key, payload)
         (cloud.on_segment if kind == AP else cloud.on_done)(key, payload)

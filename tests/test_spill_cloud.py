@@ -11,12 +11,11 @@ import pytest
 from cloud.daemon.core import Cloud
 from cloud.daemon.settings import CloudSettings
 from cloud.ingest.segment_store import HeldSegments
-from edge.node import Edge
-from shared.drivelog import list_drive_logs, read_drive_log
 from shared.registry import load_site
-from simfleet.replay import chunks_of
 from simfleet.scenarios import SCENARIOS
 from simfleet.sim import generate
+
+from tests.support import drive_logs, edge_messages
 
 NET = "t"
 
@@ -26,13 +25,7 @@ def road(tmp_path_factory):
     out = tmp_path_factory.mktemp("road")
     generate(SCENARIOS["road-qc"], out, seed=11, passes=4, workers=1, progress=False)
     site = load_site(out / "site.toml")
-    msgs: list[tuple[str, bytes]] = []
-    edge = Edge(NET, lambda k, p: msgs.append((k, p)), site, "nominal")
-    for path in list_drive_logs(out / "logs"):
-        log = read_drive_log(path)
-        for chunk in chunks_of(log):
-            edge.on_chunk(chunk.encode(), log.meta.vehicle_id)
-    return site, tuple(msgs)
+    return site, tuple(edge_messages(site, drive_logs(out), NET))
 
 
 def _settled(site, msgs, max_resident, spill_dir):
