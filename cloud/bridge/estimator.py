@@ -284,10 +284,23 @@ class BridgeEstimator:
         mril = MrIl(self.setup.basis.x, self.model.influence(post.params), len(entries))
         pass_deflections = self._pass_deflections(entries, wps, ref, post, deltas)
         mril_passes = mril_single_axle(pass_deflections.x_m, pass_deflections.deflection_m, pass_deflections.loads_n)
+        if post.krot is not None and self.settings.baseline_passes is None:
+            self.baseline = self._declared_on_bearings(post)
         self.baseline.offer(mril)
         indicators = damage_indicators(self.baseline.mril, mril) if self.baseline.ready else None
         return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes,
                               pass_deflections)
+
+    def _declared_on_bearings(self, post: ElementPosterior) -> Baseline:
+        """The declared baseline of a span on rotational springs: the design E·I on the bearings the
+        posterior reads. D1/D2 read a loss of flexural rigidity; against the pinned design span the
+        bearings' restraint alone reads as a stiffness gain of the order of the restraint (a stiff
+        bearing halves the mid-span ordinate), which says nothing about the beam. The bearings are
+        read from the passes with the beam (and so are not a second opinion on it), but what the
+        passes fix is the span's effective stiffness, and its split between beam and bearings is the
+        posterior's: D then reads the beam's share, as the elements do."""
+        krot = [10.0 ** k[0] for k in post.krot]
+        return Baseline.declared(self.bridge, self.setup.basis.x, (krot[0], krot[-1]))
 
     def _load_factor(self, e: _PassEntry, ref: Reference, load: np.ndarray) -> None:
         """Give the pass its wheel-load factor (:attr:`BridgeSettings.load_factor`) and its model columns.
