@@ -1,0 +1,96 @@
+"""Bridge damage on the second (ivp) world: a crack found, located and alarmed; bearings whose D1/D2 mean
+something.
+
+The ivp world (``simfleet/worlds/``) simulates the bridge independently of the estimators' design
+world: a Rayleigh–Ritz modal beam whose crack is a continuous triangle of lost E·I (not element
+values), RK4 at 20 kHz, the logger's anti-alias FIR and resampling, vehicles drawn from the class
+prior, logs that start mid-motion, a speed that wobbles within each pass (here an exact odometer).
+Its passes go through the edge and cloud cores in process with fleet self-calibration; the bridge
+estimator (``cloud/bridge/``, what these tests check) runs on every call. No truth reaches the
+estimator; it is read here only to score. The simulated, calibrated passes are kept between
+sessions (``tests/bridge_cache.py``).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import pickle
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from cloud.daemon.settings import CloudSettings
+from shared.drivelog import list_drive_logs, read_drive_log
+from shared.registry import load_site
+from simfleet.harness import run_in_process
+from simfleet.reproduce_bridge import Case, estimate_case
+from simfleet.scenarios import SCENARIOS
+from simfleet.worlds import ivp
+
+from tests.bridge_cache import kept
+
+EXACT_ODOMETER = ivp.WorldSettings(speed_error_sd=0.0)
+
+
+def _make(name: str, passes: int, seed: int) -> Callable:
+    def make(d: Path) -> None:
+        t0 = time.perf_counter()
+        ivp.generate(SCENARIOS[name], d, seed=seed, passes=passes, noise_pct=2.0, progress=False, workers=1,
+                     settings=EXACT_ODOMETER)
+        logs = [read_drive_log(p) for p in list_drive_logs(d / "logs")]
+        site = load_site(d / "site.toml")
+        cloud, rounds = run_in_process(logs, site, None, CloudSettings(calibration="fleet"))
+        params = {v: dict(st.params) for v, st in cloud.calibrator.vehicles.items()}
+        case = Case(name, seed, passes, d, site, json.loads((d / "truth.json").read_text()),
+                    list(cloud.aggregator.held.values()), params, rounds, time.perf_counter() - t0)
+        (d / "case.pkl").write_bytes(pickle.dumps(case))
+    return make
+
+
+@functools.lru_cache(maxsize=None)
+def estimate(name: str, passes: int, seed: int = 0):
+    d = kept(f"ivp-{name}-{passes}-s{seed}", _make(name, passes, seed))
+    case = pickle.loads((d / "case.pkl").read_bytes())
+    e, _ = estimate_case(case)
+    return e, np.asarray(case.truth["bridge"]["stiffness_ratio"])
+
+
+def test_a_crack_is_located_measured_and_alarmed():
+    """φ = 10 % at 10 m on a smooth deck (elements 10–11 at 0.819 of design, 9 and 12 at 0.977: the
+    modal beam's element truth is the mean of its continuous E·I over each element), 50 passes:
+    the weakest element within one element of the crack, its loss within 5 points of the truth
+    (the issue's goal at 300 passes), the alarm raised, and the crack hypothesis placing it on the
+    right element with a loss interval that holds the truth."""
+    e, truth = estimate("bridge-crack10-10m", 50)
+    ratio = e.posterior.stiffness_ratio
+    weakest = int(np.argmin(ratio))
+    print(f"elements {np.round(ratio, 3).tolist()}; assessment {e.assessment.best} {e.assessment.kind} "
+          f"element {e.assessment.element} loss {e.assessment.severity:.3f} "
+          f"[{e.assessment.severity_lo95:.3f}, {e.assessment.severity_hi95:.3f}] P {e.assessment.loss_probability:.3f}")
+    assert weakest + 1 in (9, 10, 11, 12), weakest + 1
+    assert abs(ratio[weakest] - truth[weakest]) < 0.05, (ratio[weakest], truth[weakest])
+    a = e.assessment
+    assert a.alarm and a.kind == "crack" and a.element in (10, 11), (a.kind, a.element)
+    assert a.severity_lo95 <= 1.0 - truth.min() <= a.severity_hi95, (a.severity_lo95, a.severity_hi95)
+
+
+def test_seized_bearings_read_their_beam_and_d1_d2_the_beams_loss():
+    """Bearings Krot = 1e10 on a healthy beam, 30 passes: the bearings found (the hypothesis and the
+    Krot interval), no alarm, and D1/D2 — a loss of flexural rigidity — within a few points of the
+    truth (none): against the pinned design span they read the restraint as a ~110 % stiffness gain."""
+    e, truth = estimate("bearing-1e10", 30)
+    (k, lo, hi), _ = e.posterior.krot
+    mean = float(np.mean(e.posterior.stiffness_ratio))
+    print(f"log10 Krot {k:.3f} [{lo:.3f}, {hi:.3f}], mean ratio {mean:.4f}, D1 {e.indicators.D1_pct:.2f} %, "
+          f"D2 {e.indicators.D2_pct:.2f} %")
+    assert e.assessment.best == "bearings" and not e.assessment.alarm
+    assert lo <= 10.0 <= hi
+    # The beam/bearing split is the weakly identified ridge (cloud/bridge/bearings.py): the mean
+    # ratio's own 95 % interval spans several points at 30 passes; 3 points is the goal's 2 plus the
+    # as-built tolerance prior's pull.
+    assert abs(mean - 1.0) < 0.03, mean
+    for d in (e.indicators.D1_pct, e.indicators.D2_pct):
+        assert abs(d) < 5.0, (e.indicators, mean)  # the beam reads ≤ 3 points soft; D follows it
