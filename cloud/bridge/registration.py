@@ -10,8 +10,13 @@ error, a GNSS fix, or a logger whose filter delays the acceleration against the 
 chainage shift of speed × delay), the route's alignment places them to a few centimetres at best.
 
 Here each pass's shift is read from the road it shares with the others (least squares over a grid
-of shifts with a local offset and slope free, refined by a parabola), the shifts are centred (the
-fleet's frame is kept: a common shift is not seen by the road) and passes are moved where their
+of shifts with a local offset and slope free, refined by a parabola) and centred: the road does not
+see a shift common to all passes, so the fleet's frame is kept — except for the part of the shifts
+that grows with the pass's speed. A shift of speed × τ is what a constant delay τ between the
+acceleration and the chainage's time base leaves (a logger's causal anti-alias filter, a channel
+latency); odometer scale errors and GNSS biases do not scale with speed. Where the centred shifts'
+regression on speed is significant (:data:`SIGNIFICANCE` standard errors), the delay it gives is
+taken out whole, its common part (mean speed × τ) included. Passes are moved where their
 shift is both larger than the registration resolves (:data:`MIN_SHIFT_M`) and significant against
 its own error (:data:`SIGNIFICANCE`), so passes that already agree are left exactly as they are.
 """
@@ -19,6 +24,7 @@ its own error (:data:`SIGNIFICANCE`), so passes that already agree are left exac
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -87,9 +93,10 @@ def read_shift(p: PassData, consensus: np.ndarray) -> tuple[float, float] | None
 
 
 def register(passes: Sequence[PassData], sweeps: int = 2) -> list[float]:
-    """Each pass's shift (m, centred over the passes that have one; 0 where none is read), read
-    against the leave-one-out consensus of the others, the consensus rebuilt from the moved passes
-    between ``sweeps``."""
+    """Each pass's shift (m, centred over the passes that have one, plus the shift a delay read from
+    the shifts' dependence on speed leaves; 0 where none is significant), read against the
+    leave-one-out consensus of the others, the consensus rebuilt from the moved passes between
+    ``sweeps``."""
     shifts = np.zeros(len(passes))
     for _ in range(sweeps):
         moved = [shift_pass(p, s) for p, s in zip(passes, shifts)]
@@ -102,7 +109,26 @@ def register(passes: Sequence[PassData], sweeps: int = 2) -> list[float]:
         sd = np.array([r[1] if r is not None else np.inf for r in read])
         new[have] -= new[have].mean()
         shifts = np.where(have & (np.abs(new) > SIGNIFICANCE * sd), new, 0.0)
+        tau = delay(np.array([p.speed_mps for p in passes])[have], new[have])
+        if tau:
+            v = np.array([p.speed_mps for p in passes])
+            shifts = np.where(have, new, 0.0) + v.mean() * tau - np.where(have, 0.0, (v.mean() - v) * tau)
     return [float(s) for s in shifts]
+
+
+def delay(speed_mps: np.ndarray, centred_m: np.ndarray) -> float:
+    """The delay τ (s) in ``centred ≈ (v − v̄)·τ``, or 0 when it is not significant or fewer than
+    four passes have a shift."""
+    if speed_mps.size < 4:
+        return 0.0
+    dv = speed_mps - speed_mps.mean()
+    sxx = float(dv @ dv)
+    if not sxx > 0:
+        return 0.0
+    tau = float(dv @ centred_m) / sxx
+    rest = centred_m - centred_m.mean() - tau * dv
+    se = math.sqrt(float(rest @ rest) / (speed_mps.size - 2) / sxx)
+    return tau if abs(tau) > SIGNIFICANCE * se else 0.0
 
 
 def shift_pass(p: PassData, shift_m: float) -> PassData:
