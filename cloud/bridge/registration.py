@@ -16,9 +16,10 @@ that grows with the pass's speed. A shift of speed × τ is what a constant dela
 acceleration and the chainage's time base leaves (a logger's causal anti-alias filter, a channel
 latency); odometer scale errors and GNSS biases do not scale with speed. Where the centred shifts'
 regression on speed is significant (:data:`SIGNIFICANCE` standard errors), the delay it gives is
-taken out whole, its common part (mean speed × τ) included. Passes are moved where their
-shift is both larger than the registration resolves (:data:`MIN_SHIFT_M`) and significant against
-its own error (:data:`SIGNIFICANCE`), so passes that already agree are left exactly as they are.
+taken out whole, its common part (mean speed × τ) included, and every pass moves. Otherwise a pass
+moves only where its shift is significant against its own error (:data:`SIGNIFICANCE`) and larger
+than the registration resolves (:data:`MIN_SHIFT_M`), so passes that already agree are left exactly
+as they are.
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ MAX_SHIFT_M = 0.5
 #: the road compared: this far from each support, m (the deflection under the wheel is zero off the
 #: span, and the wheel reaches the deck a tyre patch before the support)
 SUPPORT_CLEARANCE_M = 1.0
-#: a pass moves only when its shift exceeds this, m: a tenth of the grid step, below which the
-#: interpolation's smoothing of the pass costs more than the shift
+#: a pass moves only when its shift exceeds this, m: a tenth of the grid step, below which moving it
+#: changes it more by the interpolation's smoothing than by the shift
 MIN_SHIFT_M = 0.005
 #: a shift counts when it exceeds this many of its standard errors (the least-squares error of a
 #: shift: residual variance over the sum of the road's squared slope)
@@ -58,6 +59,12 @@ def _moved(values: np.ndarray, k: float) -> np.ndarray:
     return np.interp(i + k, i, values)
 
 
+def _moved_valid(valid: np.ndarray, k: float) -> np.ndarray:
+    """Where data read ``k`` grid steps later come from valid points of the window (both neighbours)."""
+    i = np.arange(valid.size, dtype=float)
+    return (_moved(valid.astype(float), k) > 0.999) & (i + k >= 0.0) & (i + k <= valid.size - 1)
+
+
 def read_shift(p: PassData, consensus: np.ndarray) -> tuple[float, float] | None:
     """How far (m) the pass's road lies after the consensus's, ``p.ap(x + s) ≈ consensus(x)`` up to an
     offset and slope on the road off the span, and that shift's standard error (m); None if the pass
@@ -66,12 +73,11 @@ def read_shift(p: PassData, consensus: np.ndarray) -> tuple[float, float] | None
     h = w.spacing_m
     ks = np.arange(-int(round(MAX_SHIFT_M / h)), int(round(MAX_SHIFT_M / h)) + 1)
     use = _road_mask(p) & np.isfinite(consensus)
-    valid = p.valid.astype(float)
     x = w.x
     costs = np.full(ks.size, np.inf)
     counts = np.zeros(ks.size)
     for j, k in enumerate(ks):
-        ok = use & (_moved(valid, float(k)) > 0.999)
+        ok = use & _moved_valid(p.valid, float(k))
         if ok.sum() < MIN_POINTS:
             continue
         r = _moved(p.ap, float(k))[ok] - consensus[ok]
@@ -138,6 +144,6 @@ def shift_pass(p: PassData, shift_m: float) -> PassData:
     if abs(shift_m) < MIN_SHIFT_M:
         return p
     k = shift_m / p.window.spacing_m
-    valid = _moved(p.valid.astype(float), k) > 0.999
+    valid = _moved_valid(p.valid, k)
     return dataclasses.replace(p, ap=np.where(valid, _moved(p.ap, k), 0.0), valid=valid,
                                load_factor=_moved(p.load_factor, k))
