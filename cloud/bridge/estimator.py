@@ -324,9 +324,11 @@ class BridgeEstimator:
         bearing halves the mid-span ordinate), which says nothing about the beam. The bearings are
         read from the passes with the beam (and so are not a second opinion on it), but what the
         passes fix is the span's effective stiffness, and its split between beam and bearings is the
-        posterior's: D then reads the beam's share, as the elements do."""
-        krot = [10.0 ** k[0] for k in post.krot]
-        return Baseline.declared(self.bridge, self.setup.basis.x, (krot[0], krot[-1]))
+        posterior's: D then reads the beam's share, as the elements do — on the bearings the posterior's
+        influence line stands on (its parameters' κ, the mode the fit is conditioned on, not the
+        reported mean of log10 Krot)."""
+        krot = 10.0 ** np.clip(np.asarray(post.params, dtype=float)[self.model.n_elements :], -3.0, 16.0)
+        return Baseline.declared(self.bridge, self.setup.basis.x, (float(krot[0]), float(krot[-1])))
 
     def _load_factor(self, e: _PassEntry, ref: Reference, load: np.ndarray) -> None:
         """Give the pass its wheel-load factor (:attr:`BridgeSettings.load_factor`) and its model columns.
