@@ -105,8 +105,9 @@ def _crack_found(e, truth: np.ndarray) -> None:
 
 def test_seized_bearings_read_their_beam_and_d1_d2_the_beams_loss():
     """Bearings Krot = 1e10 on a healthy beam, 30 passes: the bearings found (the hypothesis and the
-    Krot interval), no alarm, and D1/D2 — a loss of flexural rigidity — within a few points of the
-    truth (none): against the pinned design span they read the restraint as a ~110 % stiffness gain."""
+    Krot interval), no alarm, the beam's mean stiffness within 3 points, and D1/D2 — a loss of
+    flexural rigidity — reading the beam's loss as the elements do: against the pinned design span
+    they read the restraint as a ~110 % stiffness gain."""
     e, truth = estimate("bearing-1e10", 30)
     (k, lo, hi), _ = e.posterior.krot
     mean = float(np.mean(e.posterior.stiffness_ratio))
@@ -119,4 +120,6 @@ def test_seized_bearings_read_their_beam_and_d1_d2_the_beams_loss():
     # as-built tolerance prior's pull.
     assert abs(mean - 1.0) < 0.03, mean
     for d in (e.indicators.D1_pct, e.indicators.D2_pct):
-        assert abs(d) < 5.0, (e.indicators, mean)  # the beam reads ≤ 3 points soft; D follows it
+        # D reads the beam's loss on the bearings found, as the elements do: the same number but for
+        # how the mid-span ordinate and the area weigh the elements (a point here)
+        assert abs(d - 100 * (1.0 - mean)) < 1.0, (e.indicators, mean)
