@@ -37,6 +37,7 @@ from cloud.bridge.likelihood import Stacked, WeightPrior, marginal_loglik_batch,
 from cloud.bridge.mril import Baseline, DamageIndicators, MrIl, damage_indicators, mril_single_axle
 from cloud.bridge.passdata import EdgeSettings, PassData, Reference, extract_pass, road_load_factor, span_profile
 from cloud.bridge.posterior import ElementPosterior, fit_elements
+from cloud.bridge.registration import MIN_SHIFT_M, register, shift_pass
 from cloud.bridge.setup import Setup
 from cloud.bridge.stiffness import StiffnessPrior
 from cloud.bridge.vehicle_error import class_log_sd
@@ -98,6 +99,10 @@ class BridgeSettings:
     #: which carries the pass's noise into the regressor the same noise is fitted with (errors in
     #: variables; see :meth:`BridgeEstimator._load_factor`).
     load_factor: str = "road"
+    #: register every pass to the others along the window from the road off the span before each
+    #: estimate (:mod:`cloud.bridge.registration`): the estimators need the passes placed to a few
+    #: millimetres, which a per-run odometer error, GNSS or a logger's filter delay do not give
+    register: bool = True
 
 
 def class_weight_prior(site: Site, model: str) -> WeightPrior:
@@ -176,6 +181,8 @@ class _PassEntry:
     load_at: int | None = None  # passes in the consensus its road load factor was computed with
     road: tuple[int, np.ndarray] | None = None  # (passes in the consensus, its road sensitivity)
     common: np.ndarray | None = None  # its fleet-common calibration columns, band-limited forward model
+    raw: PassData | None = None  # the pass as extracted, before registration moved it (``data``)
+    shift_m: float = 0.0  # how far registration moved it
 
 
 class BridgeEstimator:
@@ -228,7 +235,7 @@ class BridgeEstimator:
     def add(self, pd: PassData) -> None:
         """Add (or replace, e.g. after recalibration) one pass. Its model columns are computed at the
         next estimate, once its wheel-load factor is known (:attr:`BridgeSettings.load_factor`)."""
-        self.passes[(pd.vehicle_id, pd.pass_id)] = _PassEntry(pd, None)
+        self.passes[(pd.vehicle_id, pd.pass_id)] = _PassEntry(pd, None, raw=pd)
         self._cache = {k: v for k, v in self._cache.items() if (k[0], k[1]) != (pd.vehicle_id, pd.pass_id)}
 
     def remove(self, vehicle_id: str, pass_id: str) -> None:
@@ -244,6 +251,8 @@ class BridgeEstimator:
         entries = list(self.passes.values())
         if len(entries) < self.settings.min_passes:
             return None
+        if self.settings.register:
+            self._register(entries)
         ref = Reference.of([e.data for e in entries])
         # The calibration error is linearised at the class-mean load and the design influence line, or
         # for bearings at the last estimate: the bearings' prior mean (Krot 1e8, nearly pinned) is far
@@ -284,10 +293,42 @@ class BridgeEstimator:
         mril = MrIl(self.setup.basis.x, self.model.influence(post.params), len(entries))
         pass_deflections = self._pass_deflections(entries, wps, ref, post, deltas)
         mril_passes = mril_single_axle(pass_deflections.x_m, pass_deflections.deflection_m, pass_deflections.loads_n)
+        if post.krot is not None and self.settings.baseline_passes is None:
+            self.baseline = self._declared_on_bearings(post)
         self.baseline.offer(mril)
         indicators = damage_indicators(self.baseline.mril, mril) if self.baseline.ready else None
         return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes,
                               pass_deflections)
+
+    def _register(self, entries: list[_PassEntry]) -> None:
+        """Move every pass to where its road agrees with the others' (:mod:`cloud.bridge.registration`).
+        A pass moved again only when its shift has changed by more than the registration resolves
+        keeps its cached columns otherwise (each move recomputes them, and the fleet's common columns)."""
+        shifts = register([e.raw for e in entries])
+        moved = False
+        for e, s in zip(entries, shifts):
+            if abs(s - e.shift_m) < MIN_SHIFT_M:
+                continue
+            e.data, e.shift_m = shift_pass(e.raw, s), s
+            e.columns = e.load_at = e.road = e.common = None
+            key = (e.data.vehicle_id, e.data.pass_id)
+            self._cache = {k: v for k, v in self._cache.items() if (k[0], k[1]) != key}
+            moved = True
+        if moved:
+            self._common_at = None
+
+    def _declared_on_bearings(self, post: ElementPosterior) -> Baseline:
+        """The declared baseline of a span on rotational springs: the design E·I on the bearings the
+        posterior reads. D1/D2 read a loss of flexural rigidity; against the pinned design span the
+        bearings' restraint alone reads as a stiffness gain of the order of the restraint (a stiff
+        bearing halves the mid-span ordinate), which says nothing about the beam. The bearings are
+        read from the passes with the beam (and so are not a second opinion on it), but what the
+        passes fix is the span's effective stiffness, and its split between beam and bearings is the
+        posterior's: D then reads the beam's share, as the elements do — on the bearings the posterior's
+        influence line stands on (its parameters' κ, the mode the fit is conditioned on, not the
+        reported mean of log10 Krot)."""
+        krot = 10.0 ** np.clip(np.asarray(post.params, dtype=float)[self.model.n_elements :], -3.0, 16.0)
+        return Baseline.declared(self.bridge, self.setup.basis.x, (float(krot[0]), float(krot[-1])))
 
     def _load_factor(self, e: _PassEntry, ref: Reference, load: np.ndarray) -> None:
         """Give the pass its wheel-load factor (:attr:`BridgeSettings.load_factor`) and its model columns.

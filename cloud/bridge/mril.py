@@ -139,9 +139,11 @@ def mril_single_axle(x_m: np.ndarray, deltas: Sequence[np.ndarray], loads: Seque
     return MrIl(np.asarray(x_m, float), J, len(deltas))
 
 
-def design_mril(bridge: Bridge, x_m: np.ndarray) -> MrIl:
-    """The declared baseline: the design bridge's static MR-IL (J⁰ = N K⁻¹ Nᵀ) on ``x_m``."""
-    return MrIl(np.asarray(x_m, float), influence_line(design_beam(bridge), np.clip(x_m, 0.0, bridge.span_m)), 0)
+def design_mril(bridge: Bridge, x_m: np.ndarray, krot: tuple[float, float] | None = None) -> MrIl:
+    """The declared baseline: the design bridge's static MR-IL (J⁰ = N K⁻¹ Nᵀ) on ``x_m``; simply
+    supported, or on rotational springs ``krot`` (left, right; N·m/rad) if given."""
+    beam = design_beam(bridge, krot=krot)
+    return MrIl(np.asarray(x_m, float), influence_line(beam, np.clip(x_m, 0.0, bridge.span_m)), 0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,8 +171,8 @@ class Baseline:
     _learning: list = dataclasses.field(default_factory=list)
 
     @classmethod
-    def declared(cls, bridge: Bridge, x_m: np.ndarray) -> "Baseline":
-        return cls(design_mril(bridge, x_m))
+    def declared(cls, bridge: Bridge, x_m: np.ndarray, krot: tuple[float, float] | None = None) -> "Baseline":
+        return cls(design_mril(bridge, x_m, krot))
 
     @classmethod
     def learnt(cls, n_passes: int) -> "Baseline":
