@@ -33,7 +33,8 @@ settings.load_profile("deterministic")
 #: daemons), longest first; the rest follow in their usual order. The order only decides when a
 #: module starts: a module missing here, or a stale entry, costs time at the end of the run, never a result.
 LONG_FIRST = (
-    "test_ratio_coverage.py", "test_demo.py", "test_second_world_fleet.py", "test_gnss_carpet.py",
+    "test_ratio_coverage.py", "test_demo.py", "test_bridge_second_world.py", "test_second_world_fleet.py",
+    "test_gnss_carpet.py",
     "test_second_world.py", "test_rail_calibration.py", "test_rail_system.py", "test_durability.py",
     "test_reference.py", "test_network_accuracy.py", "test_router_restart.py", "test_profile_coverage.py",
     "test_calibration.py", "test_calibration_slices.py", "test_sim.py", "test_rail_bridge.py",

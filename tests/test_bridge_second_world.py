@@ -44,18 +44,24 @@ def _delayed(log: DriveLog, samples: int) -> DriveLog:
     return dataclasses.replace(log, channels=ch)
 
 
+def _simulated(name: str, passes: int, seed: int) -> Path:
+    """The case's simulated passes, made once for every variant of its logs."""
+    return kept(f"ivp-{name}-{passes}-s{seed}-sim", lambda d: ivp.generate(
+        SCENARIOS[name], d, seed=seed, passes=passes, noise_pct=2.0, progress=False, workers=1,
+        settings=EXACT_ODOMETER))
+
+
 def _make(name: str, passes: int, seed: int, delay_samples: int) -> Callable:
     def make(d: Path) -> None:
         t0 = time.perf_counter()
-        ivp.generate(SCENARIOS[name], d, seed=seed, passes=passes, noise_pct=2.0, progress=False, workers=1,
-                     settings=EXACT_ODOMETER)
-        logs = [read_drive_log(p) for p in list_drive_logs(d / "logs")]
+        sim = _simulated(name, passes, seed)
+        logs = [read_drive_log(p) for p in list_drive_logs(sim / "logs")]
         if delay_samples:
             logs = [_delayed(lg, delay_samples) for lg in logs]
-        site = load_site(d / "site.toml")
+        site = load_site(sim / "site.toml")
         cloud, rounds = run_in_process(logs, site, None, CloudSettings(calibration="fleet"))
         params = {v: dict(st.params) for v, st in cloud.calibrator.vehicles.items()}
-        case = Case(name, seed, passes, d, site, json.loads((d / "truth.json").read_text()),
+        case = Case(name, seed, passes, sim, site, json.loads((sim / "truth.json").read_text()),
                     list(cloud.aggregator.held.values()), params, rounds, time.perf_counter() - t0)
         (d / "case.pkl").write_bytes(pickle.dumps(case))
     return make
