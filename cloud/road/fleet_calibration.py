@@ -62,6 +62,11 @@ log = logging.getLogger(__name__)
 MAX_STEP = 0.5  # largest change of any log-quantity in one round (×1.6)
 SIGNIFICANT = 0.25  # a vehicle moves when some quantity changes by more than this many posterior sd
 MIN_CONTRACTION = 0.1  # a common mode whose change falls by less than this per unit step is frozen
+#: The contraction is judged only once the common steps taken span at least this share of the largest
+#: common change seen: over a shorter lever the line's slope is the rounds' scatter (a first round's
+#: step gated to a few tenths of a per cent against changes of a few per cent), and its sign freezes
+#: a mode that would have contracted, where the first round left it.
+MIN_LEVER = 0.5
 TREND_ROUNDS = 24  # refinements remembered for the common-mode trend
 REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle round (≈ 16 %)
 CONSENSUS_DRAWS = 16  # draws of the consensus's error an exported interval's errors-in-variables term is made of
@@ -488,8 +493,8 @@ class FleetCalibrator:
         for j in range(common.size):
             s = np.append(S[:, j], S[-1, j] + hist[-1][2][j])
             d = np.append(D[:, j], common[j])
-            if np.ptp(s) <= self.tol:
-                continue  # no step to learn from
+            if np.ptp(s) <= max(self.tol, MIN_LEVER * float(np.max(np.abs(d)))):
+                continue  # no step to learn from yet
             g = -np.polyfit(s, d, 1)[0]
             relax[j] = 0.0 if g <= MIN_CONTRACTION else self.relax
         return relax
