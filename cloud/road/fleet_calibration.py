@@ -660,8 +660,10 @@ class FleetCalibrator:
           same draws for every vehicle, each moving every vehicle's fit
           (:class:`cloud.road.calibration.ConsensusSensitivity`); each vehicle gets its own move's
           scatter about the fleet's mean move, plus that mean move (shared by every vehicle: it does
-          not average out over the fleet) over the common mode's contraction ``g``
-          (:meth:`_contraction`);
+          not average out over the fleet) over the common mode's contraction ``g`` through the
+          fleet's coupling (:meth:`_common_contraction`; the rounds' trend, :meth:`_contraction`,
+          is their scatter over so few rounds, and where it reads a fast contraction it states a
+          fleet at its fixed point that is not);
         * the distance the rounds stopped short of their fixed point, per vehicle. Every vehicle is
           fitted against a consensus the others' APs make, so the fits are coupled: a change ``x`` of
           the vehicles' log-ratios changes the consensus, which moves every fit by ``M x`` (both
@@ -757,22 +759,27 @@ class FleetCalibrator:
             frozen = g <= MIN_CONTRACTION
             moves = np.stack([coupled[v].moves for v in vids], axis=1)  # (draws, vehicles, quantities)
             common = moves.mean(axis=1)
+            scatter = np.mean((moves - common[:, None, :]) ** 2, axis=0)
             # the distance to the fixed point the rounds were heading for, per vehicle
             last = np.stack([coupled[v].last for v in vids])
             try:
-                short = self._fixed_point(coupled, snaps)(last.reshape(1, -1)).reshape(len(vids), P)
+                solve = self._fixed_point(coupled, snaps)
+                short = solve(last.reshape(1, -1)).reshape(len(vids), P)
+                g_common = self._common_contraction(solve, len(vids), P, g)
             except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
                 log.warning("fleet fixed point failed for %s: %s", model, e)  # the common change over g, then
                 short = np.broadcast_to(last.mean(axis=0) / np.maximum(g, MIN_CONTRACTION), last.shape)
-            scatter = np.mean((moves - common[:, None, :]) ** 2, axis=0)
-            # The draws' common move over the rounds' measured contraction, not carried through the
-            # slow modes: drawn white on the grid, the consensus's noise is far larger at the body's
-            # wavelengths than the inverse's noise (sensor noise made blue) is, so its move is
-            # already an upper bound; the slow modes' amplification would multiply that excess.
-            var = scatter + np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2
+                g_common = g
+            # The draws' common move over the common mode's contraction through the coupling, not
+            # carried through every slow mode: drawn white on the grid, the consensus's noise is far
+            # larger at the body's wavelengths than the inverse's noise (sensor noise made blue) is,
+            # so its move is already an upper bound; the other slow modes' amplification would
+            # multiply that excess.
+            var = scatter + np.mean(common**2, axis=0) / np.maximum(g_common, MIN_CONTRACTION) ** 2 + short**2
             var_frozen = scatter + prior_sd**2 / len(vids) + away**2
-            log.debug("fleet error %s: contraction %s, common move sd %s, common short %s, rms short %s", model,
-                      np.round(g, 3), np.round(np.sqrt(np.mean(common**2, axis=0)), 5),
+            log.debug("fleet error %s: contraction %s (rounds' trend %s), common move sd %s, common short %s, "
+                      "rms short %s", model, np.round(g_common, 3), np.round(g, 3),
+                      np.round(np.sqrt(np.mean(common**2, axis=0)), 5),
                       np.round(short.mean(axis=0), 5), np.round(np.sqrt(np.mean(short**2, axis=0)), 5))
             # A mode the data pin less than the class prior does is pinned by the prior (each fit carries
             # it): where the linearised distance exceeds the prior's statement, the prior's is the one.
@@ -856,6 +863,22 @@ class FleetCalibrator:
             return R - inside @ Q.T + (inside @ JQ_inv.T) @ Q.T
 
         return solve
+
+    @staticmethod
+    def _common_contraction(solve, n_vehicles: int, n_quantities: int, fallback: np.ndarray) -> np.ndarray:
+        """Per quantity, the fraction of a fleet-common change of it the rounds follow per round,
+        through the fleet's linearised coupling (``solve``, :meth:`_fixed_point`): one over the
+        common mode's amplification by ``(I − M)⁻¹``, clipped to at most 1; ``fallback`` where the
+        coupling gives no positive amplification.
+
+        Not the rounds' trend (:meth:`_contraction`): a line through a handful of rounds whose
+        common steps are gated and clipped has their scatter for a slope (it reads anything from
+        below zero to one for the same fleet's mode from seed to seed), while the coupling's
+        contraction is a property of the fleet's speeds and dynamics and barely moves."""
+        unit = np.tile(np.eye(n_quantities), (1, n_vehicles))  # row j: every vehicle's quantity j by 1
+        amp = np.diag(solve(unit).reshape(n_quantities, n_vehicles, n_quantities).mean(axis=1))
+        ok = np.isfinite(amp) & (amp > 0)
+        return np.where(ok, np.minimum(1.0 / np.where(ok, amp, 1.0), 1.0), fallback)
 
     def _contraction(self, model: str, n: int) -> np.ndarray:
         """Per quantity, the fraction of a fleet-common change the rounds follow per round (the slope
