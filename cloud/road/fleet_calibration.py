@@ -62,6 +62,11 @@ log = logging.getLogger(__name__)
 MAX_STEP = 0.5  # largest change of any log-quantity in one round (×1.6)
 SIGNIFICANT = 0.25  # a vehicle moves when some quantity changes by more than this many posterior sd
 MIN_CONTRACTION = 0.1  # a common mode whose change falls by less than this per unit step is frozen
+#: The contraction is judged only once the common steps taken span at least this share of the largest
+#: common change seen: over a shorter lever the line's slope is the rounds' scatter (a first round's
+#: step gated to a few tenths of a per cent against changes of a few per cent), and its sign freezes
+#: a mode that would have contracted, where the first round left it.
+MIN_LEVER = 0.5
 TREND_ROUNDS = 24  # refinements remembered for the common-mode trend
 REFINE_STEP = 0.15  # largest change of any log-quantity in one per-vehicle round (≈ 16 %)
 CONSENSUS_DRAWS = 16  # draws of the consensus's error an exported interval's errors-in-variables term is made of
@@ -488,8 +493,8 @@ class FleetCalibrator:
         for j in range(common.size):
             s = np.append(S[:, j], S[-1, j] + hist[-1][2][j])
             d = np.append(D[:, j], common[j])
-            if np.ptp(s) <= self.tol:
-                continue  # no step to learn from
+            if np.ptp(s) <= max(self.tol, MIN_LEVER * float(np.max(np.abs(d)))):
+                continue  # no step to learn from yet
             g = -np.polyfit(s, d, 1)[0]
             relax[j] = 0.0 if g <= MIN_CONTRACTION else self.relax
         return relax
@@ -655,8 +660,10 @@ class FleetCalibrator:
           same draws for every vehicle, each moving every vehicle's fit
           (:class:`cloud.road.calibration.ConsensusSensitivity`); each vehicle gets its own move's
           scatter about the fleet's mean move, plus that mean move (shared by every vehicle: it does
-          not average out over the fleet) over the common mode's contraction ``g``
-          (:meth:`_contraction`);
+          not average out over the fleet) over the common mode's contraction ``g`` through the
+          fleet's coupling (:meth:`_common_contraction`; the rounds' trend, :meth:`_contraction`,
+          is their scatter over so few rounds, and where it reads a fast contraction it states a
+          fleet at its fixed point that is not);
         * the distance the rounds stopped short of their fixed point, per vehicle. Every vehicle is
           fitted against a consensus the others' APs make, so the fits are coupled: a change ``x`` of
           the vehicles' log-ratios changes the consensus, which moves every fit by ``M x`` (both
@@ -752,22 +759,27 @@ class FleetCalibrator:
             frozen = g <= MIN_CONTRACTION
             moves = np.stack([coupled[v].moves for v in vids], axis=1)  # (draws, vehicles, quantities)
             common = moves.mean(axis=1)
+            scatter = np.mean((moves - common[:, None, :]) ** 2, axis=0)
             # the distance to the fixed point the rounds were heading for, per vehicle
             last = np.stack([coupled[v].last for v in vids])
             try:
-                short = self._fixed_point(coupled, snaps)(last.reshape(1, -1)).reshape(len(vids), P)
+                solve = self._fixed_point(coupled, snaps)
+                short = solve(last.reshape(1, -1)).reshape(len(vids), P)
+                g_common = self._common_contraction(solve, len(vids), P, g)
             except (ValueError, np.linalg.LinAlgError, FloatingPointError) as e:
                 log.warning("fleet fixed point failed for %s: %s", model, e)  # the common change over g, then
                 short = np.broadcast_to(last.mean(axis=0) / np.maximum(g, MIN_CONTRACTION), last.shape)
-            scatter = np.mean((moves - common[:, None, :]) ** 2, axis=0)
-            # The draws' common move over the rounds' measured contraction, not carried through the
-            # slow modes: drawn white on the grid, the consensus's noise is far larger at the body's
-            # wavelengths than the inverse's noise (sensor noise made blue) is, so its move is
-            # already an upper bound; the slow modes' amplification would multiply that excess.
-            var = scatter + np.mean(common**2, axis=0) / np.maximum(g, MIN_CONTRACTION) ** 2 + short**2
+                g_common = g
+            # The draws' common move over the common mode's contraction through the coupling, not
+            # carried through every slow mode: drawn white on the grid, the consensus's noise is far
+            # larger at the body's wavelengths than the inverse's noise (sensor noise made blue) is,
+            # so its move is already an upper bound; the other slow modes' amplification would
+            # multiply that excess.
+            var = scatter + np.mean(common**2, axis=0) / np.maximum(g_common, MIN_CONTRACTION) ** 2 + short**2
             var_frozen = scatter + prior_sd**2 / len(vids) + away**2
-            log.debug("fleet error %s: contraction %s, common move sd %s, common short %s, rms short %s", model,
-                      np.round(g, 3), np.round(np.sqrt(np.mean(common**2, axis=0)), 5),
+            log.debug("fleet error %s: contraction %s (rounds' trend %s), common move sd %s, common short %s, "
+                      "rms short %s", model, np.round(g_common, 3), np.round(g, 3),
+                      np.round(np.sqrt(np.mean(common**2, axis=0)), 5),
                       np.round(short.mean(axis=0), 5), np.round(np.sqrt(np.mean(short**2, axis=0)), 5))
             # A mode the data pin less than the class prior does is pinned by the prior (each fit carries
             # it): where the linearised distance exceeds the prior's statement, the prior's is the one.
@@ -851,6 +863,22 @@ class FleetCalibrator:
             return R - inside @ Q.T + (inside @ JQ_inv.T) @ Q.T
 
         return solve
+
+    @staticmethod
+    def _common_contraction(solve, n_vehicles: int, n_quantities: int, fallback: np.ndarray) -> np.ndarray:
+        """Per quantity, the fraction of a fleet-common change of it the rounds follow per round,
+        through the fleet's linearised coupling (``solve``, :meth:`_fixed_point`): one over the
+        common mode's amplification by ``(I − M)⁻¹``, clipped to at most 1; ``fallback`` where the
+        coupling gives no positive amplification.
+
+        Not the rounds' trend (:meth:`_contraction`): a line through a handful of rounds whose
+        common steps are gated and clipped has their scatter for a slope (it reads anything from
+        below zero to one for the same fleet's mode from seed to seed), while the coupling's
+        contraction is a property of the fleet's speeds and dynamics and barely moves."""
+        unit = np.tile(np.eye(n_quantities), (1, n_vehicles))  # row j: every vehicle's quantity j by 1
+        amp = np.diag(solve(unit).reshape(n_quantities, n_vehicles, n_quantities).mean(axis=1))
+        ok = np.isfinite(amp) & (amp > 0)
+        return np.where(ok, np.minimum(1.0 / np.where(ok, amp, 1.0), 1.0), fallback)
 
     def _contraction(self, model: str, n: int) -> np.ndarray:
         """Per quantity, the fraction of a fleet-common change the rounds follow per round (the slope
