@@ -22,20 +22,25 @@ from simfleet.worlds import ivp
 from tests.test_second_world import EXACT_ODOMETER
 
 
+# The issue's figure: with a dozen passes the bridge's own sd of its global level is above the
+# 1-point bound, which then tests whether calibration and bridge errors happen to cancel.
+BRIDGE_PASSES = 30
+
+
 @pytest.fixture(scope="module")
 def bridges(tmp_path_factory):
     out = {}
     for name in ("bridge-healthy", "bridge-global10"):
         d = tmp_path_factory.mktemp(name)
-        ivp.generate(SCENARIOS[name], d, seed=0, passes=12, noise_pct=2.0, progress=False, workers=1,
+        ivp.generate(SCENARIOS[name], d, seed=0, passes=BRIDGE_PASSES, noise_pct=2.0, progress=False, workers=1,
                      settings=EXACT_ODOMETER)
         out[name] = run_and_score(d, d / "export")["bridge"]
     return out
 
 
 def test_bridge_global_loss_is_read_within_a_point_and_alarmed(bridges):
-    """The issue's goal at 30 passes (loss read within 1 point, an alarm on the 10 % loss and none on
-    the healthy deck), here at 12 passes on the modal bridge of the second world."""
+    """The issue's goal at its 30 passes (loss read within 1 point, an alarm on the 10 % loss and none on
+    the healthy deck) on the modal bridge of the second world."""
     healthy, lossy = bridges["bridge-healthy"], bridges["bridge-global10"]
     print(f"bridge: healthy {healthy}, 10 % loss {lossy}")
     assert abs(healthy["mean_error_pts"]) < 1.0 and not healthy["alarm"]
