@@ -39,10 +39,9 @@ def _errors(tmp_path, world: str, seed: int) -> list[tuple[str, float, float]]:
     out = tmp_path / f"{world}-{seed}"
     if world == "simfleet":
         truth = generate_simfleet(sc, out, seed=seed, passes=FLEET, vehicles=FLEET, workers=1, progress=False)
-    else:  # "ivp": no odometer error, the ratios' own uncertainty; "ivp-odometer": the world's own (1 %)
-        odometer = WorldSettings() if world == "ivp-odometer" else WorldSettings(speed_error_sd=0.0)
+    else:  # no odometer error: the ratios' own uncertainty, not the chainage's
         truth = generate_ivp(sc, out, seed=seed, passes=FLEET, vehicles=FLEET, workers=1, progress=False,
-                             settings=odometer)
+                             settings=WorldSettings(speed_error_sd=0.0))
     h = Harness(load_site(out / "site.toml"))
     h.replay([read_drive_log(p) for p in list_drive_logs(out / "logs")])
     h.settle()
@@ -52,7 +51,7 @@ def _errors(tmp_path, world: str, seed: int) -> list[tuple[str, float, float]]:
              float(np.log(r["hi95"] / r["lo95"]) / (2 * 1.96))) for r in rows]
 
 
-@pytest.mark.parametrize("world", ["simfleet", "ivp", "ivp-odometer"])
+@pytest.mark.parametrize("world", ["simfleet", "ivp"])
 def test_ratio_intervals_cover_the_truth_without_being_huge(tmp_path, world):
     runs = [_errors(tmp_path, world, s) for s in SEEDS]
     covered = []  # per run and ratio: the share of its vehicles inside
