@@ -16,7 +16,7 @@ from shared.jit import kernel
 from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
 from shared.vehicles import RAIL_MODELS
 
-from .chainage import ChainageTracker
+from .chainage import ChainageTracker, track_into
 from .drift import drift_trend
 from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, median_abs_deviations,
                           noise_sd_from_d4, unit_error_band, unit_spectra, white_equivalent)
@@ -330,6 +330,57 @@ def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid,
     return 0, 0
 
 
+@kernel
+def _feed_chunk(chain, gnss, speed, dt, k_pos, k_scale, t0, rate, min_speed, warmup, z, tail, tail_n, d4, d4_t,
+                d4_hi, with_d4, x_cg, t, rel, with_grid, offset, ap, spacing, min_index, st, last, values, times, valid,
+                smooth, gspeed, index, sap, srel, antialias, gdt, gmin_speed):
+    """A chunk's per-pass work in one call (:meth:`PassProcessor.feed_ap`): chainage (the tracker's
+    ``chain`` state, :func:`~edge.chainage.track_into`), sample times ``t``, reliability ``rel``
+    (moving, past the hard warm-up), the channels' fourth differences appended to ``d4``/``d4_t``
+    (``with_d4``), and, ``with_grid``, the pass's one axle gridded (:func:`_grid_add`, chainage
+    ``x_cg + offset``). Each is the operations of the step it replaces, so the same bits.
+
+    Returns ``(points, samples, rows, written, tail_n)``: the first three nonzero when the grid's
+    points or samples, or the differences' rows, need that capacity first (then nothing has
+    changed: the state is committed only once everything fits); else the differences written and
+    the rows of ``tail`` (the last ≤ 4 samples of the channels) now held."""
+    n = gnss.size
+    scale = track_into(chain, gnss, speed, dt, k_pos, k_scale, x_cg)
+    for i in range(n):
+        t[i] = t0 + i / rate  # (chunk.t's operations)
+        rel[i] = speed[i] >= min_speed
+    for i in range(min(warmup, n)):
+        rel[i] = False
+    m = tail_n + n
+    if with_d4 and m >= 5 and d4_hi + m - 4 > d4.shape[0]:
+        return 0, 0, m - 4, 0, tail_n
+    if with_grid:
+        x = np.empty(n)
+        for i in range(n):
+            x[i] = x_cg[i] + offset
+        points, samples = _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid, smooth, gspeed,
+                                    index, sap, srel, antialias, gdt, gmin_speed)
+        if points != 0 or samples != 0:
+            return points, samples, 0, 0, tail_n
+    written = 0
+    if with_d4:
+        written = _fourth_differences_into(tail[:tail_n], z, d4, d4_hi)
+        for i in range(written):
+            d4_t[d4_hi + i] = t[n - written + i]
+        keep = min(4, m)
+        new = np.empty((keep, tail.shape[1]))
+        for r in range(keep):
+            src = m - keep + r
+            if src < tail_n:
+                new[r] = tail[src]
+            else:
+                new[r] = z[src - tail_n]
+        tail[:keep] = new
+        tail_n = keep
+    chain[0], chain[1], chain[2] = x_cg[n - 1], scale, 1.0
+    return 0, 0, 0, written, tail_n
+
+
 class AxleGrid:
     """The AP of one axle on the global grid, growing as the pass advances.
 
@@ -501,11 +552,15 @@ class PassProcessor:
         # samples in the segment's own time span, so the result does not depend on chunking).
         # Rail vehicles keep the white sigma: their cloud re-runs the dynamics itself.
         self.error_model = self.config.error_model and model_name not in RAIL_MODELS
-        self._z_tail = np.zeros((0, len(self.channel_names)))
+        self._z_tail = np.zeros((4, len(self.channel_names)))  # the channels' last samples (_tail_n of them)
+        self._tail_n = 0
         self._d4 = _Rows(len(self.channel_names))
         self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
         self._windows: dict[int, tuple] = {}  # axle → (its last drift window, (trend, white sigma))
-        self._steps: tuple = (0, 0.0, None)  # (samples, rate, sample times within a chunk)
+        self._buffers = (np.empty(0), np.empty(0), np.empty(0, dtype=np.bool_))  # a chunk's chainage, times, reliability
+        # the first sample past the whole warm-up, if that is past the hard warm-up (settled_t)
+        self._soft_from = self.inverse.reliable_from if self.inverse.reliable_from > self._hard_warmup else None
+        self._offset0 = float(self.system.offsets_m[0])
         self._based = False  # every axle's grid has its first point
         self._tile_points, self._drift_points = self.config.tile_points, self.config.drift_points
         self._noise: dict[tuple[float, float], np.ndarray | None] = {}  # a coming segment's (t0, t1) → _noise_sd
@@ -529,30 +584,43 @@ class PassProcessor:
             z[:, j] = channels[name]
         return z
 
-    def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
+    def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None,
+                mean_speed: float | None = None) -> list[ApSegment]:
         """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
-        chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
+        chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes
+        (``mean_speed``, if given, is ``float(np.add.reduce(chunk.speed)) / chunk.n``, computed for
+        many chunks at once)."""
         n = z.shape[0]  # (chunk.n)
         if n:
-            x_cg = self.tracker.update(chunk.chainage, chunk.speed)
-            steps = self._steps
-            if steps[0] != n or steps[1] != chunk.sample_rate_hz:  # (chunks of a pass are alike)
-                steps = self._steps = (n, chunk.sample_rate_hz, np.arange(n) / chunk.sample_rate_hz)
-            t = chunk.t0 + steps[2]  # chunk.t's operations
-            if self.error_model:
-                self._add_differences(z, t)
-            reliable = chunk.speed >= self.config.min_speed_mps  # moving
-            hard = self._hard_warmup
-            warmup = hard - self.n_samples  # samples of this chunk still warming up
-            if warmup > 0:
-                reliable[:warmup] = False
-            soft_end = self.inverse.reliable_from - self.n_samples
-            if self.inverse.reliable_from > hard and 0 <= soft_end < n:
-                self.settled_t = float(t[soft_end])  # the first sample past the whole warm-up
-            for i, grid in enumerate(self.grids):
-                grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m, self.min_index)
+            if self._buffers[0].size != n:
+                self._buffers = (np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_))
+            x_cg, t, rel = self._buffers
+            tracker, cfg, d4, g = self.tracker, self.config, self._d4, self.grids[0]
+            one = len(self.grids) == 1
+            while True:
+                points, samples, rows, written, tail_n = _feed_chunk(
+                    tracker.state, chunk.chainage, chunk.speed, tracker.dt, tracker.k_pos, tracker.k_scale,
+                    chunk.t0, chunk.sample_rate_hz, cfg.min_speed_mps, self._hard_warmup - self.n_samples, z,
+                    self._z_tail, self._tail_n, d4.data, d4.t, d4.hi, self.error_model, x_cg, t, rel, one,
+                    self._offset0, ap[:, 0], cfg.spacing_m, self.min_index, g._st, g._last, g._values, g._t,
+                    g._valid, g._smooth, g._speed, g._index, g._samples, g._sreliable, g.antialias, g._dt,
+                    g._min_speed)
+                if not (points or samples or rows):
+                    break
+                g._reserve(points)
+                g._reserve_samples(samples)
+                if rows:
+                    d4.reserve(n)
+            d4.hi += written
+            self._tail_n = tail_n
+            if self._soft_from is not None and 0 <= self._soft_from - self.n_samples < n:
+                # the first sample past the whole warm-up (t's operations)
+                self.settled_t = chunk.t0 + (self._soft_from - self.n_samples) / chunk.sample_rate_hz
+            if not one:
+                for i, grid in enumerate(self.grids):
+                    grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, rel, cfg.spacing_m, self.min_index)
             self.n_samples += n
-            self.speeds.append(float(np.add.reduce(chunk.speed)) / n)  # np.mean's sum and division
+            self.speeds.append(float(np.add.reduce(chunk.speed)) / n if mean_speed is None else mean_speed)
         return self._emit(final=False)
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
@@ -570,14 +638,6 @@ class PassProcessor:
         if self._speed_mean[0] != len(self.speeds):
             self._speed_mean = (len(self.speeds), float(np.mean(self.speeds)) if self.speeds else 0.0)
         return self._speed_mean[1]
-
-    def _add_differences(self, z: np.ndarray, t: np.ndarray) -> None:
-        d4 = self._d4
-        d4.reserve(z.shape[0])
-        k = _fourth_differences_into(self._z_tail, z, d4.data, d4.hi)
-        d4.t[d4.hi : d4.hi + k] = t[t.size - k :]
-        d4.hi += k
-        self._z_tail = np.concatenate([self._z_tail, z])[-4:] if z.shape[0] < 4 else z[-4:]
 
     def _trim_differences(self) -> None:
         """Drop the differences older than any segment still to come needs (once per next tile:
