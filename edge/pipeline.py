@@ -304,6 +304,13 @@ def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid,
             a = st[_SIZE] + first - filled_end  # skipped grid points (e.g. a stop) stay invalid
     need_points = a + stop - first if stop > first else 0
     need_samples = st[_S_HI] + n_new if antialias else 0
+    if need_samples > sap.size:
+        lo, hi = st[_S_LO], st[_S_HI]
+        if max(2 * (hi - lo + n_new), 1024) <= sap.size:  # room once compacted (AxleGrid._reserve_samples's rule)
+            for i in range(hi - lo):
+                sap[i], srel[i] = sap[lo + i], srel[lo + i]
+            st[_S_LO], st[_S_HI] = 0, hi - lo
+            need_samples = hi - lo + n_new
     if need_points > values.size or need_samples > sap.size:
         return need_points, need_samples
     if antialias:
@@ -331,19 +338,23 @@ def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid,
 
 
 @kernel
-def _feed_chunk(chain, gnss, speed, dt, k_pos, k_scale, t0, rate, min_speed, warmup, z, tail, tail_n, d4, d4_t,
-                d4_hi, with_d4, x_cg, t, rel, with_grid, offset, ap, spacing, min_index, st, last, values, times, valid,
-                smooth, gspeed, index, sap, srel, antialias, gdt, gmin_speed):
+def _feed_chunk(gnss, speed, z, ap, t0, rate, warmup, tail_n, d4_lo, d4_hi,
+                chain, dt, k_pos, k_scale, min_speed, tail, d4, d4_t, with_d4, x_cg, t, rel, with_grid, offset, spacing,
+                min_index, st, last, values, times, valid, smooth, gspeed, index, sap, srel, antialias, gdt, gmin_speed):
     """A chunk's per-pass work in one call (:meth:`PassProcessor.feed_ap`): chainage (the tracker's
     ``chain`` state, :func:`~edge.chainage.track_into`), sample times ``t``, reliability ``rel``
     (moving, past the hard warm-up), the channels' fourth differences appended to ``d4``/``d4_t``
     (``with_d4``), and, ``with_grid``, the pass's one axle gridded (:func:`_grid_add`, chainage
-    ``x_cg + offset``). Each is the operations of the step it replaces, so the same bits.
+    ``x_cg + offset``, AP ``ap[:, 0]``). Each is the operations of the step it replaces, so the
+    same bits. The chunk's own arguments come first, the pass's (:meth:`PassProcessor._feed_args`)
+    after.
 
-    Returns ``(points, samples, rows, written, tail_n)``: the first three nonzero when the grid's
-    points or samples, or the differences' rows, need that capacity first (then nothing has
-    changed: the state is committed only once everything fits); else the differences written and
-    the rows of ``tail`` (the last ≤ 4 samples of the channels) now held."""
+    Returns ``(points, samples, rows, written, tail_n, d4_lo, d4_hi, end)``: the first three
+    nonzero when the grid's points or samples, or the differences' rows, need that capacity first
+    (then nothing has changed but where the kept rows and samples lie: the state is committed only
+    once everything fits); else the differences written, the rows of ``tail`` (the last ≤ 4
+    samples of the channels) now held, where the differences now lie in ``d4``, and the grid's
+    end (base + final points)."""
     n = gnss.size
     scale = track_into(chain, gnss, speed, dt, k_pos, k_scale, x_cg)
     for i in range(n):
@@ -352,16 +363,21 @@ def _feed_chunk(chain, gnss, speed, dt, k_pos, k_scale, t0, rate, min_speed, war
     for i in range(min(warmup, n)):
         rel[i] = False
     m = tail_n + n
-    if with_d4 and m >= 5 and d4_hi + m - 4 > d4.shape[0]:
-        return 0, 0, m - 4, 0, tail_n
+    if with_d4 and d4_hi + n > d4.shape[0]:
+        if 2 * (d4_hi - d4_lo + n) > d4.shape[0]:
+            return 0, 0, n, 0, tail_n, d4_lo, d4_hi, 0
+        for r in range(d4_hi - d4_lo):  # room once compacted (_Rows.reserve's rule)
+            d4[r] = d4[d4_lo + r]
+            d4_t[r] = d4_t[d4_lo + r]
+        d4_lo, d4_hi = 0, d4_hi - d4_lo
     if with_grid:
         x = np.empty(n)
         for i in range(n):
             x[i] = x_cg[i] + offset
-        points, samples = _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid, smooth, gspeed,
+        points, samples = _grid_add(x, ap[:, 0], t, rel, spacing, min_index, st, last, values, times, valid, smooth, gspeed,
                                     index, sap, srel, antialias, gdt, gmin_speed)
         if points != 0 or samples != 0:
-            return points, samples, 0, 0, tail_n
+            return points, samples, 0, 0, tail_n, d4_lo, d4_hi, 0
     written = 0
     if with_d4:
         written = _fourth_differences_into(tail[:tail_n], z, d4, d4_hi)
@@ -378,7 +394,7 @@ def _feed_chunk(chain, gnss, speed, dt, k_pos, k_scale, t0, rate, min_speed, war
         tail[:keep] = new
         tail_n = keep
     chain[0], chain[1], chain[2] = x_cg[n - 1], scale, 1.0
-    return 0, 0, 0, written, tail_n
+    return 0, 0, 0, written, tail_n, d4_lo, d4_hi + written, st[_BASE] + st[_DONE]
 
 
 class AxleGrid:
@@ -561,7 +577,10 @@ class PassProcessor:
         # the first sample past the whole warm-up, if that is past the hard warm-up (settled_t)
         self._soft_from = self.inverse.reliable_from if self.inverse.reliable_from > self._hard_warmup else None
         self._offset0 = float(self.system.offsets_m[0])
+        self._one = len(self.grids) == 1  # one axle: gridded in _feed_chunk
+        self._args: tuple | None = None  # _feed_args()
         self._based = False  # every axle's grid has its first point
+        self._base0 = 0  # (the first axle's base, once based)
         self._tile_points, self._drift_points = self.config.tile_points, self.config.drift_points
         self._noise: dict[tuple[float, float], np.ndarray | None] = {}  # a coming segment's (t0, t1) → _noise_sd
         self._ahead = 0  # the first tile whose noise levels are not measured ahead
@@ -591,37 +610,53 @@ class PassProcessor:
         (``mean_speed``, if given, is ``float(np.add.reduce(chunk.speed)) / chunk.n``, computed for
         many chunks at once)."""
         n = z.shape[0]  # (chunk.n)
-        if n:
-            if self._buffers[0].size != n:
-                self._buffers = (np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_))
+        if not n:
+            return self._emit(final=False)
+        if self._buffers[0].size != n:
+            self._buffers = (np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_))
+            self._args = None
+        args = self._args or self._feed_args()
+        d4, g = self._d4, self.grids[0]
+        while True:
+            points, samples, rows, written, tail_n, d4.lo, d4.hi, end = _feed_chunk(
+                chunk.chainage, chunk.speed, z, ap, chunk.t0, chunk.sample_rate_hz, self._hard_warmup - self.n_samples,
+                self._tail_n, d4.lo, d4.hi, *args)
+            if not (points or samples or rows):
+                break
+            g._reserve(points)
+            g._reserve_samples(samples)
+            if rows:
+                d4.reserve(n)
+            args = self._feed_args()
+        self._tail_n = tail_n
+        if self._soft_from is not None and 0 <= self._soft_from - self.n_samples < n:
+            # the first sample past the whole warm-up (t's operations)
+            self.settled_t = chunk.t0 + (self._soft_from - self.n_samples) / chunk.sample_rate_hz
+        if not self._one:
             x_cg, t, rel = self._buffers
-            tracker, cfg, d4, g = self.tracker, self.config, self._d4, self.grids[0]
-            one = len(self.grids) == 1
-            while True:
-                points, samples, rows, written, tail_n = _feed_chunk(
-                    tracker.state, chunk.chainage, chunk.speed, tracker.dt, tracker.k_pos, tracker.k_scale,
-                    chunk.t0, chunk.sample_rate_hz, cfg.min_speed_mps, self._hard_warmup - self.n_samples, z,
-                    self._z_tail, self._tail_n, d4.data, d4.t, d4.hi, self.error_model, x_cg, t, rel, one,
-                    self._offset0, ap[:, 0], cfg.spacing_m, self.min_index, g._st, g._last, g._values, g._t,
-                    g._valid, g._smooth, g._speed, g._index, g._samples, g._sreliable, g.antialias, g._dt,
-                    g._min_speed)
-                if not (points or samples or rows):
-                    break
-                g._reserve(points)
-                g._reserve_samples(samples)
-                if rows:
-                    d4.reserve(n)
-            d4.hi += written
-            self._tail_n = tail_n
-            if self._soft_from is not None and 0 <= self._soft_from - self.n_samples < n:
-                # the first sample past the whole warm-up (t's operations)
-                self.settled_t = chunk.t0 + (self._soft_from - self.n_samples) / chunk.sample_rate_hz
-            if not one:
-                for i, grid in enumerate(self.grids):
-                    grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, rel, cfg.spacing_m, self.min_index)
-            self.n_samples += n
-            self.speeds.append(float(np.add.reduce(chunk.speed)) / n if mean_speed is None else mean_speed)
+            for i, grid in enumerate(self.grids):
+                grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, rel, self.config.spacing_m, self.min_index)
+        self.n_samples += n
+        self.speeds.append(float(np.add.reduce(chunk.speed)) / n if mean_speed is None else mean_speed)
+        if self._one and self._based:  # what _emit's first test concludes, without its calls when it has nothing to do
+            P = self._tile_points
+            if end < (self.next_tile + 1) * P + self._drift_points:
+                if not self.error_model:
+                    return []
+                k = self.next_tile * P - self._base0
+                trim = self._trimmed_for != self.next_tile and 0 <= k < end - self._base0
+                if not trim and end < (self._ahead + 1) * P:
+                    return []
         return self._emit(final=False)
+
+    def _feed_args(self) -> tuple:
+        """The pass's arguments of :func:`_feed_chunk` (its arrays are replaced when they grow)."""
+        tracker, cfg, d4, g = self.tracker, self.config, self._d4, self.grids[0]
+        self._args = (tracker.state, tracker.dt, tracker.k_pos, tracker.k_scale, cfg.min_speed_mps, self._z_tail,
+                      d4.data, d4.t, self.error_model, *self._buffers, self._one, self._offset0, cfg.spacing_m,
+                      self.min_index, g._st, g._last, g._values, g._t, g._valid, g._smooth, g._speed, g._index,
+                      g._samples, g._sreliable, g.antialias, g._dt, g._min_speed)
+        return self._args
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
         for grid in self.grids:
@@ -736,6 +771,7 @@ class PassProcessor:
         if self.next_tile is None:
             self.next_tile = max(min(g.base for g in grids) // P, 0)
         self._based = len(grids) == len(self.grids)
+        self._base0 = grids[0].base
         # A tile is ready once every axle's grid extends past its end by the drift half-width.
         frontier = min(g.end for g in grids) if len(grids) == len(self.grids) else 0
         last_tile = max(g.end for g in grids) // P + 1 if final else (frontier - self.config.drift_points) // P
