@@ -555,6 +555,8 @@ class PassProcessor:
         self.grids = [AxleGrid(config.antialias, model.constants.dt, max(config.min_speed_mps, 0.1))
                       for _ in range(self.system.n_contacts)]
         self.channel_names = [ch.name for ch in self.system.channels]
+        # what passes fed as one bank share (edge.bank.feed_bank): the model, its channels and contacts
+        self.bank_key = (model_name, len(self.system.channels), self.system.n_contacts)
         self.next_tile: int | None = None
         self.seq = 0
         self.n_samples = 0
