@@ -231,13 +231,18 @@ def _fourth_differences_into(tail, z, out, at):
     return m - 4
 
 
+#: The first capacity of a pass's grid points and fourth differences: a road pass of a few hundred
+#: metres fits without growing (each growth is a chunk's kernel call run again).
+_FIRST_ROWS = 4096
+
+
 class _Rows:
     """Rows appended at the end and dropped from the start, in amortised O(rows): a buffer of
     doubling capacity, compacted when the dropped part would otherwise be copied past."""
 
     def __init__(self, width: int) -> None:
-        self.data = np.zeros((1024, width))
-        self.t = np.zeros(1024)
+        self.data = np.zeros((_FIRST_ROWS, width))
+        self.t = np.zeros(_FIRST_ROWS)
         self.lo = self.hi = 0
 
     def reserve(self, rows: int) -> None:
@@ -492,7 +497,7 @@ class AxleGrid:
     def _reserve(self, size: int) -> None:
         """Capacity for at least ``size`` points (new points are 0, invalid)."""
         if size > self._values.size:
-            cap = max(size, 2 * self._values.size, 1024)
+            cap = max(size, 2 * self._values.size, _FIRST_ROWS)
             n = self.size
             for name in ("_values", "_valid", "_t", "_smooth", "_speed", "_index"):
                 old = getattr(self, name)
