@@ -8,9 +8,10 @@ each value lies in the payload and the bytes of everything structural. Later pay
 layout are read as rows of one ``(chunks, bytes)`` matrix: structure compared with the plan's,
 values sliced out column by column and checked as :class:`~shared.schema.SensorChunk` checks them.
 
-The fast path only ever accepts: a payload whose structure differs, whose strings are not among
-those a full decode has validated, or whose values a check refuses is decoded again by
-``decode_sensor_chunk``, which accepts it or says why not. So what is accepted, rejected, and the
+The fast path only ever accepts: a payload whose structure differs, whose strings the contract's
+own checks refuse (a tuple of strings not seen before is checked once, by building a
+:class:`~shared.schema.SensorChunk` of no samples with them), or whose values a check refuses is
+decoded again by ``decode_sensor_chunk``, which accepts it or says why not. So what is accepted, rejected, and the
 reason, are the contract's, and accepted values are its bits.
 """
 
@@ -23,13 +24,15 @@ from typing import NamedTuple
 import numpy as np
 import pyarrow as pa
 
-from shared.schema import MAX_ABS_CHAINAGE_M, MAX_INT32, MAX_SPEED_MPS, DecodeError, SensorChunk, decode_sensor_chunk
+from shared.schema import (MAX_ABS_CHAINAGE_M, MAX_INT32, MAX_SPEED_MPS, DecodeError, InvalidMessage, SensorChunk,
+                           decode_sensor_chunk)
 
 _U32 = struct.Struct("<I")
 _STRINGS = ("vehicle_id", "pass_id", "route_id", "vehicle_model")
 #: Bounds of what the caches hold (layouts; validated string tuples).
 _MAX_PLANS = 256
 _MAX_NAMES = 1 << 16
+_NO_SAMPLES = np.zeros(0)
 
 
 class Chunk(NamedTuple):
@@ -232,16 +235,29 @@ class ChunkDecoder:
             chunk = decode_sensor_chunk(payload)
         except DecodeError as e:
             return e
-        names = (chunk.vehicle_id, chunk.pass_id, chunk.route_id, chunk.vehicle_model)
-        if len(self._names) >= _MAX_NAMES:
-            self._names.clear()
-            self._known.clear()
-        self._names.add(names)
+        self._add_names((chunk.vehicle_id, chunk.pass_id, chunk.route_id, chunk.vehicle_model))
         if key is not None and key not in self._plans:
             if len(self._plans) >= _MAX_PLANS:
                 self._plans.clear()
             self._plans[key] = _make_plan(bytes(payload), chunk)
         return chunk
+
+    def _add_names(self, names: tuple) -> None:
+        if len(self._names) >= _MAX_NAMES:
+            self._names.clear()
+            self._known.clear()
+        self._names.add(names)
+
+    def _validate(self, names: tuple) -> bool:
+        """Whether the contract accepts these strings in a sensor chunk (its own checks, which look
+        at each string alone: a chunk of no samples with them is built); if so they join the
+        validated ones. A new pass's first chunk, of a known layout, then needs no full decode."""
+        try:
+            SensorChunk(*names, 0, 0.0, 1.0, _NO_SAMPLES, _NO_SAMPLES, {})
+        except InvalidMessage:
+            return False
+        self._add_names(names)
+        return True
 
     def _fast(self, plan: _Plan, group: list[bytes], idx: list[int], out: list) -> None:
         blob = b"".join(group)
@@ -264,10 +280,11 @@ class ChunkDecoder:
                         names = tuple(raw[a:b].decode() for a, b in zip(cuts[:-1], cuts[1:]))
                     except UnicodeDecodeError:
                         names = None
-                    if names is None or names not in self._names:
+                    if names is None or not (names in self._names or self._validate(names)):
                         out[i] = self._general(group[r], None)
                         known = self._known.setdefault(plan.strings, {})  # (which may have cleared both)
                         continue
+                    known = self._known.setdefault(plan.strings, {})
                     if len(known) >= _MAX_NAMES:
                         known.clear()
                     known[raw] = names
