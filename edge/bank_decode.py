@@ -8,9 +8,10 @@ each value lies in the payload and the bytes of everything structural. Later pay
 layout are read as rows of one ``(chunks, bytes)`` matrix: structure compared with the plan's,
 values sliced out column by column and checked as :class:`~shared.schema.SensorChunk` checks them.
 
-The fast path only ever accepts: a payload whose structure differs, whose strings are not among
-those a full decode has validated, or whose values a check refuses is decoded again by
-``decode_sensor_chunk``, which accepts it or says why not. So what is accepted, rejected, and the
+The fast path only ever accepts: a payload whose structure differs, whose strings the contract's
+own checks refuse (a tuple of strings not seen before is checked once, by building a
+:class:`~shared.schema.SensorChunk` of no samples with them), or whose values a check refuses is
+decoded again by ``decode_sensor_chunk``, which accepts it or says why not. So what is accepted, rejected, and the
 reason, are the contract's, and accepted values are its bits.
 """
 
@@ -23,13 +24,15 @@ from typing import NamedTuple
 import numpy as np
 import pyarrow as pa
 
-from shared.schema import MAX_ABS_CHAINAGE_M, MAX_INT32, MAX_SPEED_MPS, DecodeError, SensorChunk, decode_sensor_chunk
+from shared.schema import (MAX_ABS_CHAINAGE_M, MAX_INT32, MAX_SPEED_MPS, DecodeError, InvalidMessage, SensorChunk,
+                           decode_sensor_chunk)
 
 _U32 = struct.Struct("<I")
 _STRINGS = ("vehicle_id", "pass_id", "route_id", "vehicle_model")
 #: Bounds of what the caches hold (layouts; validated string tuples).
 _MAX_PLANS = 256
 _MAX_NAMES = 1 << 16
+_NO_SAMPLES = np.zeros(0)
 
 
 class Chunk(NamedTuple):
@@ -63,7 +66,8 @@ class _Plan(NamedTuple):
     size: int  # payload bytes
     struct_idx: np.ndarray  # byte positions of everything structural in the body (the rest is the key) …
     struct_ref: np.ndarray  # … and their bytes
-    strings: tuple  # (start, length) of each of _STRINGS' data
+    strings: tuple  # (start, length) of each of _STRINGS' data …
+    string_idx: np.ndarray  # … and the positions of all their bytes, in that order
     seq: int
     t0: int
     rate: int
@@ -138,7 +142,9 @@ def _make_plan(payload: bytes, chunk: SensorChunk) -> _Plan | None:
     # body are the plan's key, which a payload matches byte for byte to be read by this plan: only
     # the body's structure is left to compare.
     structural[: _body_start(payload)] = False
+    string_idx = np.array([at + k for at, n in strings for k in range(n)], dtype=np.intp)
     plan = _Plan(size, np.flatnonzero(structural), np.frombuffer(payload, np.uint8)[structural].copy(), strings,
+                 string_idx,
                  *scalars, lane, params, params_at, n, *arrays)
     # The plan reads back what the decoder read, or it is not used.
     read = _read_rows(plan, np.frombuffer(payload, np.uint8)[None, :])
@@ -197,21 +203,28 @@ class ChunkDecoder:
     def __init__(self) -> None:
         self._plans: dict[bytes, _Plan | None] = {}
         self._names: set[tuple[str, str, str, str]] = set()  # string tuples a full decode validated
-        self._known: dict[tuple, tuple[str, str, str, str]] = {}  # … by their UTF-8 bytes
+        self._known: dict[tuple, dict] = {}  # … by their UTF-8 bytes, per layout of the strings
         self.fast = 0  # payloads decoded by the fast path
         self.general = 0  # … and by the contract's decoder
 
     def decode(self, payloads: list[bytes]) -> list:
         out: list = [None] * len(payloads)
         groups: dict[bytes, list[int]] = {}
+        last, last_size, last_group = None, -1, None  # the previous payload's key (a fleet's chunks share a few)
         for i, p in enumerate(payloads):
+            # A payload that starts with a key is that key's (the key holds every byte _body_start reads)
+            if len(p) == last_size and p.startswith(last):
+                last_group.append(i)
+                continue
             start = _body_start(p) if len(p) >= 24 else None
             key = None if start is None or start > len(p) else bytes(p[:start])
             plan = self._plans.get(key) if key is not None else None
             if plan is None or len(p) != plan.size:
                 out[i] = self._general(p, key)
             else:
-                groups.setdefault(key, []).append(i)
+                last, last_size = key, plan.size
+                last_group = groups.setdefault(key, [])
+                last_group.append(i)
         for key, idx in groups.items():
             self._fast(self._plans[key], [payloads[i] for i in idx], idx, out)
         return out
@@ -222,48 +235,64 @@ class ChunkDecoder:
             chunk = decode_sensor_chunk(payload)
         except DecodeError as e:
             return e
-        names = (chunk.vehicle_id, chunk.pass_id, chunk.route_id, chunk.vehicle_model)
-        if len(self._names) >= _MAX_NAMES:
-            self._names.clear()
-            self._known.clear()
-        self._names.add(names)
+        self._add_names((chunk.vehicle_id, chunk.pass_id, chunk.route_id, chunk.vehicle_model))
         if key is not None and key not in self._plans:
             if len(self._plans) >= _MAX_PLANS:
                 self._plans.clear()
             self._plans[key] = _make_plan(bytes(payload), chunk)
         return chunk
 
+    def _add_names(self, names: tuple) -> None:
+        if len(self._names) >= _MAX_NAMES:
+            self._names.clear()
+            self._known.clear()
+        self._names.add(names)
+
+    def _validate(self, names: tuple) -> bool:
+        """Whether the contract accepts these strings in a sensor chunk (its own checks, which look
+        at each string alone: a chunk of no samples with them is built); if so they join the
+        validated ones. A new pass's first chunk, of a known layout, then needs no full decode."""
+        try:
+            SensorChunk(*names, 0, 0.0, 1.0, _NO_SAMPLES, _NO_SAMPLES, {})
+        except InvalidMessage:
+            return False
+        self._add_names(names)
+        return True
+
     def _fast(self, plan: _Plan, group: list[bytes], idx: list[int], out: list) -> None:
         blob = b"".join(group)
         rows = np.frombuffer(blob, np.uint8).reshape(len(group), plan.size)
         read = _read_rows(plan, rows)
         ok = read[0].tolist()
-        size = plan.size
-        (s0, n0), (s1, n1), (s2, n2), (s3, n3) = plan.strings
-        known = self._known
+        # every row's strings' bytes, one after the other, as one key per row: a tuple validated once
+        # is looked up, not decoded again
+        width = plan.string_idx.size
+        keys = rows[:, plan.string_idx].tobytes()
+        cuts = np.cumsum([0] + [n for _, n in plan.strings]).tolist()
+        known = self._known.setdefault(plan.strings, {})
         rows_of = _Rows(plan, read)
         for r, i in enumerate(idx):
-            names = None
             if ok[r]:
-                base = r * size
-                # the strings' bytes as one key: a tuple validated once is looked up, not decoded again
-                raw = (blob[base + s0 : base + s0 + n0], blob[base + s1 : base + s1 + n1],
-                       blob[base + s2 : base + s2 + n2], blob[base + s3 : base + s3 + n3])
-                names = known.get(raw)
+                raw = keys[r * width : (r + 1) * width]
+                names = known.get(raw)  # (only tuples in self._names: the two are cleared together)
                 if names is None:
                     try:
-                        names = tuple(b.decode() for b in raw)
+                        names = tuple(raw[a:b].decode() for a, b in zip(cuts[:-1], cuts[1:]))
                     except UnicodeDecodeError:
                         names = None
-                    if names is not None and names in self._names:
-                        if len(known) >= _MAX_NAMES:
-                            known.clear()
-                        known[raw] = names
-            if names is None or names not in self._names:
+                    if names is None or not (names in self._names or self._validate(names)):
+                        out[i] = self._general(group[r], None)
+                        known = self._known.setdefault(plan.strings, {})  # (which may have cleared both)
+                        continue
+                    known = self._known.setdefault(plan.strings, {})
+                    if len(known) >= _MAX_NAMES:
+                        known.clear()
+                    known[raw] = names
+                self.fast += 1
+                out[i] = rows_of.chunk(r, names)
+            else:
                 out[i] = self._general(group[r], None)
-                continue
-            self.fast += 1
-            out[i] = rows_of.chunk(r, names)
+                known = self._known.setdefault(plan.strings, {})
 
 
 class _Rows:

@@ -26,9 +26,12 @@ MIN_SPEED_MPS = 0.5  # below this the GNSS residual says nothing about the odome
 
 
 @kernel
-def _fuse(gnss, speed, dt, k_pos, k_scale, x0, s0):
-    out = np.empty(gnss.size)
-    x, s = x0, s0
+def track_into(state, gnss, speed, dt, k_pos, k_scale, out):
+    """The loop's chainage of samples ``gnss``/``speed`` into ``out``, from ``state`` = (chainage,
+    odometer scale, started) left unchanged; returns the scale after them (the caller commits
+    ``(out[-1], scale, 1)`` once the chunk is taken). Not started: the first sample lands on GNSS."""
+    x = state[0] if state[2] != 0.0 else gnss[0] - speed[0] * dt
+    s = state[1]
     for k in range(gnss.size):
         x += s * speed[k] * dt
         e = gnss[k] - x
@@ -36,7 +39,7 @@ def _fuse(gnss, speed, dt, k_pos, k_scale, x0, s0):
         if speed[k] > MIN_SPEED_MPS:
             s += k_scale * e / speed[k]
         out[k] = x
-    return out, s
+    return s
 
 
 class ChainageTracker:
@@ -44,6 +47,9 @@ class ChainageTracker:
     (position gain 2/τ, odometer-scale gain 1/τ²): GNSS jitter cannot make chainage run backwards,
     a GNSS bias is kept as a shift and an odometer scale error as a stretch over a pass (the cloud
     aligns both), and over a long drive the chainage converges to GNSS and the scale is learnt.
+
+    ``state`` is the loop's (chainage, odometer scale, started) for kernels that track in place
+    (:func:`track_into`).
     """
 
     def __init__(self, dt: float, tau_s: float = 900.0):
@@ -52,16 +58,19 @@ class ChainageTracker:
         self.dt = dt
         self.k_pos = min(2.0 * dt / tau_s, 1.0)
         self.k_scale = dt / tau_s**2
-        self.scale = 1.0  # learnt odometer correction: true speed ≈ scale × reported speed
-        self._x: float | None = None
+        self.state = np.array([0.0, 1.0, 0.0])
+
+    @property
+    def scale(self) -> float:
+        """The learnt odometer correction: true speed ≈ scale × reported speed."""
+        return float(self.state[1])
 
     def update(self, gnss_m: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
         gnss_m = np.asarray(gnss_m, float)
         speed = np.asarray(speed_mps, float)
         if gnss_m.size == 0:
             return gnss_m.copy()
-        if self._x is None:
-            self._x = float(gnss_m[0] - speed[0] * self.dt)  # so the first sample lands on GNSS
-        out, self.scale = _fuse(gnss_m, speed, self.dt, self.k_pos, self.k_scale, self._x, self.scale)
-        self._x = float(out[-1])
+        out = np.empty(gnss_m.size)
+        scale = track_into(self.state, gnss_m, speed, self.dt, self.k_pos, self.k_scale, out)
+        self.state[:] = out[-1], scale, 1.0
         return out

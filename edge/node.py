@@ -171,34 +171,54 @@ class Edge:
         chunks are processed in their order, with the results of feeding them one at a time; what
         a chunk releases is published tagged with its own trace."""
         raws = [p.to_bytes() if hasattr(p, "to_bytes") else bytes(p) for p, _, _ in messages]  # zenoh.ZBytes, or bytes
-        queues: dict[str, collections.deque] = {}
+        # rounds[r]: each vehicle's (r + 1)-th chunk of the tick, the vehicles in order of first arrival
+        rounds: list[list] = [[]]
+        depth: dict[str, int] = {}  # chunks of the vehicle so far in this tick
+        rank: dict[str, int] = {}  # its order of first arrival
+        only, shard, rejected = self.only, self.shard, self.rejected
         for (_, key_vehicle, trace), raw, chunk in zip(messages, raws, self.decoder.decode(raws)):
             if isinstance(chunk, DecodeError):
-                self.rejected[chunk.reason] += 1
+                rejected[chunk.reason] += 1
                 continue
-            if key_vehicle is not None and key_vehicle != chunk.vehicle_id:
-                self.rejected["key_mismatch"] += 1
+            vehicle = chunk.vehicle_id
+            if key_vehicle is not None and key_vehicle != vehicle:
+                rejected["key_mismatch"] += 1
                 continue
-            if (self.only is not None and chunk.vehicle_id not in self.only) or not in_shard(chunk.vehicle_id, self.shard):
+            if (only is not None and vehicle not in only) or not in_shard(vehicle, shard):
                 continue
             if chunk.vehicle_model not in MODELS:
-                self.rejected["unsupported_model"] += 1
+                rejected["unsupported_model"] += 1
                 continue
-            queues.setdefault(chunk.vehicle_id, collections.deque()).append((chunk, raw, trace))
-        while queues:
+            r = depth.get(vehicle, 0)
+            depth[vehicle] = r + 1
+            if r == 0:
+                rank[vehicle] = len(rank)
+            elif r == len(rounds):
+                rounds.append([])
+            rounds[r].append((chunk, raw, trace))
+        for r in range(1, len(rounds)):
+            rounds[r].sort(key=lambda item: rank[item[0].vehicle_id])
+        tasks = self.tasks
+        for round_ in rounds:
             ready = []
-            for vehicle in list(queues):
-                chunk, raw, trace = queues[vehicle].popleft()
-                if not queues[vehicle]:
-                    del queues[vehicle]
-                task = self.tasks.get(vehicle)
+            for chunk, raw, trace in round_:
+                vehicle = chunk.vehicle_id
+                task = tasks.get(vehicle)
                 if task is None:
-                    task = self.tasks[vehicle] = VehicleTask(vehicle)
+                    task = tasks[vehicle] = VehicleTask(vehicle)
+                current, seq = task.current, chunk.seq
+                if current is not None and seq != 0 and seq == task.expected_seq and current.pass_id == chunk.pass_id:
+                    task.expected_seq += 1  # (the pass goes on: what _begin does then)
+                    task.current_raw.append(raw)
+                    ready.append((task, chunk, trace))
+                    continue
                 try:
                     if self._begin(task, chunk, raw):
                         ready.append((task, chunk, trace))
                 except Exception:  # isolation: one vehicle's failure must not stop the others
                     self._failed(task, chunk)
+            if not ready:
+                continue
 
             ending: list[tuple[int, list[ApSegment]]] = []
 
@@ -216,6 +236,12 @@ class Edge:
                     self._failed(task, chunk)
 
             feed_bank([(task.current, chunk) for task, chunk, _ in ready], publish)
+            # (feed_bank calls publish only for what releases, fails or ends; the trace is left as
+            # if every chunk's release had been published)
+            for task, chunk, trace in reversed(ready):
+                if not chunk.final:
+                    self.trace = trace
+                    break
             # A pass's end tiles, drift-controls and encodes every tile still waiting for the drift
             # window (on a route shorter than that window, the whole pass): passes ending together
             # (a fleet in lockstep) would hold back the releases of the vehicles behind them in the

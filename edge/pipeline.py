@@ -16,7 +16,7 @@ from shared.jit import kernel
 from shared.schema import FLAG_UNRELIABLE, ApSegment, PassDone, SensorChunk
 from shared.vehicles import RAIL_MODELS
 
-from .chainage import ChainageTracker
+from .chainage import ChainageTracker, track_into
 from .drift import drift_trend
 from .error_model import (BAND_ORDER, LONGEST_M, encode_error_model, fit_error_band, median_abs_deviations,
                           noise_sd_from_d4, unit_error_band, unit_spectra, white_equivalent)
@@ -231,13 +231,18 @@ def _fourth_differences_into(tail, z, out, at):
     return m - 4
 
 
+#: The first capacity of a pass's grid points and fourth differences: a road pass of a few hundred
+#: metres fits without growing (each growth is a chunk's kernel call run again).
+_FIRST_ROWS = 4096
+
+
 class _Rows:
     """Rows appended at the end and dropped from the start, in amortised O(rows): a buffer of
     doubling capacity, compacted when the dropped part would otherwise be copied past."""
 
     def __init__(self, width: int) -> None:
-        self.data = np.zeros((1024, width))
-        self.t = np.zeros(1024)
+        self.data = np.zeros((_FIRST_ROWS, width))
+        self.t = np.zeros(_FIRST_ROWS)
         self.lo = self.hi = 0
 
     def reserve(self, rows: int) -> None:
@@ -304,6 +309,13 @@ def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid,
             a = st[_SIZE] + first - filled_end  # skipped grid points (e.g. a stop) stay invalid
     need_points = a + stop - first if stop > first else 0
     need_samples = st[_S_HI] + n_new if antialias else 0
+    if need_samples > sap.size:
+        lo, hi = st[_S_LO], st[_S_HI]
+        if max(2 * (hi - lo + n_new), 1024) <= sap.size:  # room once compacted (AxleGrid._reserve_samples's rule)
+            for i in range(hi - lo):
+                sap[i], srel[i] = sap[lo + i], srel[lo + i]
+            st[_S_LO], st[_S_HI] = 0, hi - lo
+            need_samples = hi - lo + n_new
     if need_points > values.size or need_samples > sap.size:
         return need_points, need_samples
     if antialias:
@@ -328,6 +340,66 @@ def _grid_add(x, ap, t, rel, spacing, min_index, st, last, values, times, valid,
     else:
         st[_DONE] = st[_SIZE]
     return 0, 0
+
+
+@kernel
+def _feed_chunk(gnss, speed, z, ap, t0, rate, warmup, tail_n, d4_lo, d4_hi,
+                chain, dt, k_pos, k_scale, min_speed, tail, d4, d4_t, with_d4, x_cg, t, rel, with_grid, offset, spacing,
+                min_index, st, last, values, times, valid, smooth, gspeed, index, sap, srel, antialias, gdt, gmin_speed):
+    """A chunk's per-pass work in one call (:meth:`PassProcessor.feed_ap`): chainage (the tracker's
+    ``chain`` state, :func:`~edge.chainage.track_into`), sample times ``t``, reliability ``rel``
+    (moving, past the hard warm-up), the channels' fourth differences appended to ``d4``/``d4_t``
+    (``with_d4``), and, ``with_grid``, the pass's one axle gridded (:func:`_grid_add`, chainage
+    ``x_cg + offset``, AP ``ap[:, 0]``). Each is the operations of the step it replaces, so the
+    same bits. The chunk's own arguments come first, the pass's (:meth:`PassProcessor._feed_args`)
+    after.
+
+    Returns ``(points, samples, rows, written, tail_n, d4_lo, d4_hi, end)``: the first three
+    nonzero when the grid's points or samples, or the differences' rows, need that capacity first
+    (then nothing has changed but where the kept rows and samples lie: the state is committed only
+    once everything fits); else the differences written, the rows of ``tail`` (the last ≤ 4
+    samples of the channels) now held, where the differences now lie in ``d4``, and the grid's
+    end (base + final points)."""
+    n = gnss.size
+    scale = track_into(chain, gnss, speed, dt, k_pos, k_scale, x_cg)
+    for i in range(n):
+        t[i] = t0 + i / rate  # (chunk.t's operations)
+        rel[i] = speed[i] >= min_speed
+    for i in range(min(warmup, n)):
+        rel[i] = False
+    m = tail_n + n
+    if with_d4 and d4_hi + n > d4.shape[0]:
+        if 2 * (d4_hi - d4_lo + n) > d4.shape[0]:
+            return 0, 0, n, 0, tail_n, d4_lo, d4_hi, 0
+        for r in range(d4_hi - d4_lo):  # room once compacted (_Rows.reserve's rule)
+            d4[r] = d4[d4_lo + r]
+            d4_t[r] = d4_t[d4_lo + r]
+        d4_lo, d4_hi = 0, d4_hi - d4_lo
+    if with_grid:
+        x = np.empty(n)
+        for i in range(n):
+            x[i] = x_cg[i] + offset
+        points, samples = _grid_add(x, ap[:, 0], t, rel, spacing, min_index, st, last, values, times, valid, smooth, gspeed,
+                                    index, sap, srel, antialias, gdt, gmin_speed)
+        if points != 0 or samples != 0:
+            return points, samples, 0, 0, tail_n, d4_lo, d4_hi, 0
+    written = 0
+    if with_d4:
+        written = _fourth_differences_into(tail[:tail_n], z, d4, d4_hi)
+        for i in range(written):
+            d4_t[d4_hi + i] = t[n - written + i]
+        keep = min(4, m)
+        new = np.empty((keep, tail.shape[1]))
+        for r in range(keep):
+            src = m - keep + r
+            if src < tail_n:
+                new[r] = tail[src]
+            else:
+                new[r] = z[src - tail_n]
+        tail[:keep] = new
+        tail_n = keep
+    chain[0], chain[1], chain[2] = x_cg[n - 1], scale, 1.0
+    return 0, 0, 0, written, tail_n, d4_lo, d4_hi + written, st[_BASE] + st[_DONE]
 
 
 class AxleGrid:
@@ -425,7 +497,7 @@ class AxleGrid:
     def _reserve(self, size: int) -> None:
         """Capacity for at least ``size`` points (new points are 0, invalid)."""
         if size > self._values.size:
-            cap = max(size, 2 * self._values.size, 1024)
+            cap = max(size, 2 * self._values.size, _FIRST_ROWS)
             n = self.size
             for name in ("_values", "_valid", "_t", "_smooth", "_speed", "_index"):
                 old = getattr(self, name)
@@ -488,6 +560,8 @@ class PassProcessor:
         self.grids = [AxleGrid(config.antialias, model.constants.dt, max(config.min_speed_mps, 0.1))
                       for _ in range(self.system.n_contacts)]
         self.channel_names = [ch.name for ch in self.system.channels]
+        # what passes fed as one bank share (edge.bank.feed_bank): the model, its channels and contacts
+        self.bank_key = (model_name, len(self.system.channels), self.system.n_contacts)
         self.next_tile: int | None = None
         self.seq = 0
         self.n_samples = 0
@@ -501,12 +575,19 @@ class PassProcessor:
         # samples in the segment's own time span, so the result does not depend on chunking).
         # Rail vehicles keep the white sigma: their cloud re-runs the dynamics itself.
         self.error_model = self.config.error_model and model_name not in RAIL_MODELS
-        self._z_tail = np.zeros((0, len(self.channel_names)))
+        self._z_tail = np.zeros((4, len(self.channel_names)))  # the channels' last samples (_tail_n of them)
+        self._tail_n = 0
         self._d4 = _Rows(len(self.channel_names))
         self._trimmed_for: int | None = None  # the next tile the differences were last trimmed for
         self._windows: dict[int, tuple] = {}  # axle → (its last drift window, (trend, white sigma))
-        self._steps: tuple = (0, 0.0, None)  # (samples, rate, sample times within a chunk)
+        self._buffers = (np.empty(0), np.empty(0), np.empty(0, dtype=np.bool_))  # a chunk's chainage, times, reliability
+        # the first sample past the whole warm-up, if that is past the hard warm-up (settled_t)
+        self._soft_from = self.inverse.reliable_from if self.inverse.reliable_from > self._hard_warmup else None
+        self._offset0 = float(self.system.offsets_m[0])
+        self._one = len(self.grids) == 1  # one axle: gridded in _feed_chunk
+        self._args: tuple | None = None  # _feed_args()
         self._based = False  # every axle's grid has its first point
+        self._base0 = 0  # (the first axle's base, once based)
         self._tile_points, self._drift_points = self.config.tile_points, self.config.drift_points
         self._noise: dict[tuple[float, float], np.ndarray | None] = {}  # a coming segment's (t0, t1) → _noise_sd
         self._ahead = 0  # the first tile whose noise levels are not measured ahead
@@ -529,31 +610,60 @@ class PassProcessor:
             z[:, j] = channels[name]
         return z
 
-    def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None) -> list[ApSegment]:
+    def feed_ap(self, chunk: SensorChunk, z: np.ndarray, ap: np.ndarray | None,
+                mean_speed: float | None = None) -> list[ApSegment]:
         """:meth:`feed` once the inverse has run (``ap`` from ``self.inverse`` on ``z``; None if the
-        chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes."""
+        chunk is empty): what :func:`edge.bank.feed_bank` calls after one inverse call for many passes
+        (``mean_speed``, if given, is ``float(np.add.reduce(chunk.speed)) / chunk.n``, computed for
+        many chunks at once)."""
         n = z.shape[0]  # (chunk.n)
-        if n:
-            x_cg = self.tracker.update(chunk.chainage, chunk.speed)
-            steps = self._steps
-            if steps[0] != n or steps[1] != chunk.sample_rate_hz:  # (chunks of a pass are alike)
-                steps = self._steps = (n, chunk.sample_rate_hz, np.arange(n) / chunk.sample_rate_hz)
-            t = chunk.t0 + steps[2]  # chunk.t's operations
-            if self.error_model:
-                self._add_differences(z, t)
-            reliable = chunk.speed >= self.config.min_speed_mps  # moving
-            hard = self._hard_warmup
-            warmup = hard - self.n_samples  # samples of this chunk still warming up
-            if warmup > 0:
-                reliable[:warmup] = False
-            soft_end = self.inverse.reliable_from - self.n_samples
-            if self.inverse.reliable_from > hard and 0 <= soft_end < n:
-                self.settled_t = float(t[soft_end])  # the first sample past the whole warm-up
+        if not n:
+            return self._emit(final=False)
+        if self._buffers[0].size != n:
+            self._buffers = (np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_))
+            self._args = None
+        args = self._args or self._feed_args()
+        d4, g = self._d4, self.grids[0]
+        while True:
+            points, samples, rows, written, tail_n, d4.lo, d4.hi, end = _feed_chunk(
+                chunk.chainage, chunk.speed, z, ap, chunk.t0, chunk.sample_rate_hz, self._hard_warmup - self.n_samples,
+                self._tail_n, d4.lo, d4.hi, *args)
+            if not (points or samples or rows):
+                break
+            g._reserve(points)
+            g._reserve_samples(samples)
+            if rows:
+                d4.reserve(n)
+            args = self._feed_args()
+        self._tail_n = tail_n
+        if self._soft_from is not None and 0 <= self._soft_from - self.n_samples < n:
+            # the first sample past the whole warm-up (t's operations)
+            self.settled_t = chunk.t0 + (self._soft_from - self.n_samples) / chunk.sample_rate_hz
+        if not self._one:
+            x_cg, t, rel = self._buffers
             for i, grid in enumerate(self.grids):
-                grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, reliable, self.config.spacing_m, self.min_index)
-            self.n_samples += n
-            self.speeds.append(float(np.add.reduce(chunk.speed)) / n)  # np.mean's sum and division
+                grid.add(x_cg + self.system.offsets_m[i], ap[:, i], t, rel, self.config.spacing_m, self.min_index)
+        self.n_samples += n
+        self.speeds.append(float(np.add.reduce(chunk.speed)) / n if mean_speed is None else mean_speed)
+        if self._one and self._based:  # what _emit's first test concludes, without its calls when it has nothing to do
+            P = self._tile_points
+            if end < (self.next_tile + 1) * P + self._drift_points:
+                if not self.error_model:
+                    return []
+                k = self.next_tile * P - self._base0
+                trim = self._trimmed_for != self.next_tile and 0 <= k < end - self._base0
+                if not trim and end < (self._ahead + 1) * P:
+                    return []
         return self._emit(final=False)
+
+    def _feed_args(self) -> tuple:
+        """The pass's arguments of :func:`_feed_chunk` (its arrays are replaced when they grow)."""
+        tracker, cfg, d4, g = self.tracker, self.config, self._d4, self.grids[0]
+        self._args = (tracker.state, tracker.dt, tracker.k_pos, tracker.k_scale, cfg.min_speed_mps, self._z_tail,
+                      d4.data, d4.t, self.error_model, *self._buffers, self._one, self._offset0, cfg.spacing_m,
+                      self.min_index, g._st, g._last, g._values, g._t, g._valid, g._smooth, g._speed, g._index,
+                      g._samples, g._sreliable, g.antialias, g._dt, g._min_speed)
+        return self._args
 
     def finish(self) -> tuple[list[ApSegment], PassDone]:
         for grid in self.grids:
@@ -570,14 +680,6 @@ class PassProcessor:
         if self._speed_mean[0] != len(self.speeds):
             self._speed_mean = (len(self.speeds), float(np.mean(self.speeds)) if self.speeds else 0.0)
         return self._speed_mean[1]
-
-    def _add_differences(self, z: np.ndarray, t: np.ndarray) -> None:
-        d4 = self._d4
-        d4.reserve(z.shape[0])
-        k = _fourth_differences_into(self._z_tail, z, d4.data, d4.hi)
-        d4.t[d4.hi : d4.hi + k] = t[t.size - k :]
-        d4.hi += k
-        self._z_tail = np.concatenate([self._z_tail, z])[-4:] if z.shape[0] < 4 else z[-4:]
 
     def _trim_differences(self) -> None:
         """Drop the differences older than any segment still to come needs (once per next tile:
@@ -676,6 +778,7 @@ class PassProcessor:
         if self.next_tile is None:
             self.next_tile = max(min(g.base for g in grids) // P, 0)
         self._based = len(grids) == len(self.grids)
+        self._base0 = grids[0].base
         # A tile is ready once every axle's grid extends past its end by the drift half-width.
         frontier = min(g.end for g in grids) if len(grids) == len(self.grids) else 0
         last_tile = max(g.end for g in grids) // P + 1 if final else (frontier - self.config.drift_points) // P

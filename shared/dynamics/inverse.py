@@ -757,21 +757,23 @@ def update_streams(streams: list[InverseStream], z: np.ndarray) -> np.ndarray:
     n_in, n_out = len(system.channels), system.n_contacts
     if z.ndim != 3 or z.shape[1] != n_in or z.shape[2] != len(streams):
         raise ValueError(f"expected (n_samples, {n_in}, {len(streams)}), got {z.shape}")
-    if any(len(s.model.system.channels) != n_in or s.model.system.n_contacts != n_out for s in streams):
+    systems = {id(s.model.system): s.model.system for s in streams}  # (a fleet's streams share a few)
+    if any(len(sy.channels) != n_in or sy.n_contacts != n_out for sy in systems.values()):
         raise ValueError("update_streams: all streams must share one vehicle model")
     out = np.empty((z.shape[0], n_out, z.shape[2]))
     if z.shape[0] == 0:
         return out
-    started = []
+    groups: dict[tuple, list[int]] = {}
+    keys: dict[int, tuple] = {}  # a realisation's block structure, by id (a fleet's streams share a few)
     for q, s in enumerate(streams):
         if s.n_seen == 0:  # a stream's first chunk sets its initial state: run alone, as it would
             out[:, :, q] = s.update(z[:, :, q])
-        else:
-            started.append(q)
-    groups: dict[tuple, list[int]] = {}
-    for q in started:
-        r = streams[q]._real
-        groups.setdefault((r.form, r.structure), []).append(q)
+            continue
+        r = s._real
+        key = keys.get(id(r))
+        if key is None:
+            key = keys[id(r)] = (r.form, r.structure)
+        groups.setdefault(key, []).append(q)
     for key, idx in groups.items():
         Ad, A2, A1, B, C, D = _bank_matrices(key, tuple(streams[q]._real for q in idx))
         # The states gathered and handed back in one copy each way (np.array of equal-length
