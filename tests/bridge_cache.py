@@ -9,16 +9,16 @@ alone against passes made earlier while other code changes under it (say so when
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import os
-import shutil
 import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from tests.support import made_once
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -39,15 +39,5 @@ WORK = (Path(os.environ["DRIVEBY_BRIDGE_TEST_WORK"]) if os.environ.get("DRIVEBY_
 
 
 def kept(name: str, make: Callable[[Path], None]) -> Path:
-    """``WORK/name``, made by ``make(dir)`` once (under a lock: sessions may run side by side);
-    a ``done`` marker is written after ``make`` returns, so a half-made directory is made again."""
-    d = WORK / name
-    d.parent.mkdir(parents=True, exist_ok=True)
-    with open(d.with_name(name + ".lock"), "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (d / "done").exists():
-            shutil.rmtree(d, ignore_errors=True)
-            d.mkdir()
-            make(d)
-            (d / "done").write_text("")
-    return d
+    """``WORK/name``, made by ``make(dir)`` once (sessions may run side by side: :func:`made_once`)."""
+    return made_once(WORK / name, make)

@@ -51,17 +51,12 @@ def edge_messages(site: Site, logs: Iterable[DriveLog], net: str = "t", **edge_o
     return out
 
 
-def session_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], object]) -> Path:
-    """``name``'s directory, made by ``make(dir)`` once per test session and read by every module
-    (and every xdist worker) that asks for it: the workers share the session's temporary root, and
-    a lock keeps a second worker waiting until the first has made it. A ``done`` marker is written
-    after ``make`` returns, so a directory a failed ``make`` left half made is made again. Readers
-    must not change what is in it."""
-    base = tmp_path_factory.getbasetemp()
-    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: a basetemp per worker
-    d = root / "shared" / name
+def made_once(d: Path, make: Callable[[Path], object]) -> Path:
+    """``d``, made by ``make(d)`` once however many processes ask for it side by side: a lock keeps
+    the others waiting until the first has made it. A ``done`` marker is written after ``make``
+    returns, so a directory a failed ``make`` left half made is made again."""
     d.parent.mkdir(parents=True, exist_ok=True)
-    with open(d.with_name(name + ".lock"), "w") as lock:
+    with open(d.with_name(d.name + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not (d / "done").exists():
             shutil.rmtree(d, ignore_errors=True)
@@ -69,3 +64,12 @@ def session_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Calla
             make(d)
             (d / "done").write_text("")
     return d
+
+
+def session_dir(tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], object]) -> Path:
+    """``name``'s directory, made by ``make(dir)`` once per test session and read by every module
+    (and every xdist worker) that asks for it: the workers share the session's temporary root
+    (:func:`made_once`). Readers must not change what is in it."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # xdist: a basetemp per worker
+    return made_once(root / "shared" / name, make)

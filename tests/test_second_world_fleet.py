@@ -1,8 +1,8 @@
 """The second (ivp) world's goals that take a calibrated fleet of 30 passes each: the bridge's global
 loss read within a point and alarmed, and one 30-vehicle fleet's ratio intervals holding the truth
 with an exact odometer and with the world's own odometer error (their coverage over seeds is
-``tests/test_ratio_coverage.py``'s). The road's goals on the
-same world are ``tests/test_second_world.py``'s; a module apart so the two run side by side.
+``tests/test_ratio_coverage.py``'s). The road's goals on the same world are
+``tests/test_second_world.py``'s; a module apart so the two run side by side.
 """
 
 from __future__ import annotations
