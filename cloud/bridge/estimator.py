@@ -236,7 +236,7 @@ class BridgeEstimator:
         """Add (or replace, e.g. after recalibration) one pass. Its model columns are computed at the
         next estimate, once its wheel-load factor is known (:attr:`BridgeSettings.load_factor`)."""
         self.passes[(pd.vehicle_id, pd.pass_id)] = _PassEntry(pd, None, raw=pd)
-        self._cache = {k: v for k, v in self._cache.items() if (k[0], k[1]) != (pd.vehicle_id, pd.pass_id)}
+        self._forget((pd.vehicle_id, pd.pass_id))
 
     def remove(self, vehicle_id: str, pass_id: str) -> None:
         self.passes.pop((vehicle_id, pass_id), None)
@@ -300,6 +300,10 @@ class BridgeEstimator:
         return BridgeEstimate(self.bridge, post, qs, assessment, mril, indicators, len(entries), level, mril_passes,
                               pass_deflections)
 
+    def _forget(self, key: tuple[str, str]) -> None:
+        """Drop what the cache holds for the pass ``key`` (vehicle, pass): its data changed."""
+        self._cache = {k: v for k, v in self._cache.items() if (k[0], k[1]) != key}
+
     def _register(self, entries: list[_PassEntry]) -> None:
         """Move every pass to where its road agrees with the others' (:mod:`cloud.bridge.registration`).
         A pass moved again only when its shift has changed by more than the registration resolves
@@ -311,8 +315,7 @@ class BridgeEstimator:
                 continue
             e.data, e.shift_m = shift_pass(e.raw, s), s
             e.columns = e.load_at = e.road = e.common = None
-            key = (e.data.vehicle_id, e.data.pass_id)
-            self._cache = {k: v for k, v in self._cache.items() if (k[0], k[1]) != key}
+            self._forget((e.data.vehicle_id, e.data.pass_id))
             moved = True
         if moved:
             self._common_at = None

@@ -104,6 +104,7 @@ def register(passes: Sequence[PassData], sweeps: int = 2) -> list[float]:
     leave-one-out consensus of the others, the consensus rebuilt from the moved passes between
     ``sweeps``."""
     shifts = np.zeros(len(passes))
+    v = np.array([p.speed_mps for p in passes])
     for _ in range(sweeps):
         moved = [shift_pass(p, s) for p, s in zip(passes, shifts)]
         ref = Reference.of(moved)
@@ -115,9 +116,8 @@ def register(passes: Sequence[PassData], sweeps: int = 2) -> list[float]:
         sd = np.array([r[1] if r is not None else np.inf for r in read])
         new[have] -= new[have].mean()
         shifts = np.where(have & (np.abs(new) > SIGNIFICANCE * sd), new, 0.0)
-        tau = delay(np.array([p.speed_mps for p in passes])[have], new[have])
+        tau = delay(v[have], new[have])
         if tau:
-            v = np.array([p.speed_mps for p in passes])
             shifts = np.where(have, new, 0.0) + v.mean() * tau - np.where(have, 0.0, (v.mean() - v) * tau)
     return [float(s) for s in shifts]
 
